@@ -1,0 +1,33 @@
+# psdr — two entry points for a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.psdr-installed
+
+.PHONY: demo test install llvm clean help
+
+help:
+	@echo "make demo   set up .venv and run the built-in demo experiment (configs/demo.yaml)"
+	@echo "make test   set up .venv and run the test suite"
+
+llvm:
+	@bash scripts/ensure-llvm.sh
+
+$(STAMP): pyproject.toml
+	@bash scripts/ensure-llvm.sh
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/psdr render configs/demo.yaml
+	@echo "demo outputs: runs/demo/render/ (EXR + PNG per view)"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+clean:
+	rm -rf $(VENV) runs build *.egg-info

@@ -1,0 +1,133 @@
+"""Dr.Jit / Mitsuba start-up: libLLVM discovery, kernel cache, variant selection.
+
+Dr.Jit's LLVM backend needs libLLVM >= 16 (LLVM 15 aborts with "Cannot select: fminimum").
+The library is chosen through the ``DRJIT_LIBLLVM_PATH`` environment variable, which must be set
+before ``drjit`` is first imported. :func:`configure_environment` does that and runs when
+``psdr_cli`` is imported, so every entry point (CLI, Python API, tests) gets the same set-up.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+import subprocess
+import sys
+
+from .errors import PsdrError
+
+#: Oldest LLVM major version Dr.Jit's LLVM backend works with.
+MIN_LLVM = 16
+#: Debian/Ubuntu package that provides a suitable libLLVM.
+LLVM_PACKAGE = "libllvm19"
+
+_SEARCH_GLOBS = (
+    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*",
+    "/usr/lib64/libLLVM*.so*",
+    "/usr/lib/libLLVM*.so*",
+    "/usr/local/lib/libLLVM*.so*",
+    "/opt/homebrew/opt/llvm/lib/libLLVM.dylib",
+    "/usr/local/opt/llvm/lib/libLLVM.dylib",
+)
+_VERSION_RE = re.compile(r"libLLVM(?:-(\d+)|\.so\.(\d+))")
+
+
+def _llvm_major(path: str) -> int | None:
+    """Major version encoded in a libLLVM file name (``libLLVM-19.so``, ``libLLVM.so.19.1``)."""
+    m = _VERSION_RE.search(os.path.basename(path))
+    if m:
+        return int(m.group(1) or m.group(2))
+    m = re.search(r"llvm-(\d+)", path)
+    return int(m.group(1)) if m else None
+
+
+def find_libllvm(min_version: int = MIN_LLVM) -> str | None:
+    """Path of the newest libLLVM with major version >= ``min_version``, or None."""
+    candidates = set()
+    for pattern in _SEARCH_GLOBS:
+        candidates.update(glob.glob(pattern))
+    try:
+        out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True, timeout=10).stdout
+        candidates.update(re.findall(r"=> (\S*libLLVM\S*)", out))
+    except (OSError, subprocess.SubprocessError):
+        pass
+    found = []
+    for path in candidates:
+        major = _llvm_major(path)
+        if major is not None and major >= min_version and os.path.exists(path):
+            found.append((major, len(path), path))
+    return max(found)[2] if found else None
+
+
+def default_cache_dir() -> str:
+    """Stable folder for Dr.Jit's on-disk kernel cache."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "psdr", "drjit")
+
+
+def configure_environment() -> None:
+    """Set ``DRJIT_LIBLLVM_PATH`` and ``DRJIT_CACHE_DIR`` unless the user already did.
+
+    Must run before the first ``import drjit``; warns when it is too late.
+    """
+    if "drjit" in sys.modules:
+        return
+    if "DRJIT_LIBLLVM_PATH" not in os.environ:
+        lib = find_libllvm()
+        if lib:
+            os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    if "DRJIT_CACHE_DIR" not in os.environ:
+        cache = default_cache_dir()
+        try:
+            os.makedirs(cache, exist_ok=True)
+            os.environ["DRJIT_CACHE_DIR"] = cache
+        except OSError:
+            pass  # Dr.Jit falls back to its own default (~/.drjit)
+
+
+def _require_llvm() -> None:
+    path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if path:
+        major = _llvm_major(path)
+        if major is not None and major < MIN_LLVM:
+            raise PsdrError(
+                f"DRJIT_LIBLLVM_PATH={path} is LLVM {major}; Dr.Jit needs LLVM >= {MIN_LLVM} "
+                f"(install it with 'apt-get install {LLVM_PACKAGE}' and unset DRJIT_LIBLLVM_PATH)")
+        return
+    raise PsdrError(f"no libLLVM >= {MIN_LLVM} found; install one with "
+                    f"'apt-get install {LLVM_PACKAGE}' (or set DRJIT_LIBLLVM_PATH)")
+
+
+def cuda_available() -> bool:
+    """True when Dr.Jit can use a CUDA device."""
+    import drjit as dr
+    try:
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:  # noqa: BLE001 - any driver failure means "no CUDA"
+        return False
+
+
+VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
+
+
+def select_variant(variant: str = "auto") -> str:
+    """Activate a Mitsuba variant and return its name.
+
+    ``auto`` picks ``cuda_ad_rgb`` when a CUDA device works and ``llvm_ad_rgb`` otherwise. The
+    environment variable ``PSDR_VARIANT`` overrides the experiment's choice.
+    """
+    variant = os.environ.get("PSDR_VARIANT", variant) or "auto"
+    if variant not in VARIANTS:
+        raise PsdrError(f"unknown variant '{variant}' (expected {', '.join(VARIANTS)})")
+    if variant == "auto":
+        variant = "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
+    if variant.startswith("llvm"):
+        _require_llvm()
+    import mitsuba as mi
+    if mi.variant() != variant:
+        try:
+            mi.set_variant(variant)
+        except Exception as exc:  # noqa: BLE001
+            raise PsdrError(f"cannot activate Mitsuba variant '{variant}': {exc}") from exc
+    return variant

@@ -1,0 +1,166 @@
+"""``psdr`` command line: a thin layer over :mod:`psdr_cli.api`.
+
+Every user-facing failure is printed as one ``error: ...`` line on stderr with exit code 2;
+an unexpected internal failure prints one line (and the traceback only with ``PSDR_DEBUG=1``).
+"""
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from . import __version__
+from .config import load_experiment
+from .errors import PsdrError
+
+app = typer.Typer(
+    name="psdr",
+    help="Path-space differentiable rendering with guided boundary sampling (Yan et al. 2022).",
+    invoke_without_command=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+console = Console(stderr=True)
+out = Console()
+
+
+def fail(message: str, code: int = 2):
+    console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def guarded(fn):
+    """Turn every exception into one line and a non-zero exit code."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except typer.Exit:
+            raise
+        except PsdrError as exc:
+            fail(str(exc))
+        except KeyboardInterrupt:
+            console.print("interrupted")
+            raise typer.Exit(130)
+        except Exception as exc:  # noqa: BLE001
+            if os.environ.get("PSDR_DEBUG"):
+                raise
+            first = str(exc).splitlines()[0] if str(exc) else ""
+            fail(f"internal error: {type(exc).__name__}: {first} (set PSDR_DEBUG=1 for a traceback)", 1)
+    return wrapper
+
+
+class Bar:
+    """Rich progress bar over samples, shared by the subcommands."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self.progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False)
+        self.task = None
+
+    def __enter__(self):
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.progress.__exit__(*exc)
+
+    def start(self, total: int):
+        self.task = self.progress.add_task(self.label, total=total)
+
+    def advance(self, n: int):
+        self.progress.advance(self.task, n)
+
+
+def version_callback(value: bool):
+    if value:
+        out.print(f"psdr {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(ctx: typer.Context,
+         version: bool = typer.Option(False, "--version", callback=version_callback, is_eager=True,
+                                      help="Print the version and exit.")):
+    """Each subcommand reads a YAML experiment file (see docs/config.md)."""
+    if ctx.invoked_subcommand is None:
+        out.print(ctx.get_help())
+        raise typer.Exit(0)
+
+
+ConfigArg = typer.Argument(..., help="YAML experiment file.", show_default=False)
+
+
+@app.command()
+@guarded
+def render(config: Path = ConfigArg,
+           spp: Optional[int] = typer.Option(None, "--spp", help="Samples per pixel (default: estimator.spp)."),
+           views: Optional[str] = typer.Option(None, "--views", help="Views to render, e.g. 0,3 or 0-2 (default: all)."),
+           out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")):
+    """Render every camera view to EXR (+ PNG preview)."""
+    from . import api
+    exp = load_experiment(config)
+    if spp is not None and spp < 1:
+        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    with Bar("render") as bar:
+        res = api.render(exp, spp=spp, views=views, out=out_dir, progress=bar)
+    table = Table(title=f"psdr render: {exp.name}")
+    for col in ("view", "resolution", "spp", "seconds", "file"):
+        table.add_column(col, justify="right" if col != "file" else "left")
+    for v, f, s in zip(res.views, res.files, res.seconds):
+        table.add_row(str(v), f"{res.resolution[0]}×{res.resolution[1]}", str(res.spp), f"{s:.2f}", str(f))
+    out.print(table)
+    out.print(f"{len(res.views)} view(s), {res.variant}, total {sum(res.seconds):.2f} s; outputs in {res.folder}")
+
+
+def _not_yet(command: str, issue: str):
+    fail(f"'psdr {command}' is not implemented yet ({issue})", 3)
+
+
+@app.command()
+@guarded
+def grad(config: Path = ConfigArg):
+    """Gradient image dI/dθ per boundary term (not implemented yet)."""
+    load_experiment(config)
+    _not_yet("grad", "the estimators are the next milestone")
+
+
+@app.command("guide-stats")
+@guarded
+def guide_stats(config: Path = ConfigArg):
+    """Statistics and plots of the boundary-sampling guides (not implemented yet)."""
+    load_experiment(config)
+    _not_yet("guide-stats", "guiding is not built yet")
+
+
+@app.command()
+@guarded
+def optimize(config: Path = ConfigArg):
+    """Shape reconstruction from images (not implemented yet)."""
+    load_experiment(config)
+    _not_yet("optimize", "inverse rendering is not built yet")
+
+
+@app.command()
+@guarded
+def evaluate(meshes: list[Path] = typer.Argument(None, help="Meshes or run folders to evaluate.")):
+    """Normalised Chamfer distance of meshes to a reference (not implemented yet)."""
+    _not_yet("evaluate", "evaluation is not built yet")
+
+
+def run():
+    """Console-script entry point."""
+    app(prog_name="psdr")
+
+
+if __name__ == "__main__":
+    sys.exit(run())

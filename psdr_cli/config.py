@@ -1,0 +1,669 @@
+"""Experiment files: YAML parsed into typed objects, validated in one place.
+
+Every problem is reported as one :class:`~psdr_cli.errors.ConfigError` line naming the file, the
+key path and what was expected, e.g.
+``bunny.yaml: scene.objects[1].bsdf.type: unknown 'difuse' (expected diffuse, roughconductor, ...)``.
+Unknown keys are errors, so a typo never passes silently. The key reference is ``docs/config.md``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import yaml
+
+from .errors import ConfigError
+
+REQUIRED = object()
+
+
+# --------------------------------------------------------------------------------------------
+# Reading helpers: a Section is one YAML mapping with its key path; parsers check one value.
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Where:
+    """Location of a value: the experiment file and the dotted key path inside it."""
+    file: str
+    path: str
+
+    def fail(self, message: str) -> ConfigError:
+        return ConfigError(self.file, self.path, message)
+
+    def child(self, key) -> "Where":
+        if isinstance(key, int):
+            return Where(self.file, f"{self.path}[{key}]")
+        return Where(self.file, f"{self.path}.{key}" if self.path else str(key))
+
+
+Parser = Callable[[Any, Where], Any]
+
+
+def _describe(value) -> str:
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"boolean {str(value).lower()}"
+    if isinstance(value, (int, float)):
+        return f"number {value}"
+    if isinstance(value, str):
+        return f"string '{value}'"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    if isinstance(value, dict):
+        return "a mapping"
+    return type(value).__name__
+
+
+class Section:
+    """A YAML mapping being read; :meth:`done` rejects every key that was not read."""
+
+    def __init__(self, data, where: Where):
+        if not isinstance(data, dict):
+            raise where.fail(f"expected a mapping of keys, got {_describe(data)}")
+        self.data, self.where, self.used = data, where, set()
+
+    def has(self, key: str) -> bool:
+        return self.data.get(key) is not None
+
+    def get(self, key: str, parse: Parser, default=REQUIRED):
+        self.used.add(key)
+        value = self.data.get(key)
+        if value is None:
+            if default is REQUIRED:
+                raise self.where.child(key).fail("missing (required)")
+            return default
+        return parse(value, self.where.child(key))
+
+    def done(self):
+        unknown = [k for k in self.data if k not in self.used]
+        if unknown:
+            allowed = ", ".join(sorted(str(k) for k in self.used))
+            raise self.where.child(unknown[0]).fail(f"unknown key (expected one of: {allowed})")
+
+
+def integer(minimum: int | None = None) -> Parser:
+    def parse(value, where):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise where.fail(f"expected an integer, got {_describe(value)}")
+        if minimum is not None and value < minimum:
+            raise where.fail(f"expected an integer >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+def number(minimum: float | None = None, positive: bool = False, maximum: float | None = None) -> Parser:
+    def parse(value, where):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise where.fail(f"expected a number, got {_describe(value)}")
+        if positive and value <= 0:
+            raise where.fail(f"expected a number > 0, got {value}")
+        if minimum is not None and value < minimum:
+            raise where.fail(f"expected a number >= {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            raise where.fail(f"expected a number <= {maximum}, got {value}")
+        return float(value)
+    return parse
+
+
+def boolean(value, where):
+    if not isinstance(value, bool):
+        raise where.fail(f"expected true or false, got {_describe(value)}")
+    return value
+
+
+def string(value, where):
+    if not isinstance(value, str) or not value.strip():
+        raise where.fail(f"expected a non-empty string, got {_describe(value)}")
+    return value
+
+
+def choice(*options: str) -> Parser:
+    def parse(value, where):
+        if not isinstance(value, str):
+            raise where.fail(f"expected one of {', '.join(options)}, got {_describe(value)}")
+        if value not in options:
+            raise where.fail(f"unknown '{value}' (expected {', '.join(options)})")
+        return value
+    return parse
+
+
+def vector(n: int = 3, nonzero: bool = False, positive: bool = False) -> Parser:
+    def parse(value, where):
+        ok = isinstance(value, (list, tuple)) and len(value) == n and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+        if not ok:
+            raise where.fail(f"expected a list of {n} numbers, got {_describe(value)}")
+        out = tuple(float(v) for v in value)
+        if nonzero and not any(out):
+            raise where.fail("expected a non-zero vector")
+        if positive and min(out) <= 0:
+            raise where.fail(f"expected {n} numbers > 0, got {list(value)}")
+        return out
+    return parse
+
+
+def color(value, where):
+    """A non-negative RGB value: one number (grey) or [r, g, b]."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value] * 3
+    rgb = vector(3)(value, where) if isinstance(value, (list, tuple)) else None
+    if rgb is None:
+        raise where.fail(f"expected a number or a list of 3 numbers, got {_describe(value)}")
+    if min(rgb) < 0:
+        raise where.fail(f"expected non-negative values, got {list(value)}")
+    return rgb
+
+
+def scale3(value, where):
+    """A positive scale: one number (uniform) or [sx, sy, sz]."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value] * 3
+    return vector(3, positive=True)(value, where)
+
+
+def list_of(parse_item: Parser, min_len: int = 0) -> Parser:
+    def parse(value, where):
+        if not isinstance(value, list):
+            raise where.fail(f"expected a list, got {_describe(value)}")
+        if len(value) < min_len:
+            raise where.fail(f"expected at least {min_len} entr{'y' if min_len == 1 else 'ies'}")
+        return [parse_item(v, where.child(i)) for i, v in enumerate(value)]
+    return parse
+
+
+def path_relative_to(base: Path) -> Parser:
+    def parse(value, where):
+        return (base / string(value, where)).resolve()
+    return parse
+
+
+def _unit(v):
+    n = math.sqrt(sum(c * c for c in v))
+    return tuple(c / n for c in v)
+
+
+# --------------------------------------------------------------------------------------------
+# Typed configuration objects
+# --------------------------------------------------------------------------------------------
+@dataclass
+class CameraConfig:
+    origin: tuple
+    target: tuple
+    up: tuple = (0.0, 0.0, 1.0)
+    fov: float = 40.0  # horizontal, degrees
+
+
+@dataclass
+class EmitterConfig:
+    type: str  # area | envmap | sky | constant
+    key: str   # key path in the file, for error messages
+    radiance: tuple = (1.0, 1.0, 1.0)
+    center: tuple = (0.0, 0.0, 0.0)
+    normal: tuple = (0.0, 0.0, -1.0)
+    size: tuple = (1.0, 1.0)
+    file: Path | None = None
+    scale: float = 1.0
+    rotate_deg: float = 0.0
+    sun_direction: tuple = (0.0, 0.0, 1.0)
+    turbidity: float = 3.0
+    albedo: float = 0.3
+    sun_scale: float = 1.0
+    sky_scale: float = 1.0
+
+
+@dataclass
+class MeshSpec:
+    key: str
+    file: Path | None = None
+    shape: str | None = None
+    params: dict = field(default_factory=dict)
+    repair: bool = False
+
+
+@dataclass
+class TransformConfig:
+    translate: tuple = (0.0, 0.0, 0.0)
+    rotate_axis: tuple = (0.0, 0.0, 1.0)
+    rotate_deg: float = 0.0
+    scale: tuple = (1.0, 1.0, 1.0)
+
+
+@dataclass
+class BsdfConfig:
+    type: str = "diffuse"
+    params: dict = field(default_factory=dict)
+
+
+@dataclass
+class ObjectConfig:
+    name: str
+    mesh: MeshSpec
+    key: str
+    transform: TransformConfig = field(default_factory=TransformConfig)
+    bsdf: BsdfConfig = field(default_factory=BsdfConfig)
+    edges: bool = True
+    smooth: bool = False
+
+
+@dataclass
+class SceneConfig:
+    width: int
+    height: int
+    max_depth: int
+    cameras: list
+    emitters: list
+    objects: list
+
+
+@dataclass
+class ParameterConfig:
+    kind: str  # translate | rotate | scale | envmap_rotate
+    object: str | None = None
+    axis: tuple = (1.0, 0.0, 0.0)
+
+
+@dataclass
+class GridConfig:
+    resolution: tuple = (64, 8, 8)
+    samples_per_cell: int = 16
+
+
+@dataclass
+class KdTreeConfig:
+    samples_per_node: int = 32
+    threshold: float = 0.01
+    max_depth: int = 24
+    max_leaves: int = 65536
+
+
+@dataclass
+class EstimatorConfig:
+    spp: int = 64
+    primary_spp: int = 16
+    boundary_spp: int = 16
+    terms: tuple = ("interior", "primary", "direct", "indirect")
+    sampling: str = "mis"
+    guiding: str = "none"
+    passes: int = 1
+    guide_epsilon: float = 0.01
+    edge_sort: bool = False
+    grid: GridConfig = field(default_factory=GridConfig)
+    kdtree: KdTreeConfig = field(default_factory=KdTreeConfig)
+
+
+@dataclass
+class Experiment:
+    """A parsed experiment file. ``base_dir`` is the folder relative paths are resolved against."""
+    file: Path
+    name: str
+    output: Path
+    seed: int
+    variant: str
+    scene: SceneConfig
+    parameter: ParameterConfig | None
+    estimator: EstimatorConfig
+    optimize: dict | None = None
+    evaluate: dict | None = None
+
+    @property
+    def base_dir(self) -> Path:
+        return self.file.parent
+
+    @property
+    def run_dir(self) -> Path:
+        return self.output / self.name
+
+
+# --------------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------------
+BSDF_PARAMS = {
+    "diffuse": ("reflectance",),
+    "roughconductor": ("material", "eta", "k", "specular_reflectance", "distribution", "alpha",
+                       "alpha_u", "alpha_v", "sample_visible"),
+    "roughdielectric": ("int_ior", "ext_ior", "specular_reflectance", "specular_transmittance",
+                        "distribution", "alpha", "alpha_u", "alpha_v", "sample_visible"),
+    "principled": ("base_color", "roughness", "metallic", "specular", "spec_tint", "anisotropic",
+                   "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss", "spec_trans", "eta"),
+}
+SHAPE_PARAMS = {
+    "sphere": {"radius": number(positive=True), "subdivisions": integer(0)},
+    "plane": {"size": None},
+    "cube": {"size": None},
+    "torus": {"major_radius": number(positive=True), "minor_radius": number(positive=True),
+              "major_sections": integer(3), "minor_sections": integer(3)},
+    "bunny": {"size": number(positive=True), "faces": integer(100)},
+}
+TERMS = ("interior", "primary", "direct", "indirect")
+
+
+def _bsdf_value(value, where):
+    if isinstance(value, str):
+        return value
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, (int, float)):
+        return number()(value, where)
+    if isinstance(value, list):
+        return vector(3)(value, where)
+    raise where.fail(f"expected a number, a list of 3 numbers or a string, got {_describe(value)}")
+
+
+def parse_bsdf(value, where) -> BsdfConfig:
+    sec = Section(value, where)
+    kind = sec.get("type", choice(*BSDF_PARAMS))
+    params = {}
+    for name in BSDF_PARAMS[kind]:
+        v = sec.get(name, _bsdf_value, None)
+        if v is not None:
+            params[name] = v
+    sec.done()
+    return BsdfConfig(kind, params)
+
+
+def parse_mesh(base: Path) -> Parser:
+    def parse(value, where):
+        sec = Section(value, where)
+        if sec.has("file") and sec.has("shape"):
+            raise where.fail("give either 'file' or 'shape', not both")
+        repair = sec.get("repair", boolean, False)
+        if sec.has("file"):
+            spec = MeshSpec(where.path + ".file", file=sec.get("file", path_relative_to(base)), repair=repair)
+            sec.done()
+            return spec
+        shape = sec.get("shape", choice(*SHAPE_PARAMS), None)
+        if shape is None:
+            raise where.fail("expected 'file: <path.ply|.obj>' or 'shape: " + "|".join(SHAPE_PARAMS) + "'")
+        params = {}
+        for name, parser in SHAPE_PARAMS[shape].items():
+            if parser is None:  # size of a plane (w, h) or a cube (x, y, z)
+                parser = scale3 if shape == "cube" else _plane_size
+            v = sec.get(name, parser, None)
+            if v is not None:
+                params[name] = v
+        sec.done()
+        return MeshSpec(where.path, shape=shape, params=params, repair=repair)
+    return parse
+
+
+def _plane_size(value, where):
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value, value]
+    return vector(2, positive=True)(value, where)
+
+
+def parse_transform(value, where) -> TransformConfig:
+    sec = Section(value, where)
+    t = TransformConfig()
+    t.translate = sec.get("translate", vector(3), t.translate)
+    if sec.has("rotate"):
+        rot = Section(sec.get("rotate", lambda v, w: v), where.child("rotate"))
+        t.rotate_axis = _unit(rot.get("axis", vector(3, nonzero=True)))
+        t.rotate_deg = rot.get("angle_deg", number())
+        rot.done()
+    t.scale = sec.get("scale", scale3, t.scale)
+    sec.done()
+    return t
+
+
+def parse_object(base: Path) -> Parser:
+    def parse(value, where):
+        sec = Section(value, where)
+        obj = ObjectConfig(
+            name=sec.get("name", string),
+            mesh=sec.get("mesh", parse_mesh(base)),
+            key=where.path,
+            transform=sec.get("transform", parse_transform, TransformConfig()),
+            bsdf=sec.get("bsdf", parse_bsdf, BsdfConfig("diffuse", {"reflectance": (0.5, 0.5, 0.5)})),
+            edges=sec.get("edges", boolean, True),
+            smooth=sec.get("smooth", boolean, False),
+        )
+        sec.done()
+        return obj
+    return parse
+
+
+EMITTER_TYPES = ("area", "envmap", "sky", "constant")
+
+
+def parse_emitter(base: Path) -> Parser:
+    def parse(value, where):
+        sec = Section(value, where)
+        kind = sec.get("type", choice(*EMITTER_TYPES))
+        em = EmitterConfig(type=kind, key=where.path)
+        if kind == "area":
+            em.center = sec.get("center", vector(3))
+            em.normal = _unit(sec.get("normal", vector(3, nonzero=True)))
+            em.size = sec.get("size", vector(2, positive=True))
+            em.radiance = sec.get("radiance", color)
+        elif kind == "envmap":
+            em.file = sec.get("file", path_relative_to(base))
+            em.scale = sec.get("scale", number(minimum=0), 1.0)
+            em.rotate_deg = sec.get("rotate_deg", number(), 0.0)
+        elif kind == "sky":
+            em.sun_direction = _unit(sec.get("sun_direction", vector(3, nonzero=True)))
+            em.turbidity = sec.get("turbidity", number(minimum=1, maximum=10), 3.0)
+            em.albedo = sec.get("albedo", number(minimum=0, maximum=1), 0.3)
+            em.sun_scale = sec.get("sun_scale", number(minimum=0), 1.0)
+            em.sky_scale = sec.get("sky_scale", number(minimum=0), 1.0)
+            em.rotate_deg = sec.get("rotate_deg", number(), 0.0)
+        else:
+            em.radiance = sec.get("radiance", color)
+        sec.done()
+        return em
+    return parse
+
+
+def _check_camera(cam: CameraConfig, where: Where) -> CameraConfig:
+    d = [t - o for t, o in zip(cam.target, cam.origin)]
+    length = math.sqrt(sum(c * c for c in d))
+    if length < 1e-9 * (1 + max(abs(c) for c in cam.origin)):
+        raise where.fail(f"origin and target are the same point {list(cam.origin)}; the camera needs a view direction")
+    cross = (d[1] * cam.up[2] - d[2] * cam.up[1], d[2] * cam.up[0] - d[0] * cam.up[2],
+             d[0] * cam.up[1] - d[1] * cam.up[0])
+    if math.sqrt(sum(c * c for c in cross)) < 1e-6 * length * math.sqrt(sum(c * c for c in cam.up)):
+        raise where.fail("'up' is parallel to the view direction (target - origin)")
+    return cam
+
+
+def orbit_cameras(count, radius, elevation_deg, azimuth_deg, target, fov, up=(0.0, 0.0, 1.0)):
+    """``count`` cameras evenly spaced in azimuth on a circle of ``radius`` around ``target``.
+
+    Position_i = target + radius·(cos e·cos a_i·X + cos e·sin a_i·Y + sin e·Up), a_i = a_0 + 360°·i/count,
+    with (X, Y, Up) a right-handed frame around ``up``.
+    """
+    upn = _unit(up)
+    ref = (1.0, 0.0, 0.0) if abs(upn[0]) < 0.9 else (0.0, 1.0, 0.0)
+    dot = sum(a * b for a, b in zip(ref, upn))
+    x = _unit(tuple(r - dot * u for r, u in zip(ref, upn)))
+    y = (upn[1] * x[2] - upn[2] * x[1], upn[2] * x[0] - upn[0] * x[2], upn[0] * x[1] - upn[1] * x[0])
+    e = math.radians(elevation_deg)
+    cams = []
+    for i in range(count):
+        a = math.radians(azimuth_deg + 360.0 * i / count)
+        dirv = [math.cos(e) * math.cos(a) * x[k] + math.cos(e) * math.sin(a) * y[k] + math.sin(e) * upn[k]
+                for k in range(3)]
+        origin = tuple(target[k] + radius * dirv[k] for k in range(3))
+        cams.append(CameraConfig(origin=origin, target=tuple(target), up=upn, fov=fov))
+    return cams
+
+
+def parse_cameras(value, where) -> list:
+    items = list_of(lambda v, w: (v, w), min_len=1)(value, where)
+    cams = []
+    for v, w in items:
+        sec = Section(v, w)
+        if sec.has("orbit"):
+            orb = Section(sec.get("orbit", lambda x, _: x), w.child("orbit"))
+            ring = orbit_cameras(
+                count=orb.get("count", integer(1)),
+                radius=orb.get("radius", number(positive=True)),
+                elevation_deg=orb.get("elevation_deg", number(minimum=-89.9, maximum=89.9), 20.0),
+                azimuth_deg=orb.get("azimuth_deg", number(), 0.0),
+                target=orb.get("target", vector(3), (0.0, 0.0, 0.0)),
+                fov=orb.get("fov", number(positive=True, maximum=179), 40.0),
+                up=orb.get("up", vector(3, nonzero=True), (0.0, 0.0, 1.0)),
+            )
+            orb.done()
+            sec.done()
+            cams.extend(ring)
+            continue
+        cam = CameraConfig(
+            origin=sec.get("origin", vector(3)),
+            target=sec.get("target", vector(3)),
+            up=sec.get("up", vector(3, nonzero=True), (0.0, 0.0, 1.0)),
+            fov=sec.get("fov", number(positive=True, maximum=179), 40.0),
+        )
+        sec.done()
+        cams.append(_check_camera(cam, w))
+    return cams
+
+
+def parse_scene(base: Path) -> Parser:
+    def parse(value, where):
+        sec = Section(value, where)
+        film = Section(sec.get("film", lambda v, _: v, {}), where.child("film"))
+        width = film.get("width", integer(1), 128)
+        height = film.get("height", integer(1), 128)
+        film.done()
+        scene = SceneConfig(
+            width=width, height=height,
+            max_depth=sec.get("max_depth", integer(1), 2),
+            cameras=sec.get("cameras", parse_cameras),
+            emitters=sec.get("emitters", list_of(parse_emitter(base), min_len=1)),
+            objects=sec.get("objects", list_of(parse_object(base)), []),
+        )
+        sec.done()
+        names = set()
+        for obj in scene.objects:
+            if obj.name in names:
+                raise Where(where.file, obj.key + ".name").fail(f"duplicate object name '{obj.name}'")
+            names.add(obj.name)
+        n_env = sum(e.type in ("envmap", "sky", "constant") for e in scene.emitters)
+        if n_env > 1:
+            raise where.child("emitters").fail("at most one environment emitter (envmap, sky or constant) is allowed")
+        return scene
+    return parse
+
+
+PARAMETER_KINDS = ("translate", "rotate", "scale", "envmap_rotate")
+DEFAULT_AXIS = {"translate": (1.0, 0.0, 0.0), "rotate": (0.0, 0.0, 1.0), "scale": (1.0, 1.0, 1.0),
+                "envmap_rotate": (0.0, 0.0, 1.0)}
+
+
+def parse_parameter(value, where) -> ParameterConfig:
+    sec = Section(value, where)
+    kind = sec.get("kind", choice(*PARAMETER_KINDS))
+    obj = sec.get("object", string, None)
+    if kind != "envmap_rotate" and obj is None:
+        raise where.child("object").fail(f"missing (required for kind '{kind}')")
+    if kind == "envmap_rotate" and obj is not None:
+        raise where.child("object").fail("not allowed for kind 'envmap_rotate'")
+    axis = sec.get("axis", vector(3, nonzero=True), DEFAULT_AXIS[kind])
+    sec.done()
+    return ParameterConfig(kind=kind, object=obj, axis=axis if kind == "scale" else _unit(axis))
+
+
+def _terms(value, where):
+    if isinstance(value, str):
+        value = [t.strip() for t in value.split(",") if t.strip()]
+    terms = list_of(choice(*TERMS), min_len=1)(value, where)
+    return tuple(t for t in TERMS if t in terms)
+
+
+def parse_estimator(value, where) -> EstimatorConfig:
+    sec = Section(value, where)
+    est = EstimatorConfig()
+    est.spp = sec.get("spp", integer(1), est.spp)
+    est.primary_spp = sec.get("primary_spp", integer(1), est.primary_spp)
+    est.boundary_spp = sec.get("boundary_spp", integer(1), est.boundary_spp)
+    est.terms = sec.get("terms", _terms, est.terms)
+    est.sampling = sec.get("sampling", choice("dir", "light", "mis"), est.sampling)
+    est.guiding = sec.get("guiding", choice("none", "grid", "kdtree"), est.guiding)
+    est.passes = sec.get("passes", integer(1), est.passes)
+    est.guide_epsilon = sec.get("guide_epsilon", number(minimum=0, maximum=1), est.guide_epsilon)
+    est.edge_sort = sec.get("edge_sort", boolean, est.edge_sort)
+    if sec.has("grid"):
+        g = Section(sec.get("grid", lambda v, _: v), where.child("grid"))
+        est.grid = GridConfig(
+            resolution=tuple(int(r) for r in g.get("resolution", list_of(integer(1)), list(GridConfig.resolution))),
+            samples_per_cell=g.get("samples_per_cell", integer(1), GridConfig.samples_per_cell))
+        if len(est.grid.resolution) != 3:
+            raise where.child("grid").child("resolution").fail("expected a list of 3 integers [nx, ny, nz]")
+        g.done()
+    if sec.has("kdtree"):
+        k = Section(sec.get("kdtree", lambda v, _: v), where.child("kdtree"))
+        d = KdTreeConfig()
+        est.kdtree = KdTreeConfig(
+            samples_per_node=k.get("samples_per_node", integer(4), d.samples_per_node),
+            threshold=k.get("threshold", number(minimum=0), d.threshold),
+            max_depth=k.get("max_depth", integer(1), d.max_depth),
+            max_leaves=k.get("max_leaves", integer(1), d.max_leaves))
+        k.done()
+    sec.done()
+    return est
+
+
+def _any_mapping(value, where):
+    """Sections whose subcommand is not implemented yet: must be a mapping; kept as given."""
+    Section(value, where)
+    return dict(value)
+
+
+# --------------------------------------------------------------------------------------------
+# Entry points
+# --------------------------------------------------------------------------------------------
+def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
+    """Validate an already-loaded YAML document. ``file`` names the source in messages."""
+    file = Path(file)
+    where = Where(str(file), "")
+    sec = Section(data, where)
+    base = file.resolve().parent
+    out = sec.get("output", string, "runs")
+    exp = Experiment(
+        file=file.resolve(),
+        name=sec.get("name", string, file.stem),
+        output=(Path(cwd or Path.cwd()) / out).resolve(),
+        seed=sec.get("seed", integer(0), 0),
+        variant=sec.get("variant", choice("auto", "llvm_ad_rgb", "cuda_ad_rgb"), "auto"),
+        scene=sec.get("scene", parse_scene(base)),
+        parameter=sec.get("parameter", parse_parameter, None),
+        estimator=sec.get("estimator", parse_estimator, EstimatorConfig()),
+        optimize=sec.get("optimize", _any_mapping, None),
+        evaluate=sec.get("evaluate", _any_mapping, None),
+    )
+    sec.done()
+    if "/" in exp.name or exp.name in (".", ".."):
+        raise where.child("name").fail(f"expected a plain folder name, got '{exp.name}'")
+    if exp.parameter and exp.parameter.object:
+        names = [o.name for o in exp.scene.objects]
+        if exp.parameter.object not in names:
+            raise where.child("parameter").child("object").fail(
+                f"unknown object '{exp.parameter.object}' (scene objects: {', '.join(names) or 'none'})")
+    if exp.parameter and exp.parameter.kind == "envmap_rotate":
+        if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
+            raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")
+    return exp
+
+
+def load_experiment(path) -> Experiment:
+    """Read and validate an experiment file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(path, "", "file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(path, "", f"cannot read: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(path, where, f"invalid YAML: {problem}") from None
+    if data is None:
+        raise ConfigError(path, "", "the file is empty (expected a mapping with at least 'scene')")
+    return parse_experiment(data, path)

@@ -1,0 +1,1 @@
+"""Estimators of the rendering equation and its derivative, one term per module."""

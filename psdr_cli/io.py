@@ -1,0 +1,86 @@
+"""Files psdr writes: EXR images, PNG previews, JSON — always atomically (write, then rename)."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+
+@contextmanager
+def atomic_path(path):
+    """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
+
+    A reader never sees a half-written file, and an interrupted write leaves the old file intact.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_exr(path, channels: dict, header: dict | None = None):
+    """Multi-channel float32 EXR. ``channels`` maps names ('R', 'direct.G', ...) to (H, W) arrays;
+    ``header`` entries are stored as string attributes (tev and OpenEXR tools show them)."""
+    import OpenEXR
+    chans = {name: np.ascontiguousarray(a, np.float32) for name, a in channels.items()}
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    for key, value in (header or {}).items():
+        hdr[key] = value if isinstance(value, str) else json.dumps(value)
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(hdr, chans) as f:
+            f.write(str(tmp))
+
+
+def write_rgb_exr(path, image: np.ndarray, header: dict | None = None):
+    """(H, W, 3) image as an RGB EXR."""
+    write_exr(path, {c: image[..., i] for i, c in enumerate("RGB")}, header)
+
+
+def read_exr(path) -> dict:
+    """All channels of an EXR file as {name: (H, W) float32}, and the header under '__header__'."""
+    import OpenEXR
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        out = {name: np.asarray(ch.pixels, np.float32) for name, ch in f.channels().items()}
+        out["__header__"] = dict(f.header())
+    return out
+
+
+def read_rgb_exr(path) -> np.ndarray:
+    ch = read_exr(path)
+    return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
+
+
+def srgb(linear: np.ndarray) -> np.ndarray:
+    """sRGB transfer curve of linear values clipped to [0, 1]."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def write_png(path, rgb8: np.ndarray):
+    """(H, W, 3) uint8 image as PNG."""
+    import mitsuba as mi
+    with atomic_path(path) as tmp:
+        mi.Bitmap(np.ascontiguousarray(rgb8, np.uint8), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(tmp))
+
+
+def write_preview(path, image: np.ndarray, exposure: float = 0.0):
+    """Tone-mapped PNG of a linear HDR image: scale by 2^exposure, clip, sRGB."""
+    write_png(path, np.round(srgb(image * 2.0 ** exposure) * 255).astype(np.uint8))
+
+
+def write_json(path, data):
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=str) + "\n")

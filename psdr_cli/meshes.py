@@ -1,0 +1,180 @@
+"""Triangle meshes: procedural shapes, files (PLY/OBJ), validation and object transforms.
+
+Everything here is numpy: a mesh is ``(V, F)`` with ``V`` float64 (n, 3) and ``F`` int64 (m, 3).
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .config import MeshSpec, TransformConfig, Where
+from .errors import ConfigError
+
+
+def sphere(radius: float = 1.0, subdivisions: int = 3):
+    """Icosphere (subdivided icosahedron) of the given radius, centred at the origin."""
+    import trimesh
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+def plane(size=(2.0, 2.0)):
+    """Rectangle ``size = (w, h)`` in the z = 0 plane, normal +z."""
+    w, h = size[0] / 2, size[1] / 2
+    V = np.array([[-w, -h, 0], [w, -h, 0], [w, h, 0], [-w, h, 0]], float)
+    F = np.array([[0, 1, 2], [0, 2, 3]], np.int64)
+    return V, F
+
+
+def cube(size=(1.0, 1.0, 1.0)):
+    """Axis-aligned box with edge lengths ``size``, centred at the origin."""
+    import trimesh
+    m = trimesh.creation.box(extents=size)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+def torus(major_radius: float = 1.0, minor_radius: float = 0.3, major_sections: int = 48,
+          minor_sections: int = 24):
+    """Torus around the z axis."""
+    import trimesh
+    m = trimesh.creation.torus(major_radius=major_radius, minor_radius=minor_radius,
+                               major_sections=major_sections, minor_sections=minor_sections)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+def bunny_path() -> Path:
+    """The Stanford-bunny sample shipped inside the installed pymeshlab wheel."""
+    import pymeshlab
+    path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / "bunny.obj"
+    if not path.exists():
+        raise FileNotFoundError(f"the pymeshlab package has no bunny sample at {path}")
+    return path
+
+
+def bunny(size: float = 1.0, faces: int = 5000):
+    """Stanford bunny, decimated to about ``faces`` triangles with pymeshlab's quadric edge collapse,
+    turned z-up, centred on the origin in x/y, resting on z = 0, longest side ``size``."""
+    import pymeshlab
+    ms = pymeshlab.MeshSet()
+    ms.load_new_mesh(str(bunny_path()))
+    if ms.current_mesh().face_number() > faces:
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces, preservenormal=True,
+                                                    preservetopology=True, qualitythr=0.5)
+    m = ms.current_mesh()
+    V = np.asarray(m.vertex_matrix(), float)
+    F = np.asarray(m.face_matrix(), np.int64)
+    V = V[:, [2, 0, 1]]  # the sample is y-up; make it z-up (x -> y, y -> z, z -> x keeps handedness)
+    lo, hi = V.min(0), V.max(0)
+    V = (V - [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) * (size / (hi - lo).max())
+    return V, F
+
+
+def procedural(shape: str, params: dict):
+    """Mesh for ``{shape: ..., **params}`` of the experiment file."""
+    if shape == "sphere":
+        return sphere(**params)
+    if shape == "plane":
+        return plane(**params)
+    if shape == "cube":
+        return cube(**params)
+    if shape == "torus":
+        return torus(**params)
+    if shape == "bunny":
+        return bunny(**params)
+    raise ValueError(shape)
+
+
+def read_mesh_file(path: Path):
+    """Vertices and triangles of a PLY or OBJ file, unprocessed (no merging, no reordering)."""
+    import trimesh
+    mesh = trimesh.load(str(path), force="mesh", process=False)
+    return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+
+
+def face_areas(V, F):
+    """Triangle areas ½|(v1 − v0) × (v2 − v0)|."""
+    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+
+
+def degenerate_faces(V, F, rel_eps: float = 1e-12):
+    """Mask of faces whose area is below rel_eps·(bounding-box diagonal)² or with a repeated index."""
+    diag2 = float(np.sum((V.max(0) - V.min(0)) ** 2)) or 1.0
+    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
+    return repeated | (face_areas(V, F) <= rel_eps * diag2)
+
+
+def load_mesh(spec: MeshSpec, file: str):
+    """Mesh of an object's ``mesh:`` entry, validated. Errors name ``file`` and the key path."""
+    where = Where(file, spec.key)
+    if spec.file is not None:
+        if not spec.file.exists():
+            raise where.fail(f"mesh file not found: {spec.file}")
+        if spec.file.suffix.lower() not in (".ply", ".obj"):
+            raise where.fail(f"unsupported mesh format '{spec.file.suffix}' (expected .ply or .obj)")
+        if not os.access(spec.file, os.R_OK):
+            raise where.fail(f"mesh file is not readable: {spec.file}")
+        try:
+            V, F = read_mesh_file(spec.file)
+        except Exception as exc:  # noqa: BLE001 - any parser failure is a bad file
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise where.fail(f"cannot read mesh {spec.file.name}: {msg}") from None
+    else:
+        V, F = procedural(spec.shape, spec.params)
+    return validate_mesh(V, F, where, spec.repair)
+
+
+def validate_mesh(V, F, where: Where, repair: bool = False):
+    """Reject empty meshes, non-finite vertices, bad indices and (unless ``repair``) degenerate faces."""
+    V = np.asarray(V, float).reshape(-1, 3)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if len(V) == 0 or len(F) == 0:
+        raise where.fail(f"mesh is empty ({len(V)} vertices, {len(F)} triangles)")
+    bad = ~np.isfinite(V).all(axis=1)
+    if bad.any():
+        raise where.fail(f"mesh has {int(bad.sum())} vertices with NaN or infinite coordinates")
+    if F.min() < 0 or F.max() >= len(V):
+        raise where.fail(f"mesh has face indices outside 0..{len(V) - 1}")
+    degenerate = degenerate_faces(V, F)
+    if degenerate.any():
+        if not repair:
+            raise where.fail(f"mesh has {int(degenerate.sum())} degenerate (zero-area) triangles "
+                             f"of {len(F)}; fix the file or set 'repair: true' to drop them")
+        F = F[~degenerate]
+        if len(F) == 0:
+            raise where.fail("mesh has only degenerate triangles")
+        used = np.unique(F)
+        remap = np.full(len(V), -1, np.int64)
+        remap[used] = np.arange(len(used))
+        V, F = V[used], remap[F]
+    return V, F
+
+
+def rotation_matrix(axis, angle_deg: float):
+    """Rodrigues rotation R = I + sinθ K + (1 − cosθ) K² about the unit ``axis``."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    t = math.radians(angle_deg)
+    return np.eye(3) + math.sin(t) * K + (1 - math.cos(t)) * (K @ K)
+
+
+def transform_matrix(t: TransformConfig) -> np.ndarray:
+    """4×4 matrix T·R·S: scale first, then rotate, then translate."""
+    M = np.eye(4)
+    M[:3, :3] = rotation_matrix(t.rotate_axis, t.rotate_deg) @ np.diag(t.scale)
+    M[:3, 3] = t.translate
+    return M
+
+
+def apply_transform(V, M):
+    """Points V (n, 3) mapped by the affine 4×4 matrix M."""
+    return V @ M[:3, :3].T + M[:3, 3]
+
+
+def write_ply(path, V, F):
+    """Binary PLY without normals or colours (opens in MeshLab and Blender)."""
+    import trimesh
+    trimesh.Trimesh(V, F, process=False).export(str(path), file_type="ply")
