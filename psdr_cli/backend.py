@@ -11,7 +11,6 @@ import glob
 import os
 import re
 import subprocess
-import sys
 
 from .errors import PsdrError
 
@@ -69,10 +68,9 @@ def default_cache_dir() -> str:
 def configure_environment() -> None:
     """Set ``DRJIT_LIBLLVM_PATH`` and ``DRJIT_CACHE_DIR`` unless the user already did.
 
-    Must run before the first ``import drjit``; warns when it is too late.
+    Best run before the first ``import drjit``. Dr.Jit reads the variables when a backend is first
+    initialised, so setting them after the import still works as long as no LLVM kernel ran yet.
     """
-    if "drjit" in sys.modules:
-        return
     if "DRJIT_LIBLLVM_PATH" not in os.environ:
         lib = find_libllvm()
         if lib:

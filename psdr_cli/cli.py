@@ -68,13 +68,15 @@ class Bar:
         self.task = None
 
     def __enter__(self):
-        self.progress.__enter__()
         return self
 
     def __exit__(self, *exc):
-        self.progress.__exit__(*exc)
+        if self.task is not None:
+            self.progress.__exit__(*exc)
 
     def start(self, total: int):
+        """Show the bar (only once the work is about to begin, so errors before it stay one line)."""
+        self.progress.__enter__()
         self.task = self.progress.add_task(self.label, total=total)
 
     def advance(self, n: int):

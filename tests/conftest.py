@@ -1,0 +1,59 @@
+"""Shared helpers: experiment files written into a temporary folder, and CLI runs."""
+import copy
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+import psdr_cli  # noqa: F401  (prepares Dr.Jit before any test imports it)
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: A small valid experiment: diffuse sphere on a floor under an area light, one camera.
+BASE = {
+    "name": "t",
+    "output": "out",
+    "seed": 1,
+    "scene": {
+        "film": {"width": 24, "height": 16},
+        "max_depth": 2,
+        "cameras": [{"origin": [0, -3, 2], "target": [0, 0, 0.3], "fov": 40}],
+        "emitters": [{"type": "area", "center": [0, 0, 2.5], "normal": [0, 0, -1], "size": [1, 1],
+                      "radiance": 10}],
+        "objects": [
+            {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.4, "subdivisions": 2},
+             "transform": {"translate": [0, 0, 0.5]},
+             "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
+            {"name": "floor", "mesh": {"shape": "plane", "size": 4}, "edges": False},
+        ],
+    },
+    "estimator": {"spp": 4},
+}
+
+
+def experiment(**overrides):
+    """A deep copy of BASE with top-level keys replaced."""
+    d = copy.deepcopy(BASE)
+    d.update(overrides)
+    return d
+
+
+@pytest.fixture
+def write_cfg(tmp_path):
+    """write_cfg(dict_or_text, name='exp.yaml') -> path of the written experiment file."""
+    def write(data, name="exp.yaml"):
+        path = tmp_path / name
+        path.write_text(data if isinstance(data, str) else yaml.safe_dump(data, sort_keys=False))
+        return path
+    return write
+
+
+def run_cli(*args, cwd=None, timeout=600):
+    """Run ``python -m psdr_cli ARGS``; returns the CompletedProcess (text output)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1", COLUMNS="200")
+    env.pop("PSDR_DEBUG", None)
+    return subprocess.run([sys.executable, "-m", "psdr_cli", *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout)

@@ -1,0 +1,57 @@
+"""Start-up: libLLVM discovery, kernel cache folder, variant choice, CLI entry point."""
+import os
+
+import pytest
+
+from psdr_cli import backend
+from psdr_cli.errors import PsdrError
+
+from conftest import experiment, run_cli
+
+
+@pytest.mark.parametrize("name, major", [("/usr/lib/x86_64-linux-gnu/libLLVM-19.so", 19),
+                                         ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", 19),
+                                         ("/usr/lib/llvm-17/lib/libLLVM.so", 17),
+                                         ("/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1", 15)])
+def test_llvm_major_from_file_name(name, major):
+    assert backend._llvm_major(name) == major
+
+
+def test_import_selected_a_supported_libllvm_and_a_stable_cache():
+    path = os.environ["DRJIT_LIBLLVM_PATH"]
+    assert os.path.exists(path) and backend._llvm_major(path) >= backend.MIN_LLVM
+    assert os.path.isdir(os.environ["DRJIT_CACHE_DIR"])
+    found = backend.find_libllvm()
+    assert found is not None and backend._llvm_major(found) >= 16
+
+
+def test_auto_variant_is_llvm_without_cuda():
+    expected = "cuda_ad_rgb" if backend.cuda_available() else "llvm_ad_rgb"
+    assert backend.select_variant("auto") == expected
+
+
+def test_bad_variant_override(monkeypatch):
+    monkeypatch.setenv("PSDR_VARIANT", "scalar_spectral")
+    with pytest.raises(PsdrError, match="unknown variant 'scalar_spectral'"):
+        backend.select_variant("auto")
+
+
+def test_old_llvm_is_refused_with_the_package_to_install(tmp_path, write_cfg, monkeypatch):
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-15.so")
+    monkeypatch.setenv("PSDR_VARIANT", "llvm_ad_rgb")
+    proc = run_cli("render", write_cfg(experiment()), cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "LLVM 15" in proc.stderr and "apt-get install libllvm19" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+
+
+def test_no_arguments_prints_help_with_every_subcommand():
+    proc = run_cli()
+    assert proc.returncode == 0
+    for cmd in ("render", "grad", "guide-stats", "optimize", "evaluate"):
+        assert cmd in proc.stdout
+
+
+def test_unimplemented_subcommands_say_so(tmp_path, write_cfg):
+    proc = run_cli("grad", write_cfg(experiment()), cwd=tmp_path)
+    assert proc.returncode != 0 and "not implemented yet" in proc.stderr and "Traceback" not in proc.stderr

@@ -1,0 +1,130 @@
+"""Experiment-file parsing: defaults, typed values, camera rings, cross-checks."""
+import math
+
+import pytest
+
+from psdr_cli.config import TERMS, load_experiment, orbit_cameras, parse_experiment
+from psdr_cli.errors import ConfigError
+
+from conftest import experiment
+
+
+def parse(d, tmp_path):
+    return parse_experiment(d, tmp_path / "exp.yaml", cwd=tmp_path)
+
+
+def test_full_experiment_parses_with_defaults(tmp_path):
+    exp = parse(experiment(), tmp_path)
+    assert exp.name == "t" and exp.seed == 1 and exp.variant == "auto"
+    assert exp.run_dir == tmp_path / "out" / "t"
+    sc = exp.scene
+    assert (sc.width, sc.height, sc.max_depth) == (24, 16, 2)
+    assert sc.cameras[0].up == (0.0, 0.0, 1.0) and sc.cameras[0].fov == 40
+    area = sc.emitters[0]
+    assert area.type == "area" and area.radiance == (10.0, 10.0, 10.0) and area.size == (1.0, 1.0)
+    ball, floor = sc.objects
+    assert ball.mesh.shape == "sphere" and ball.mesh.params == {"radius": 0.4, "subdivisions": 2}
+    assert ball.transform.translate == (0.0, 0.0, 0.5) and ball.edges and not floor.edges
+    assert ball.bsdf.type == "diffuse" and ball.bsdf.params["reflectance"] == (0.7, 0.5, 0.3)
+    assert floor.mesh.params["size"] == (4.0, 4.0)
+    assert exp.parameter is None
+    est = exp.estimator
+    assert est.spp == 4 and est.terms == TERMS and est.sampling == "mis" and est.guiding == "none"
+
+
+def test_name_defaults_to_file_stem_and_output_to_runs(tmp_path):
+    d = experiment()
+    del d["name"], d["output"]
+    exp = parse_experiment(d, tmp_path / "bunny_rot.yaml", cwd=tmp_path)
+    assert exp.name == "bunny_rot" and exp.output == tmp_path / "runs"
+
+
+def test_mesh_file_is_relative_to_the_yaml_file(tmp_path):
+    d = experiment()
+    d["scene"]["objects"][0]["mesh"] = {"file": "meshes/a.ply"}
+    exp = parse_experiment(d, tmp_path / "sub" / "exp.yaml", cwd=tmp_path)
+    assert exp.scene.objects[0].mesh.file == (tmp_path / "sub" / "meshes" / "a.ply").resolve()
+
+
+def test_orbit_expands_to_a_ring_of_cameras(tmp_path):
+    d = experiment()
+    d["scene"]["cameras"] = [{"orbit": {"count": 6, "radius": 2, "elevation_deg": 30, "azimuth_deg": 10,
+                                        "target": [0, 0, 1], "fov": 35}},
+                             {"origin": [0, -1, 0], "target": [0, 0, 0]}]
+    cams = parse(d, tmp_path).scene.cameras
+    assert len(cams) == 7
+    for i, c in enumerate(cams[:6]):
+        rel = [o - t for o, t in zip(c.origin, c.target)]
+        assert math.dist(c.origin, c.target) == pytest.approx(2)
+        assert math.degrees(math.asin(rel[2] / 2)) == pytest.approx(30)
+        assert math.degrees(math.atan2(rel[1], rel[0])) % 360 == pytest.approx((10 + 60 * i) % 360)
+        assert c.fov == 35
+    assert cams[6].fov == 40
+
+
+def test_orbit_around_another_up_axis_keeps_radius_and_elevation():
+    cams = orbit_cameras(4, 3.0, 20.0, 0.0, (1, 2, 3), 40, up=(0, 1, 0))
+    for c in cams:
+        rel = [o - t for o, t in zip(c.origin, c.target)]
+        assert math.hypot(*rel) == pytest.approx(3.0)
+        assert rel[1] / 3.0 == pytest.approx(math.sin(math.radians(20)))
+
+
+def test_terms_accept_a_comma_string_and_keep_canonical_order(tmp_path):
+    exp = parse(experiment(estimator={"terms": "direct, primary"}), tmp_path)
+    assert exp.estimator.terms == ("primary", "direct")
+
+
+def test_parameter_and_guiding_sections(tmp_path):
+    exp = parse(experiment(parameter={"object": "ball", "kind": "translate", "axis": [0, 0, 2]},
+                           estimator={"guiding": "kdtree", "kdtree": {"samples_per_node": 64},
+                                      "grid": {"resolution": [8, 4, 4]}, "edge_sort": True}), tmp_path)
+    assert exp.parameter.axis == (0.0, 0.0, 1.0)  # normalised
+    assert exp.estimator.kdtree.samples_per_node == 64 and exp.estimator.kdtree.max_depth == 24
+    assert exp.estimator.grid.resolution == (8, 4, 4) and exp.estimator.edge_sort
+
+
+def test_every_emitter_type(tmp_path):
+    d = experiment()
+    d["scene"]["emitters"] = [
+        {"type": "sky", "sun_direction": [0, 1, 1], "turbidity": 4},
+        {"type": "area", "center": [0, 0, 2], "normal": [0, 0, -3], "size": [1, 2], "radiance": [1, 2, 3]}]
+    ems = parse(d, tmp_path).scene.emitters
+    assert ems[0].sun_direction == pytest.approx((0, 2 ** -0.5, 2 ** -0.5)) and ems[0].turbidity == 4
+    assert ems[1].normal == (0.0, 0.0, -1.0) and ems[1].radiance == (1.0, 2.0, 3.0)
+
+
+@pytest.mark.parametrize("mutate, key, words", [
+    (lambda d: d["scene"]["film"].update(width=0), "scene.film.width", "integer >= 1"),
+    (lambda d: d["scene"]["objects"][0]["bsdf"].update(type="difuse"), "scene.objects[0].bsdf.type",
+     "unknown 'difuse' (expected diffuse, roughconductor"),
+    (lambda d: d["scene"]["objects"][0]["bsdf"].update(reflectanse=1), "scene.objects[0].bsdf.reflectanse",
+     "unknown key"),
+    (lambda d: d["scene"]["objects"][1].update(name="ball"), "scene.objects[1].name", "duplicate"),
+    (lambda d: d["scene"]["emitters"].append({"type": "constant", "radiance": 1}) or
+     d["scene"]["emitters"].append({"type": "sky", "sun_direction": [0, 0, 1]}), "scene.emitters",
+     "at most one environment"),
+    (lambda d: d["scene"].update(cameras=[]), "scene.cameras", "at least 1"),
+    (lambda d: d["scene"]["cameras"][0].update(up=[0, 6, -3.4]), "scene.cameras[0]", "parallel"),
+    (lambda d: d.update(parameter={"kind": "envmap_rotate"}), "parameter.kind", "needs an envmap"),
+    (lambda d: d.update(parameter={"kind": "translate"}), "parameter.object", "missing"),
+    (lambda d: d.update(estimator={"terms": ["direct", "primery"]}), "estimator.terms[1]", "unknown 'primery'"),
+    (lambda d: d.update(estimator={"grid": {"resolution": [4, 4]}}), "estimator.grid.resolution", "3 integers"),
+    (lambda d: d["scene"]["objects"][0]["mesh"].update(file="x.ply"), "scene.objects[0].mesh", "not both"),
+    (lambda d: d["scene"]["emitters"][0].update(radiance=-1), "scene.emitters[0].radiance", "non-negative"),
+])
+def test_invalid_values_name_the_key(tmp_path, mutate, key, words):
+    d = experiment()
+    mutate(d)
+    with pytest.raises(ConfigError) as info:
+        parse(d, tmp_path)
+    msg = str(info.value)
+    assert msg.startswith(f"{tmp_path / 'exp.yaml'}: {key}"), msg
+    assert words in msg and "\n" not in msg
+
+
+def test_yaml_error_reports_line(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("scene:\n  film: {width: 3\n")
+    with pytest.raises(ConfigError, match=r"broken.yaml: line \d+, column \d+: invalid YAML"):
+        load_experiment(path)
