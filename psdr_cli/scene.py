@@ -162,7 +162,11 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
     for i, em in enumerate(cfg.emitters):
         d[f"emitter_{i:02d}"] = emitter_dict(em, str(exp.file))
     for name, om in built.items():
-        d[name] = mitsuba_mesh(name, om.vertices, om.faces, bsdf_dict(om.config), om.config.smooth)
+        try:
+            d[name] = mitsuba_mesh(name, om.vertices, om.faces, bsdf_dict(om.config), om.config.smooth)
+        except Exception as exc:  # noqa: BLE001 - Mitsuba rejects a BSDF parameter value
+            raise ConfigError(exp.file, om.config.key + ".bsdf",
+                              f"Mitsuba rejected the BSDF: {str(exc).splitlines()[0]}") from None
     try:
         mi_scene = mi.load_dict(d)
     except Exception as exc:  # noqa: BLE001 - Mitsuba rejects a parameter value

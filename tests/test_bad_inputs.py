@@ -111,6 +111,12 @@ def case_empty_file(tmp):
     return "", [], "the file is empty"
 
 
+def case_bsdf_value_rejected_by_mitsuba(tmp):
+    d = experiment()
+    d["scene"]["objects"][0]["bsdf"] = {"type": "roughconductor", "material": "Unobtainium"}
+    return d, [], "scene.objects[0].bsdf: Mitsuba rejected the BSDF"
+
+
 CASES = [v for k, v in sorted(globals().items()) if k.startswith("case_")]
 
 
