@@ -329,7 +329,7 @@ BSDF_PARAMS = {
                    "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss", "spec_trans", "eta"),
 }
 SHAPE_PARAMS = {
-    "sphere": {"radius": number(positive=True), "subdivisions": integer(0)},
+    "sphere": {"radius": number(positive=True), "subdivisions": integer(0), "resolution": integer(3)},
     "plane": {"size": None},
     "cube": {"size": None},
     "torus": {"major_radius": number(positive=True), "minor_radius": number(positive=True),

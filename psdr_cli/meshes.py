@@ -14,10 +14,14 @@ from .config import MeshSpec, TransformConfig, Where
 from .errors import ConfigError
 
 
-def sphere(radius: float = 1.0, subdivisions: int = 3):
-    """Icosphere (subdivided icosahedron) of the given radius, centred at the origin."""
+def sphere(radius: float = 1.0, subdivisions: int = 3, resolution: int | None = None):
+    """Sphere of the given radius centred at the origin: an icosphere (subdivided icosahedron), or
+    with ``resolution`` a UV sphere of ``resolution`` rings × 2·``resolution`` segments."""
     import trimesh
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    if resolution is not None:
+        m = trimesh.creation.uv_sphere(radius=radius, count=[resolution, 2 * resolution])
+    else:
+        m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
@@ -121,9 +125,19 @@ def load_mesh(spec: MeshSpec, file: str):
         except Exception as exc:  # noqa: BLE001 - any parser failure is a bad file
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise where.fail(f"cannot read mesh {spec.file.name}: {msg}") from None
+        if len(V) and np.isfinite(V).all():
+            V, F = weld_vertices(V, F)
     else:
         V, F = procedural(spec.shape, spec.params)
     return validate_mesh(V, F, where, spec.repair)
+
+
+def weld_vertices(V, F):
+    """Merge vertices at the same position (files split them at UV/normal seams), so that every
+    edge has both its faces and each surface point has one set of parameters to optimise."""
+    from .topology import weld
+    wid, rep = weld(V)
+    return V[rep], wid[F]
 
 
 def validate_mesh(V, F, where: Where, repair: bool = False):

@@ -119,3 +119,15 @@ def test_mesh_file_round_trip(exp_of, tmp_path):
     scene = build_scene(exp_of(d))
     assert np.allclose(scene.objects["ball"].vertices, V + [0, 0, 0.5])
     assert np.array_equal(scene.objects["ball"].faces, F)
+
+
+def test_uv_sphere_resolution_and_seam_welding(tmp_path):
+    V, F = meshes.sphere(1.0, resolution=8)
+    assert not meshes.degenerate_faces(V, F).any()
+    assert np.allclose(np.linalg.norm(V, axis=1), 1.0)
+    # a cube whose faces each have their own vertices (as OBJ seams) is welded back to 8 vertices
+    Vc, Fc = meshes.cube((1, 1, 1))
+    meshes.write_ply(tmp_path / "split.ply", Vc[Fc.reshape(-1)], np.arange(36).reshape(-1, 3))
+    from psdr_cli.config import MeshSpec
+    V2, F2 = meshes.load_mesh(MeshSpec("m", file=tmp_path / "split.ply"), "x.yaml")
+    assert len(V2) == 8 and len(F2) == 12
