@@ -1,0 +1,145 @@
+"""Direct boundary term: boundary segments whose source end lies on an emitter.
+
+A segment (x^B on an edge, direction ω): +ω must reach emission at x^S (an area light or the
+environment), −ω a surface point x^D seen by the camera. Its contribution to the pixel of x^D is
+
+    F/base = G = W_e(x^D) · f_s(x^D; ω → camera)|n_D·d0| · Le(x^S, −ω) / (p(x^B) p(ω))
+
+and the derivative enters through the normal velocity of the visibility boundary,
+
+    v = G · t_D sinφ · σ · (m̂ · ω(θ)),   m̂ = (ê × ω)/|ê × ω|,   σ = sign((ê × ω)·(p2 − p0)),
+    ω(θ) = normalize(x^B(θ) − x^D(θ)),   t_D = |x^B − x^D|,   sinφ = |ê × ω|,
+
+with x^D(θ) the pixel-tied camera hit. The sample adds (W·H/N)(v − detach(v)) to its pixel, so
+primal images are unchanged and only derivatives flow (forward and reverse mode alike). This
+velocity form holds for static sources (area lights that do not move, environment maps).
+
+``technique``: ``light`` (emitter sampling), ``dir`` (wedge sampling) or ``mis`` (one sample of
+each per pair, balance heuristic 1/(p(x^B)(p_light + p_dir)) on densities in (x^B, ω) measure).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
+                                pdf_wedge, ray_origin, sample_edge_point, sample_wedge)
+
+TECHNIQUES = ("light", "dir", "mis")
+
+
+def emitter_pdf(scene: mi.Scene, xB, siS, active):
+    """p_light(ω) in solid angle at x^B for a direction whose ray hit siS (or escaped)."""
+    it = dr.zeros(mi.Interaction3f)
+    it.p = xB
+    ds = mi.DirectionSample3f(scene, siS, it)
+    return scene.pdf_emitter_direction(it, ds, active)
+
+
+def camera_connection(scene: mi.Scene, sensor: mi.Sensor, xD, active, width: int, height: int):
+    """Project x^D to the film and test that the camera sees it.
+
+    Returns (importance W_e, direction to the camera d0, film position in pixels, camera-ray hit, mask).
+    The camera ray through the film position must land on x^D (scale-relative tolerance).
+    """
+    it = dr.zeros(mi.Interaction3f)
+    it.p = xD
+    ds, importance = sensor.sample_direction(it, mi.Point2f(0.5), active)
+    uv = ds.uv
+    active &= (ds.pdf > 0) & (dr.max(importance) > 0) & (uv.x >= 0) & (uv.x < width) & (uv.y >= 0) & (uv.y < height)
+    ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), active)
+    si = scene.ray_intersect(ray, active)
+    active &= si.is_valid() & (dr.norm(si.p - xD) < 1e-3 * ds.dist)
+    return importance, ds.d, uv, si, active
+
+
+def segment_weight(scene, sensor, edge: EdgeSample, w, p_w, origin, light_point, width, height):
+    """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D).
+
+    ``p_w`` is the direction density to divide by (the sum of both for MIS);
+    ``light_point`` is the sampled emitter point (``None`` for the wedge technique).
+    """
+    xB = dr.detach(edge.xB)
+    ok = in_wedge(edge, w)
+    # Source end: +ω reaches emission (for light sampling: exactly the sampled point)
+    if light_point is None:
+        d_src = w
+    else:
+        finite = dr.isfinite(light_point.x)
+        d_src = dr.select(finite, normalize(light_point - origin), w)
+    siS = scene.ray_intersect(mi.Ray3f(origin, d_src), ok)
+    if light_point is not None:
+        tS = dr.norm(siS.p - xB)
+        ok &= dr.select(dr.isfinite(light_point.x),
+                        siS.is_valid() & (dr.norm(siS.p - light_point) < 1e-4 * tS), ~siS.is_valid())
+    Le = siS.emitter(scene).eval(siS, ok)
+    ok &= dr.max(Le) > 0
+    # Detector end: −ω hits a surface that the camera sees
+    siD = scene.ray_intersect(mi.Ray3f(origin, -w), ok)
+    ok &= siD.is_valid()
+    xD = dr.select(ok, siD.p, xB - w)  # finite dummy on rejected lanes keeps NaNs out of AD
+    importance, d0, uv, siC, ok = camera_connection(scene, sensor, xD, ok, width, height)
+    # BSDF at x^D: light arrives along ω (from x^B), leaves towards the camera
+    siC.wi = siC.to_local(w)
+    wo = siC.to_local(d0)
+    fs = siC.bsdf().eval(mi.BSDFContext(mi.TransportMode.Importance), siC, wo, ok)
+    shading = dr.abs(siC.wi.z * dr.dot(d0, siC.n)) / dr.maximum(dr.abs(wo.z * dr.dot(w, siC.n)), 1e-12)
+    G = importance * fs * shading * Le / (edge.pdf * p_w)
+    exw = dr.cross(edge.e, w)
+    sin_phi = dr.norm(exw)
+    sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
+    coef = dr.select(ok, G * (dr.norm(xB - xD) * sin_phi * sigma), 0.0)
+    pixel = mi.UInt32(dr.floor(uv.y)) * width + mi.UInt32(dr.floor(uv.x))
+    return coef, exw / sin_phi, uv, dr.select(ok, pixel, 0), ok, xD
+
+
+def sample_light(scene: mi.Scene, xB, u):
+    """``light`` technique: ω towards a sampled emitter point (or environment direction) and p(ω)."""
+    it = dr.zeros(mi.Interaction3f)
+    it.p = xB
+    ds, _ = scene.sample_emitter_direction(it, u, False)
+    point = dr.select(dr.isinf(ds.dist), mi.Point3f(dr.inf), ds.p)
+    return ds.d, ds.pdf, point
+
+
+def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
+                    sampler: mi.Sampler, technique: str = "mis"):
+    """Direct boundary contribution (flat W·H·3 image whose primal value is 0) from ``n_samples``
+    samples (pairs for MIS); ``P`` is the AD vertex buffer of the edge objects."""
+    width, height = sensor.film().size()
+    img = dr.zeros(mi.Float, width * height * 3)
+    if edges.count == 0:
+        return img
+    distr = edge_distribution(edges, P)
+    for t in (("light", "dir") if technique == "mis" else (technique,)):
+        edge = sample_edge_point(edges, P, distr, sampler.next_1d())
+        u = sampler.next_2d()
+        with dr.suspend_grad():
+            xB = dr.detach(edge.xB)
+            origin = ray_origin(edge)
+            if t == "light":
+                w, p_light, point = sample_light(scene, xB, u)
+                p_dir = pdf_wedge(edge)
+            else:
+                w, p_dir = sample_wedge(edge, u)
+                point = None
+                p_light = None
+            if technique == "mis":
+                if p_light is None:
+                    siS = scene.ray_intersect(mi.Ray3f(origin, w))
+                    p_light = emitter_pdf(scene, xB, siS, True)
+                p_w = p_light + p_dir
+            else:
+                p_w = p_light if t == "light" else p_dir
+            coef, mhat, uv, pixel, ok, xD = segment_weight(scene, sensor, edge, w, p_w, origin, point,
+                                                           width, height)
+            coef *= (width * height) / n_samples
+            dr.eval(coef, mhat, uv, pixel, ok, xD)  # evaluate once: forward mode would re-trace otherwise
+        # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
+        ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), ok)
+        xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
+        v = coef * dr.dot(mhat, normalize(edge.xB - xD_t))
+        v = v - dr.detach(v)
+        for c in range(3):
+            dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
+    return img
