@@ -86,7 +86,6 @@ def build_topology(V, F, eps: float = 1e-5) -> Topology:
     F = np.asarray(F, np.int64)
     wid, _ = weld(V)
     Fw = wid[F]
-    m = len(F)
     # Half-edges k of face f: (F[f,k], F[f,k+1]); grouped by their welded, unordered end points.
     a = Fw.reshape(-1)
     b = Fw[:, [1, 2, 0]].reshape(-1)
@@ -109,6 +108,5 @@ def build_topology(V, F, eps: float = 1e-5) -> Topology:
     flat = ~open_ & (np.einsum("ij,ij->i", n0, n1) > 1 - eps)
     d = V[v2] - V[v0]
     concave = ~open_ & ~flat & (np.einsum("ij,ij->i", d, n1) > eps * np.linalg.norm(d, axis=1))
-    assert m * 3 == len(a)
     return Topology(v0=v0, v1=v1, v2=v2, face0=f0, face1=f1, open=open_, flat=flat, concave=concave,
                     nonmanifold=int((counts > 2).sum()), faces=F)

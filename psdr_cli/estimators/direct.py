@@ -53,11 +53,13 @@ def camera_connection(scene: mi.Scene, sensor: mi.Sensor, xD, active, width: int
     return importance, ds.d, uv, si, active
 
 
-def segment_weight(scene, sensor, edge: EdgeSample, w, p_w, origin, light_point, width, height):
+def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point,
+                   width, height):
     """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D).
 
-    ``p_w`` is the direction density to divide by (the sum of both for MIS);
-    ``light_point`` is the sampled emitter point (``None`` for the wedge technique).
+    The sample is divided by p(x^B)·p(ω) with p(ω) = p_light + p_dir for MIS, else the density of
+    the technique that drew it. ``light_point`` is the sampled emitter point (``None`` for the wedge
+    technique, whose p_light is then evaluated from the traced source ray when MIS needs it).
     """
     xB = dr.detach(edge.xB)
     ok = in_wedge(edge, w)
@@ -74,6 +76,9 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_w, origin, light_point,
                         siS.is_valid() & (dr.norm(siS.p - light_point) < 1e-4 * tS), ~siS.is_valid())
     Le = siS.emitter(scene).eval(siS, ok)
     ok &= dr.max(Le) > 0
+    if mis and p_light is None:
+        p_light = emitter_pdf(scene, xB, siS, ok)
+    p_w = p_light + p_dir if mis else (p_dir if light_point is None else p_light)
     # Detector end: −ω hits a surface that the camera sees
     siD = scene.ray_intersect(mi.Ray3f(origin, -w), ok)
     ok &= siD.is_valid()
@@ -121,18 +126,9 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
                 w, p_light, point = sample_light(scene, xB, u)
                 p_dir = pdf_wedge(edge)
             else:
-                w, p_dir = sample_wedge(edge, u)
-                point = None
-                p_light = None
-            if technique == "mis":
-                if p_light is None:
-                    siS = scene.ray_intersect(mi.Ray3f(origin, w))
-                    p_light = emitter_pdf(scene, xB, siS, True)
-                p_w = p_light + p_dir
-            else:
-                p_w = p_light if t == "light" else p_dir
-            coef, mhat, uv, pixel, ok, xD = segment_weight(scene, sensor, edge, w, p_w, origin, point,
-                                                           width, height)
+                (w, p_dir), p_light, point = sample_wedge(edge, u), None, None
+            coef, mhat, uv, pixel, ok, xD = segment_weight(scene, sensor, edge, w, p_light, p_dir,
+                                                           technique == "mis", origin, point, width, height)
             coef *= (width * height) / n_samples
             dr.eval(coef, mhat, uv, pixel, ok, xD)  # evaluate once: forward mode would re-trace otherwise
         # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
