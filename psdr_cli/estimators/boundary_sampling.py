@@ -20,6 +20,9 @@ import numpy as np
 
 from ..topology import build_topology
 
+#: BSDFs through which a ray grazing a concave edge can continue (concave edges kept).
+TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric")
+
 
 def normalize(v):
     return v / dr.norm(v)
@@ -32,22 +35,25 @@ class BoundaryEdges:
     Vertex ids index the concatenation of those objects' ``vertex_positions`` buffers (in
     ``names`` order), so :meth:`positions` returns one differentiable buffer for all of them.
     ``ids``: v0, v1, v2 (face0 in winding order) and face1's three vertices (a copy of face0's
-    for open edges); ``open``: border edges.
+    for open edges); ``open``: border edges. ``meshes`` keeps (topology, vertex offset, smooth
+    shading) per object for the per-view primary (silhouette) edges.
     """
     names: list
     ids: list
     open: mi.Bool
     count: int
+    meshes: list = None
 
     @staticmethod
     def from_scene(scene) -> "BoundaryEdges":
         cols = [[] for _ in range(6)]
-        opens, names, offset = [], [], 0
+        opens, names, meshes, offset = [], [], [], 0
         for name, om in scene.objects.items():
             if not om.edges:
                 continue
             topo = build_topology(om.vertices, om.faces)
-            sel = topo.secondary()
+            meshes.append((topo, offset, bool(om.config.smooth)))
+            sel = topo.secondary(transmissive=om.config.bsdf.type in TRANSMISSIVE)
             F = om.faces
             f1 = np.where(topo.open, topo.face0, topo.face1)[sel]
             for c, arr in zip(cols, (topo.v0[sel], topo.v1[sel], topo.v2[sel], F[f1, 0], F[f1, 1], F[f1, 2])):
@@ -56,9 +62,9 @@ class BoundaryEdges:
             names.append(name)
             offset += len(om.vertices)
         if not names:
-            return BoundaryEdges([], [], mi.Bool(), 0)
+            return BoundaryEdges([], [], mi.Bool(), 0, [])
         ids = [mi.UInt32(np.concatenate(c).astype(np.uint32)) for c in cols]
-        return BoundaryEdges(names, ids, mi.Bool(np.concatenate(opens)), int(sum(len(o) for o in opens)))
+        return BoundaryEdges(names, ids, mi.Bool(np.concatenate(opens)), int(sum(len(o) for o in opens)), meshes)
 
     def positions(self, params) -> mi.Float:
         """Flat (AD) buffer of the vertex positions of all edge objects."""

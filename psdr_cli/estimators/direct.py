@@ -24,6 +24,7 @@ import mitsuba as mi
 
 from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
                                 pdf_wedge, ray_origin, sample_edge_point, sample_wedge)
+from .camera import camera_ray, connect_camera
 
 TECHNIQUES = ("light", "dir", "mis")
 
@@ -34,23 +35,6 @@ def emitter_pdf(scene: mi.Scene, xB, siS, active):
     it.p = xB
     ds = mi.DirectionSample3f(scene, siS, it)
     return scene.pdf_emitter_direction(it, ds, active)
-
-
-def camera_connection(scene: mi.Scene, sensor: mi.Sensor, xD, active, width: int, height: int):
-    """Project x^D to the film and test that the camera sees it.
-
-    Returns (importance W_e, direction to the camera d0, film position in pixels, camera-ray hit, mask).
-    The camera ray through the film position must land on x^D (scale-relative tolerance).
-    """
-    it = dr.zeros(mi.Interaction3f)
-    it.p = xD
-    ds, importance = sensor.sample_direction(it, mi.Point2f(0.5), active)
-    uv = ds.uv
-    active &= (ds.pdf > 0) & (dr.max(importance) > 0) & (uv.x >= 0) & (uv.x < width) & (uv.y >= 0) & (uv.y < height)
-    ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), active)
-    si = scene.ray_intersect(ray, active)
-    active &= si.is_valid() & (dr.norm(si.p - xD) < 1e-3 * ds.dist)
-    return importance, ds.d, uv, si, active
 
 
 def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point,
@@ -83,19 +67,14 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool
     siD = scene.ray_intersect(mi.Ray3f(origin, -w), ok)
     ok &= siD.is_valid()
     xD = dr.select(ok, siD.p, xB - w)  # finite dummy on rejected lanes keeps NaNs out of AD
-    importance, d0, uv, siC, ok = camera_connection(scene, sensor, xD, ok, width, height)
-    # BSDF at x^D: light arrives along ω (from x^B), leaves towards the camera
-    siC.wi = siC.to_local(w)
-    wo = siC.to_local(d0)
-    fs = siC.bsdf().eval(mi.BSDFContext(mi.TransportMode.Importance), siC, wo, ok)
-    shading = dr.abs(siC.wi.z * dr.dot(d0, siC.n)) / dr.maximum(dr.abs(wo.z * dr.dot(w, siC.n)), 1e-12)
-    G = importance * fs * shading * Le / (edge.pdf * p_w)
+    # Camera connection at x^D: light arrives along ω (from x^B), leaves towards the camera
+    importance_fs, uv, pixel, ok, _ = connect_camera(scene, sensor, xD, w, ok, width, height)
+    G = importance_fs * Le / (edge.pdf * p_w)
     exw = dr.cross(edge.e, w)
     sin_phi = dr.norm(exw)
     sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
     coef = dr.select(ok, G * (dr.norm(xB - xD) * sin_phi * sigma), 0.0)
-    pixel = mi.UInt32(dr.floor(uv.y)) * width + mi.UInt32(dr.floor(uv.x))
-    return coef, exw / sin_phi, uv, dr.select(ok, pixel, 0), ok, xD
+    return coef, exw / sin_phi, uv, pixel, ok, xD
 
 
 def sample_light(scene: mi.Scene, xB, u):
@@ -132,7 +111,7 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
             coef *= (width * height) / n_samples
             dr.eval(coef, mhat, uv, pixel, ok, xD)  # evaluate once: forward mode would re-trace otherwise
         # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
-        ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), ok)
+        ray = camera_ray(sensor, uv, width, height, ok)
         xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
         v = coef * dr.dot(mhat, normalize(edge.xB - xD_t))
         v = v - dr.detach(v)

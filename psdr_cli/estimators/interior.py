@@ -1,4 +1,4 @@
-"""Interior term: unidirectional path tracing with next-event estimation (NEE).
+"""Interior term: unidirectional path tracing with next-event estimation (NEE), in material form.
 
 For a camera ray the estimator returns
 
@@ -9,6 +9,19 @@ ray that reached x_k (environment included on a miss) and the second is NEE towa
 emitter point y_k. Both are combined with the balance heuristic w_a = p_a / (p_bsdf + p_light);
 delta lobes and delta emitters keep weight 1. ``max_depth = 2`` is direct lighting only, the same
 convention as Mitsuba's ``path`` integrator.
+
+Derivatives (``ad=True``) follow the material form of the path integral. The camera vertex x_1 is
+tied to the pixel (it slides along the fixed camera ray); every later vertex x_k is a material
+point (``RayFlags.FollowShape``: fixed barycentrics on a moving triangle), so each segment
+x_{k-1} → x_k contributes the factors
+
+    f_s(x_{k-1}, ω_k) · |n_k · ω_k| / |x_k − x_{k-1}|² · J_k,   J_k = A_k / detach(A_k),
+
+with ω_k = normalize(x_k − x_{k-1}) recomputed from the moving points, divided by their detached
+values (sampling densities and MIS weights stay detached). The primal value is unchanged; the
+product of these ratios carries dL/dθ. NEE towards an area-light point y uses
+f_s · Le · |n_y·ω| / |y − x|² the same way; environment directions are solid-angle samples and
+only f_s and Le(ω) (e.g. a rotating environment) carry derivatives.
 """
 from __future__ import annotations
 
@@ -21,23 +34,75 @@ def mis_weight(pdf_a, pdf_b):
     return dr.detach(dr.select(pdf_a > 0, pdf_a / (pdf_a + pdf_b), 0.0))
 
 
-def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
-             active=True) -> mi.Color3f:
-    """Radiance arriving along ``ray`` (Python-unrolled over ``max_depth`` path vertices)."""
+def ratio(x):
+    """x / detach(x), 1 where the detached value is 0: primal 1, derivative d(log x)."""
+    xd = dr.detach(x)
+    return dr.select(xd != 0, x / dr.select(xd != 0, xd, 1.0), 1.0)
+
+
+def triangle_area(si: mi.SurfaceInteraction3f):
+    """Area of the hit triangle, |dp_du × dp_dv| / 2 (meshes without UVs: edges of the triangle)."""
+    return 0.5 * dr.norm(dr.cross(si.dp_du, si.dp_dv))
+
+
+def segment_ratio(prev_si, prev_bsdf, si, ray_d, active):
+    """Derivative carrier of the segment x_{k-1} → x_k (primal 1).
+
+    Hit: f_s(x_{k-1}, ω)·|n_k·ω|/d² · J_k with ω, d from the moving points; miss (environment):
+    f_s(x_{k-1}, ω) for the fixed sampled direction. ``si.wi`` is reset to the moving −ω."""
+    hit = si.is_valid()
+    d = si.p - prev_si.p
+    dist2 = dr.squared_norm(d)
+    w = dr.select(hit, d * dr.rsqrt(dr.select(hit, dist2, 1.0)), ray_d)
+    si.wi = dr.select(hit, si.to_local(-w), si.wi)
+    f = prev_bsdf.eval(mi.BSDFContext(), prev_si, prev_si.to_local(w), active)
+    geom = dr.abs(dr.dot(si.n, w)) / dr.select(hit, dist2, 1.0) * triangle_area(si)
+    return ratio(f) * dr.select(hit, ratio(geom), 1.0)
+
+
+def emitter_ratio(scene, si, bsdf, ds, active):
+    """Derivative carrier of an NEE connection x → y (primal 1): f_s(x, ω)·Le(y, −ω)·G(x, y)."""
+    finite = dr.isfinite(ds.dist) & (ds.dist < dr.largest(mi.Float))
+    d = ds.p - si.p
+    dist2 = dr.squared_norm(d)
+    w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), ds.d)
+    f = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), active)
+    ds_ad = mi.DirectionSample3f(p=ds.p, n=ds.n, uv=ds.uv, time=ds.time, pdf=ds.pdf, delta=ds.delta,
+                                 d=w, dist=ds.dist, emitter=ds.emitter)
+    it = dr.zeros(mi.Interaction3f, dr.width(w))
+    it.p, it.n, it.t = si.p, si.n, si.t
+    Le = scene.eval_emitter_direction(it, ds_ad, active)
+    geom = dr.abs(dr.dot(ds.n, w)) / dr.select(finite, dist2, 1.0)
+    return ratio(f) * ratio(Le) * dr.select(finite & ~ds.delta, ratio(geom), 1.0)
+
+
+def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True,
+             ad: bool = False, by_depth: bool = False):
+    """Radiance arriving along ``ray`` (Python-unrolled over ``max_depth`` path vertices).
+
+    ``ad``: attach material-form derivatives (the ray must be detached). ``by_depth``: return the
+    list [L_1, …, L_max_depth] where L_n sums the paths with n segments (L_1 is the emission seen
+    directly along ``ray``)."""
     ctx = mi.BSDFContext()
-    L = mi.Color3f(0.0)
+    parts = [mi.Color3f(0.0) for _ in range(max_depth)]
     beta = mi.Color3f(1.0)
+    carry = mi.Color3f(1.0)  # product of derivative carriers (primal 1)
     active = mi.Bool(active)
     prev_si = dr.zeros(mi.SurfaceInteraction3f)
+    prev_bsdf = None
     prev_pdf = mi.Float(1.0)
     prev_delta = mi.Bool(True)  # the camera vertex: emission seen directly gets weight 1
     si = scene.ray_intersect(ray, active)
     for depth in range(max_depth):
+        if ad and depth > 0:
+            carry *= segment_ratio(prev_si, prev_bsdf, si, ray.d, active)
         # Emission at the vertex reached by BSDF sampling (or by the camera ray)
-        ds = mi.DirectionSample3f(scene, si, prev_si)
-        pdf_em = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_delta)
-        w_bsdf = dr.select(prev_delta, 1.0, mis_weight(prev_pdf, pdf_em))
-        L += dr.select(active, beta * w_bsdf * ds.emitter.eval(si, active), 0.0)
+        with dr.suspend_grad():
+            ds = mi.DirectionSample3f(scene, si, prev_si)
+            pdf_em = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_delta)
+            w_bsdf = dr.select(prev_delta, 1.0, mis_weight(prev_pdf, pdf_em))
+        Le = ds.emitter.eval(si, active)
+        parts[depth] += dr.select(active, beta * carry * w_bsdf * Le, 0.0)
 
         active &= si.is_valid()
         if depth + 1 >= max_depth:
@@ -45,21 +110,34 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
         bsdf = si.bsdf(ray)
 
         # Next-event estimation
-        active_em = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        ds_em, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
-        active_em &= ds_em.pdf != 0.0
-        wo = si.to_local(ds_em.d)
-        f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo, active_em)
-        w_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, pdf_bsdf))
-        L += dr.select(active_em, beta * w_em * f_em * em_weight, 0.0)
+        with dr.suspend_grad():
+            active_em = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds_em, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+            active_em &= ds_em.pdf != 0.0
+            wo = si.to_local(ds_em.d)
+            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo, active_em)
+            w_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, pdf_bsdf))
+        contrib = beta * carry * w_em * f_em * em_weight
+        if ad:
+            contrib *= emitter_ratio(scene, si, bsdf, ds_em, active_em)
+        parts[depth + 1] += dr.select(active_em, contrib, 0.0)
 
         # BSDF sampling to the next vertex
-        bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
-        beta *= bsdf_weight
-        active &= (bs.pdf > 0.0) & (dr.max(beta) > 0.0)
-        prev_si = si
-        prev_pdf = bs.pdf
-        prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        ray = si.spawn_ray(si.to_world(bs.wo))
-        si = scene.ray_intersect(ray, active)
-    return L
+        with dr.suspend_grad():
+            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
+            beta *= bsdf_weight
+            active &= (bs.pdf > 0.0) & (dr.max(beta) > 0.0)
+            prev_pdf = bs.pdf
+            prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            ray = si.spawn_ray(si.to_world(bs.wo))
+        prev_si, prev_bsdf = si, bsdf
+        if ad:
+            si = scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
+        else:
+            si = scene.ray_intersect(ray, active)
+    if by_depth:
+        return parts
+    total = parts[0]
+    for p in parts[1:]:
+        total = total + p
+    return total

@@ -1,0 +1,76 @@
+"""Camera helpers shared by the boundary terms: film projection and camera connections.
+
+Film coordinates are in pixels, q ∈ [0, W) × [0, H). For Mitsuba's perspective camera with a
+horizontal field of view f and aspect a = W/H, a camera-space point (x, y, z) projects to
+
+    q = ( W (½ − ½ x / (z tan(f/2))),  H (½ − ½ a y / (z tan(f/2))) ).
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+
+class Projection:
+    """World → film (pixels) projection of one perspective sensor, differentiable in the point."""
+
+    def __init__(self, sensor: mi.Sensor):
+        params = mi.traverse(sensor)
+        self.width, self.height = (int(s) for s in sensor.film().size())
+        self.to_local = params["to_world"].inverse()
+        self.origin = params["to_world"].translation()
+        self.tan_half = math.tan(math.radians(float(dr.ravel(params["x_fov"])[0])) / 2)
+        self.near = float(sensor.near_clip()) if hasattr(sensor, "near_clip") else 1e-2
+
+    def __call__(self, p):
+        """(film position in pixels, camera-space depth z) of world points ``p``."""
+        local = self.to_local @ p
+        z = local.z
+        aspect = self.width / self.height
+        x = local.x / (z * self.tan_half)
+        y = local.y / (z * self.tan_half)
+        return mi.Point2f(self.width * (0.5 - 0.5 * x), self.height * (0.5 - 0.5 * aspect * y)), z
+
+
+def film_pixel(uv, width: int):
+    """Flat pixel index ⌊q_y⌋·W + ⌊q_x⌋ of a film position in pixels."""
+    return mi.UInt32(dr.floor(uv.y)) * width + mi.UInt32(dr.floor(uv.x))
+
+
+def camera_ray(sensor: mi.Sensor, uv, width: int, height: int, active=True):
+    """The (detached) camera ray through film position ``uv`` (pixels)."""
+    ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), active)
+    return ray
+
+
+def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int, height: int):
+    """Project x to the film and test that the camera sees it.
+
+    Returns (importance W_e, direction to the camera d0, film position in pixels, camera-ray hit, mask).
+    The camera ray through the film position must land on x (scale-relative tolerance).
+    """
+    it = dr.zeros(mi.Interaction3f)
+    it.p = x
+    ds, importance = sensor.sample_direction(it, mi.Point2f(0.5), active)
+    uv = ds.uv
+    active &= (ds.pdf > 0) & (dr.max(importance) > 0) & (uv.x >= 0) & (uv.x < width) & (uv.y >= 0) & (uv.y < height)
+    si = scene.ray_intersect(camera_ray(sensor, uv, width, height, active), active)
+    active &= si.is_valid() & (dr.norm(si.p - x) < 1e-3 * ds.dist)
+    return importance, ds.d, uv, si, active
+
+
+def connect_camera(scene: mi.Scene, sensor: mi.Sensor, x, w_in, active, width: int, height: int):
+    """Importance carried from the camera to a surface point x for light arriving from ``w_in``.
+
+    Value W_e · f_s(x; w_in → d0) |n·d0| with the shading-normal correction
+    |cos_sh(w_in)·(n·d0)| / |cos_sh(d0)·(n·w_in)| (light-tracing convention). Returns
+    (value, film position, pixel, mask, camera-ray hit)."""
+    importance, d0, uv, siC, ok = camera_connection(scene, sensor, x, active, width, height)
+    siC.wi = siC.to_local(w_in)
+    wo = siC.to_local(d0)
+    fs = siC.bsdf().eval(mi.BSDFContext(mi.TransportMode.Importance), siC, wo, ok)
+    shading = dr.abs(siC.wi.z * dr.dot(d0, siC.n)) / dr.maximum(dr.abs(wo.z * dr.dot(w_in, siC.n)), 1e-12)
+    value = dr.select(ok, importance * fs * shading, 0.0)
+    return value, uv, dr.select(ok, film_pixel(uv, width), 0), ok, siC

@@ -1,0 +1,135 @@
+"""Indirect boundary term: general boundary segments (x^D ← x^B → x^S) with subpaths on both ends.
+
+A boundary segment through the edge point x^B in direction ω (``dir`` technique: uniform over the
+silhouette wedge) has a source end x^S (first hit along +ω, or the environment) and a detector
+end x^D (first hit along −ω). Full paths are assembled from
+
+- a source subpath: path tracing from x^B along +ω; S_k is the radiance reaching x^B through
+  x^S with k further segments (S_0 = Le(x^S), the emission the direct term uses);
+- a detector subpath: a light-tracing walk from x^D; D_j is the importance of the j-segment
+  chain camera → … → x^D (D_1: x^D connected to the camera directly, D_j: the walk's (j−1)-th
+  bounce connected to the camera, landing in its own pixel).
+
+With the total path length j + 1 + k ≤ max_depth, every pair except (j, k) = (1, 0) (the direct
+term) contributes F_j = D_j · Σ_k S_k / (p(x^B) p(ω)). The derivative enters through the normal
+velocity of the visibility boundary. For a surface source with normal n_S,
+
+    v = F_j · sinφ · σ · (t_D / dist) · m̂ · (u2(θ) − x^S(θ)),
+
+where u2(θ) = x^D + t (x^B − x^D) is where the line from x^D(θ) through x^B(θ) meets the plane
+of the source triangle, t = ((x^S − x^D)·n_S) / ((x^B − x^D)·n_S), x^S(θ) the source material
+point, t_D = |x^B − x^D|, dist = |x^S − x^D|, m̂ = (ê × ω)/|ê × ω|, sinφ = |ê × ω| and
+σ = sign((ê × ω)·(p2 − p0)). Only the component of u̇2 − ẋ^S in the source plane matters and
+m̂ restricted to that plane is ñ (the boundary-curve normal) scaled by |n_S·ω|/sinφ2, which is
+how this form equals F·base·σ·(ñ·u̇2) with base = (t_D/dist)(sinφ/sinφ2)|n_S·ω|. For the
+environment (no source surface) it becomes v = F_j · sinφ · σ · t_D · m̂ · ω(θ) with
+ω(θ) = normalize(x^B(θ) − x^D(θ)). x^D(θ) is tied to the pixel for j = 1 (the camera vertex)
+and a material point for j ≥ 2.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from . import interior
+from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, ray_origin,
+                                sample_edge_point, sample_wedge)
+from .camera import camera_ray, connect_camera
+
+FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
+
+
+def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, height):
+    """Light-tracing walk from x^D for light arriving from x^B along −ω (``w`` = +ω).
+
+    Returns a list over j = 1..depth of (D_j, film position, pixel, mask)."""
+    out = []
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    si, w_in, beta, active = siD, w, mi.Color3f(1.0), mi.Bool(active)
+    for j in range(1, depth + 1):
+        value, uv, pixel, ok, _ = connect_camera(scene, sensor, si.p, w_in, active, width, height)
+        out.append((beta * value, uv, pixel, ok))
+        if j == depth:
+            break
+        si.wi = si.to_local(w_in)
+        bs, weight = si.bsdf().sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
+        beta *= weight
+        d = si.to_world(bs.wo)
+        active &= (bs.pdf > 0) & (dr.max(beta) > 0)
+        si = scene.ray_intersect(si.spawn_ray(d), active)
+        active &= si.is_valid()
+        w_in = -d
+    return out
+
+
+def boundary_motion(xB, xD, siS_ad, source_surface, coef_geometry, mhat):
+    """m̂·(motion of the visibility boundary) scaled as in the module docstring (AD, primal ≠ 0).
+
+    ``coef_geometry`` holds the detached factor sinφ·σ·t_D (the 1/dist factor is added here)."""
+    w = normalize(xB - xD)
+    env = coef_geometry * dr.dot(mhat, w)
+    # Lanes without a source surface get a harmless stand-in (no NaN may enter the AD graph)
+    xS = dr.select(source_surface, siS_ad.p, xB + w)
+    nS = dr.select(source_surface, siS_ad.n, w)
+    denom = dr.dot(xB - xD, nS)
+    t = dr.dot(xS - xD, nS) / dr.select(denom != 0, denom, 1.0)
+    u2 = xD + t * (xB - xD)
+    dist = dr.detach(dr.norm(xS - xD))
+    surface = coef_geometry / dr.maximum(dist, 1e-12) * dr.dot(mhat, u2 - xS)
+    return dr.select(source_surface, surface, env)
+
+
+def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
+                      sampler: mi.Sampler, max_depth: int):
+    """Indirect boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` segments."""
+    width, height = sensor.film().size()
+    img = dr.zeros(mi.Float, width * height * 3)
+    if edges.count == 0 or max_depth < 3:
+        return img  # paths with a boundary segment and ≥ 3 segments are needed
+    distr = edge_distribution(edges, P)
+    edge = sample_edge_point(edges, P, distr, sampler.next_1d())
+    u = sampler.next_2d()
+    with dr.suspend_grad():
+        xB = dr.detach(edge.xB)
+        origin = ray_origin(edge)
+        w, p_dir = sample_wedge(edge, u)
+        ok = in_wedge(edge, w)
+        siD = scene.ray_intersect(mi.Ray3f(origin, -w), ok)
+        ok &= siD.is_valid()
+        # Source subpath: S[k] = radiance through x^S with k further segments
+        S = interior.radiance(scene, sampler, mi.Ray3f(origin, w), max_depth - 1, ok, by_depth=True)
+        siS = scene.ray_intersect(mi.Ray3f(origin, w), ok)
+        exw = dr.cross(edge.e, w)
+        sin_phi = dr.norm(exw)
+        mhat = exw / sin_phi
+        sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
+        tD = dr.norm(xB - siD.p)
+        scale = (width * height) / n_samples / (edge.pdf * p_dir)
+        geometry = dr.select(ok, sin_phi * sigma * tD * scale, 0.0)
+        walk = detector_walk(scene, sensor, siD, w, max_depth - 1, sampler, ok, width, height)
+        dr.eval(S, walk, geometry, mhat, siS, siD)
+    # Moving end points (AD): the source material point, x^D as a material point (j ≥ 2)
+    ray_S = mi.Ray3f(origin, w)
+    siS_ad = scene.ray_intersect(ray_S, FOLLOW, False, ok & siS.is_valid())
+    siD_ad = scene.ray_intersect(mi.Ray3f(origin, -w), FOLLOW, False, ok)
+    surface = siS.is_valid()
+    for j, (D, uv, pixel, ok_j) in enumerate(walk, start=1):
+        k_max = max_depth - 1 - j
+        if k_max < 0:
+            break
+        with dr.suspend_grad():
+            Ssum = mi.Color3f(0.0)
+            for k in range(1 if j == 1 else 0, k_max + 1):
+                Ssum += S[k]
+            F = dr.select(ok_j, D * Ssum, 0.0)
+            live = ok_j & (dr.max(F) > 0)
+        if j == 1:  # camera vertex: x^D slides along the camera ray through its film position
+            ray = camera_ray(sensor, uv, width, height, live)
+            xD_t = dr.select(live, scene.ray_intersect(ray, live).p, siD.p)
+        else:
+            xD_t = siD_ad.p
+        v = F * boundary_motion(edge.xB, xD_t, siS_ad, surface, geometry, mhat)
+        v = dr.select(live, v - dr.detach(v), 0.0)
+        for c in range(3):
+            dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, live)
+    return img
