@@ -5,6 +5,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from . import backend, io
 from .config import Experiment
 from .errors import PsdrError
@@ -83,4 +85,133 @@ def render(exp: Experiment, spp: int | None = None, views=None, out: Path | None
         io.write_rgb_exr(exr, image, header)
         io.write_preview(exr.with_suffix(".png"), image)
         result.files.append(exr)
+    return result
+
+
+@dataclass
+class GradResult:
+    folder: Path
+    views: list
+    parameter: str = ""
+    files: list = field(default_factory=list)
+    seconds: list = field(default_factory=list)      # per view: {term: seconds}
+    sums: list = field(default_factory=list)         # per view: {term: image sum}
+    agreement: list = field(default_factory=list)    # per view: FD agreement (with --fd)
+    variant: str = ""
+
+
+def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
+                    scene=None, progress=None) -> dict:
+    """Forward-mode gradient images dI/dθ of one view, without writing anything.
+
+    Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
+    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
+    from .estimators.boundary_sampling import BoundaryEdges
+    from .gradient import Settings, forward_gradient
+    from .parameters import Parameter
+    from .scene import build_scene
+
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (the gradient needs a parameter to differentiate)")
+    setup(exp)
+    scene = scene or build_scene(exp)
+    parameter = Parameter(scene, exp.parameter)
+    edges = BoundaryEdges.from_scene(scene)
+    settings = Settings.from_experiment(exp, spp)
+    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress)
+            for t in (terms or exp.estimator.terms)}
+
+
+def parse_terms(terms) -> tuple:
+    from .gradient import TERMS
+    if terms is None:
+        return None
+    names = [t.strip() for t in terms.split(",")] if isinstance(terms, str) else list(terms)
+    bad = [t for t in names if t not in TERMS]
+    if bad or not names:
+        raise PsdrError(f"--terms: unknown term '{bad[0] if bad else ''}' (expected a comma-separated "
+                        f"subset of {','.join(TERMS)})")
+    return tuple(t for t in TERMS if t in names)
+
+
+def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
+         fd: float | None = None, fd_spp: int | None = None, progress=None) -> GradResult:
+    """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
+
+    Channels: the render (R, G, B), one group per term (``interior.R`` …) and ``total.*``; with
+    ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 4 batches of
+    ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
+    statistics. PNG previews use a diverging colour map shared by all terms."""
+    from .estimators.boundary_sampling import BoundaryEdges
+    from .gradient import Settings, forward_gradient
+    from .parameters import Parameter
+    from .reference import agreement, finite_difference
+    from .render import render_view
+    from .scene import build_scene
+
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
+    if spp is not None and spp < 1:
+        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    if fd is not None and not fd > 0:
+        raise PsdrError(f"--fd: expected a positive step size, got {fd}")
+    if fd_spp is not None and fd_spp < 4:
+        raise PsdrError(f"--fd-spp: expected at least 4 samples per pixel (4 batches), got {fd_spp}")
+    terms = parse_terms(terms) or exp.estimator.terms
+    variant = setup(exp)
+    scene = build_scene(exp)
+    views = parse_views(views, len(exp.scene.cameras))
+    parameter = Parameter(scene, exp.parameter)
+    edges = BoundaryEdges.from_scene(scene)
+    settings = Settings.from_experiment(exp, spp)
+    fd_spp = fd_spp or 4 * settings.spp
+    min_passes = 4 if fd else 1
+    folder = (Path(out).resolve() / exp.name if out else exp.run_dir) / "grad"
+    result = GradResult(folder, views, parameter.name, variant=variant)
+    W, H = scene.resolution
+    if progress:
+        per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)
+        progress.start(len(views) * per_view)
+    for v in views:
+        estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes,
+                                         progress.advance if progress else None) for t in terms}
+        image = estimates["interior"].primal if "interior" in estimates else \
+            render_view(scene, v, settings.spp, seed=exp.seed)
+        total = sum(e.gradient for e in estimates.values())
+        channels = {"R": image[..., 0], "G": image[..., 1], "B": image[..., 2]}
+        for name, g in [(t, e.gradient) for t, e in estimates.items()] + [("total", total)]:
+            for c, ch in enumerate("RGB"):
+                channels[f"{name}.{ch}"] = g[..., c]
+        header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.parameter": parameter.name,
+                  "psdr.terms": ",".join(terms), "psdr.sampling": settings.sampling,
+                  "psdr.spp": {t: str(settings.samples(t)) for t in terms},
+                  "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}
+        stats = None
+        if fd:
+            batches = finite_difference(scene, parameter, v, fd, fd_spp, seed=exp.seed, batches=4,
+                                        progress=(lambda n: progress.advance(n)) if progress else None)
+            fd_image = np.mean(batches, axis=0)
+            for c, ch in enumerate("RGB"):
+                channels[f"fd.{ch}"] = fd_image[..., c]
+            stats = agreement([(e.passes, e.weights) for e in estimates.values()], batches)
+            header["psdr.fd_h"] = str(fd)
+            header["psdr.fd_spp"] = str(fd_spp)
+        exr = folder / f"view_{v:03d}.exr"
+        io.write_exr(exr, {k: np.asarray(x, np.float32) for k, x in channels.items()}, header)
+        scale = float(np.percentile(np.abs(total.mean(-1)), 99.5)) or 1.0
+        io.write_preview(folder / f"view_{v:03d}.png", image)
+        previews = [(t, e.gradient) for t, e in estimates.items()] + [("total", total)]
+        if fd:
+            previews.append(("fd", fd_image))
+        for name, g in previews:
+            io.write_gradient_preview(folder / f"view_{v:03d}_{name}.png", g, scale)
+        result.files.append(exr)
+        result.seconds.append({t: e.seconds for t, e in estimates.items()})
+        result.sums.append({**{t: float(e.gradient.sum()) for t, e in estimates.items()}, "total": float(total.sum())})
+        result.agreement.append(stats)
+    io.write_json(folder / "summary.json", {
+        "experiment": str(exp.file), "parameter": result.parameter, "variant": variant, "terms": list(terms),
+        "spp": {t: settings.samples(t) for t in terms}, "sampling": settings.sampling, "fd_h": fd,
+        "views": [{"view": v, "file": str(f), "seconds": s, "sums": m, "fd_agreement": a}
+                  for v, f, s, m, a in zip(views, result.files, result.seconds, result.sums, result.agreement)]})
     return result

@@ -130,10 +130,35 @@ def _not_yet(command: str, issue: str):
 
 @app.command()
 @guarded
-def grad(config: Path = ConfigArg):
-    """Gradient image dI/dθ per boundary term (not implemented yet)."""
-    load_experiment(config)
-    _not_yet("grad", "the estimators are the next milestone")
+def grad(config: Path = ConfigArg,
+         spp: Optional[int] = typer.Option(None, "--spp", help="Interior samples per pixel (default: estimator.spp)."),
+         terms: Optional[str] = typer.Option(None, "--terms", help="Terms, e.g. interior,primary,direct,indirect (default: estimator.terms)."),
+         views: Optional[str] = typer.Option(None, "--views", help="Views, e.g. 0,3 or 0-2 (default: all)."),
+         fd: Optional[float] = typer.Option(None, "--fd", help="Also compute central finite differences with step H and report the agreement."),
+         fd_spp: Optional[int] = typer.Option(None, "--fd-spp", help="Samples per pixel of the finite differences (default: 4 × spp)."),
+         out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")):
+    """Gradient image dI/dθ per term (interior, primary, direct, indirect) and their total."""
+    from . import api
+    exp = load_experiment(config)
+    with Bar("grad") as bar:
+        res = api.grad(exp, spp=spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar)
+    table = Table(title=f"psdr grad: {exp.name} — d/dθ, θ = {res.parameter}")
+    for col in ("view", "term", "image sum", "seconds"):
+        table.add_column(col, justify="right" if col != "term" else "left")
+    for v, secs, sums in zip(res.views, res.seconds, res.sums):
+        for t, s in secs.items():
+            table.add_row(str(v), t, f"{sums[t]:.5g}", f"{s:.2f}")
+        table.add_row(str(v), "[bold]total", f"[bold]{sums['total']:.5g}", f"{sum(secs.values()):.2f}")
+    out.print(table)
+    for v, a in zip(res.views, res.agreement):
+        if a:
+            s, b = a["sum"], a["blocks"]
+            verdict = "agrees" if abs(s["z"]) < 3 and b["within_3se"] > 0.95 else "DISAGREES"
+            out.print(f"view {v}: estimate {s['estimate']:.5g} ± {s['estimate_se']:.2g}, finite differences "
+                      f"{s['fd']:.5g} ± {s['fd_se']:.2g} (z = {s['z']:+.2f}); {b['size']}×{b['size']} tiles: "
+                      f"{100 * b['within_3se']:.0f}% within 3 SE, max |z| {b['max_abs_z_signal']:.2f} over "
+                      f"{b['signal']} signal tiles, correlation {b['correlation']:.3f} — {verdict}")
+    out.print(f"{len(res.views)} view(s), {res.variant}; outputs in {res.folder}")
 
 
 @app.command("guide-stats")

@@ -108,12 +108,8 @@ class TermEstimate:
 
     def standard_error(self) -> np.ndarray | None:
         """Per-pixel standard error of the mean from the spread of the passes (≥ 2 passes)."""
-        if len(self.passes) < 2:
-            return None
-        w = np.asarray(self.weights, float)[:, None, None, None]
-        x = np.stack(self.passes)
-        var = (w * (x - self.gradient) ** 2).sum(0) / (1 - (w ** 2).sum())
-        return np.sqrt(var * (w ** 2).sum())
+        from .reference import mean_and_error
+        return mean_and_error(self.passes, self.weights)[1] if len(self.passes) > 1 else None
 
 
 def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Settings,

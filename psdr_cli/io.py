@@ -84,3 +84,16 @@ def write_preview(path, image: np.ndarray, exposure: float = 0.0):
 def write_json(path, data):
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, default=str) + "\n")
+
+
+def diverging(values: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W) signed values → (H, W, 3) uint8: blue (−scale) · white (0) · red (+scale)."""
+    t = np.clip(values / scale, -1.0, 1.0) if scale > 0 else np.zeros_like(values)
+    pos, neg = np.clip(t, 0, 1), np.clip(-t, 0, 1)
+    rgb = np.stack([1 - neg, 1 - pos - neg, 1 - pos], axis=-1)
+    return np.round(srgb(np.clip(rgb, 0, 1)) * 255).astype(np.uint8)
+
+
+def write_gradient_preview(path, gradient: np.ndarray, scale: float):
+    """PNG of a gradient image (channel mean) with a symmetric diverging colour map at ±``scale``."""
+    write_png(path, diverging(gradient.mean(axis=-1), scale))

@@ -53,3 +53,49 @@ def mitsuba_projective(scene, parameter, view: int, spp: int, seed: int = 0, max
         out.append(np.asarray(dr.grad(img), np.float64))
         parameter.reset()
     return out
+
+
+def mean_and_error(samples, weights=None):
+    """Weighted mean of independent estimates (first axis) and its standard error."""
+    x = np.asarray(samples, np.float64)
+    w = np.full(len(x), 1.0 / len(x)) if weights is None else np.asarray(weights, np.float64)
+    w = w.reshape((-1,) + (1,) * (x.ndim - 1))
+    mean = (w * x).sum(0)
+    w2 = (w ** 2).sum()
+    var = (w * (x - mean) ** 2).sum(0) / max(1.0 - w2, 1e-12)
+    return mean, np.sqrt(var * w2)
+
+
+def block_sums(images, block: int):
+    """Sums over block×block pixel tiles (and channels) of a stack of (H, W, 3) images."""
+    x = np.asarray(images, np.float64)
+    n, H, W = x.shape[:3]
+    h, w = H // block * block, W // block * block
+    return x[:, :h, :w].sum(-1).reshape(n, h // block, block, w // block, block).sum((2, 4))
+
+
+def agreement(estimates, fd_batches, block: int = 4) -> dict:
+    """Agreement of a gradient estimate with finite differences, on the image sum and on tiles.
+
+    ``estimates``: one (per-pass images, pass weights) pair per term; terms are independent, so
+    their means and variances add. ``z = (estimate − FD) / sqrt(se_estimate² + se_FD²)``; tiles
+    count as *signal* where the FD value exceeds 3 of its standard errors."""
+    est_sum = est_var = e = e_var = 0.0
+    for passes, weights in estimates:
+        m, se = mean_and_error([p.sum() for p in passes], weights)
+        est_sum, est_var = est_sum + m, est_var + se ** 2
+        m, se = mean_and_error(block_sums(passes, block), weights)
+        e, e_var = e + m, e_var + se ** 2
+    fd_sum, fd_se = mean_and_error([b.sum() for b in fd_batches])
+    f, f_se = mean_and_error(block_sums(fd_batches, block))
+    z = (e - f) / np.sqrt(e_var + f_se ** 2 + 1e-30)
+    signal = np.abs(f) > 3 * f_se
+    corr = float(np.corrcoef(e.ravel(), f.ravel())[0, 1]) if f.size > 1 and f.std() > 0 and np.std(e) > 0 else float("nan")
+    return {
+        "sum": {"estimate": float(est_sum), "estimate_se": float(np.sqrt(est_var)), "fd": float(fd_sum),
+                "fd_se": float(fd_se), "z": float((est_sum - fd_sum) / np.sqrt(est_var + fd_se ** 2 + 1e-30))},
+        "blocks": {"size": block, "count": int(z.size), "signal": int(signal.sum()),
+                   "max_abs_z_signal": float(np.abs(z[signal]).max()) if signal.any() else 0.0,
+                   "within_3se": float((np.abs(z) < 3).mean()), "mean_z2": float((z ** 2).mean()),
+                   "correlation": corr},
+    }

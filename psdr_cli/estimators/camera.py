@@ -12,6 +12,8 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from .interior import bend_shading_normal
+
 
 class Projection:
     """World → film (pixels) projection of one perspective sensor, differentiable in the point."""
@@ -68,6 +70,8 @@ def connect_camera(scene: mi.Scene, sensor: mi.Sensor, x, w_in, active, width: i
     |cos_sh(w_in)·(n·d0)| / |cos_sh(d0)·(n·w_in)| (light-tracing convention). Returns
     (value, film position, pixel, mask, camera-ray hit)."""
     importance, d0, uv, siC, ok = camera_connection(scene, sensor, x, active, width, height)
+    siC.wi = siC.to_local(d0)
+    siC = bend_shading_normal(siC)  # the same shading frame the camera path sees at this point
     siC.wi = siC.to_local(w_in)
     wo = siC.to_local(d0)
     fs = siC.bsdf().eval(mi.BSDFContext(mi.TransportMode.Importance), siC, wo, ok)

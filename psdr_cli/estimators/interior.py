@@ -40,6 +40,30 @@ def ratio(x):
     return dr.select(xd != 0, x / dr.select(xd != 0, xd, 1.0), 1.0)
 
 
+#: Smallest |cos| between a shading normal and the viewing direction (see ``bend_shading_normal``).
+MIN_SHADING_COS = 0.02
+
+
+def bend_shading_normal(si: mi.SurfaceInteraction3f):
+    """Keep interpolated shading normals facing the viewer: with s = sign(n_g·ω_i) and
+    c = s·(n_s·ω_i), a normal with c < δ becomes normalize(n_s + s(δ − c) ω_i).
+
+    Without this, the region near a smooth mesh's silhouette where n_s turns away from the viewer
+    renders black (BSDFs reject ω_i below the shading hemisphere), and the edge of that band is
+    an image discontinuity that follows no mesh edge, so no boundary term could account for it.
+    The bend is continuous (no change at c = δ) and leaves flat shading (n_s = n_g) untouched
+    unless the view is within δ of grazing."""
+    wi = si.to_world(si.wi)
+    smooth = dr.norm(si.sh_frame.n - si.n) > 1e-6
+    s = dr.sign(dr.dot(si.n, wi))
+    c = s * dr.dot(si.sh_frame.n, wi)
+    bend = smooth & (c < MIN_SHADING_COS)
+    n = dr.normalize(si.sh_frame.n + s * (MIN_SHADING_COS - c) * wi)
+    si.sh_frame = mi.Frame3f(dr.select(bend, n, si.sh_frame.n))
+    si.wi = si.to_local(wi)
+    return si
+
+
 def triangle_area(si: mi.SurfaceInteraction3f):
     """Area of the hit triangle, |dp_du × dp_dv| / 2 (meshes without UVs: edges of the triangle)."""
     return 0.5 * dr.norm(dr.cross(si.dp_du, si.dp_dv))
@@ -96,6 +120,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     for depth in range(max_depth):
         if ad and depth > 0:
             carry *= segment_ratio(prev_si, prev_bsdf, si, ray.d, active)
+        si = bend_shading_normal(si)
         # Emission at the vertex reached by BSDF sampling (or by the camera ray)
         with dr.suspend_grad():
             ds = mi.DirectionSample3f(scene, si, prev_si)
