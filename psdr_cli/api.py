@@ -134,12 +134,16 @@ def parse_terms(terms) -> tuple:
     return tuple(t for t in TERMS if t in names)
 
 
+#: Independent batches of the estimate and of the finite differences behind the --fd statistics.
+FD_BATCHES = 8
+
+
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
 
     Channels: the render (R, G, B), one group per term (``interior.R`` …) and ``total.*``; with
-    ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 4 batches of
+    ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
     statistics. PNG previews use a diverging colour map shared by all terms."""
     from .estimators.boundary_sampling import BoundaryEdges
@@ -155,8 +159,8 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
         raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
     if fd is not None and not fd > 0:
         raise PsdrError(f"--fd: expected a positive step size, got {fd}")
-    if fd_spp is not None and fd_spp < 4:
-        raise PsdrError(f"--fd-spp: expected at least 4 samples per pixel (4 batches), got {fd_spp}")
+    if fd_spp is not None and fd_spp < FD_BATCHES:
+        raise PsdrError(f"--fd-spp: expected at least {FD_BATCHES} samples per pixel ({FD_BATCHES} batches), got {fd_spp}")
     terms = parse_terms(terms) or exp.estimator.terms
     variant = setup(exp)
     scene = build_scene(exp)
@@ -165,7 +169,7 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
     edges = BoundaryEdges.from_scene(scene)
     settings = Settings.from_experiment(exp, spp)
     fd_spp = fd_spp or 4 * settings.spp
-    min_passes = 4 if fd else 1
+    min_passes = FD_BATCHES if fd else 1
     folder = (Path(out).resolve() / exp.name if out else exp.run_dir) / "grad"
     result = GradResult(folder, views, parameter.name, variant=variant)
     W, H = scene.resolution
@@ -188,7 +192,7 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
                   "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}
         stats = None
         if fd:
-            batches = finite_difference(scene, parameter, v, fd, fd_spp, seed=exp.seed, batches=4,
+            batches = finite_difference(scene, parameter, v, fd, fd_spp, seed=exp.seed, batches=FD_BATCHES,
                                         progress=(lambda n: progress.advance(n)) if progress else None)
             fd_image = np.mean(batches, axis=0)
             for c, ch in enumerate("RGB"):

@@ -53,5 +53,11 @@ def test_no_arguments_prints_help_with_every_subcommand():
 
 
 def test_unimplemented_subcommands_say_so(tmp_path, write_cfg):
+    proc = run_cli("optimize", write_cfg(experiment()), cwd=tmp_path)
+    assert proc.returncode == 3 and "not implemented yet" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_grad_without_parameter_is_a_one_line_error(tmp_path, write_cfg):
     proc = run_cli("grad", write_cfg(experiment()), cwd=tmp_path)
-    assert proc.returncode != 0 and "not implemented yet" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.returncode == 2 and "parameter: missing" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()

@@ -77,12 +77,19 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool
     return coef, exw / sin_phi, uv, pixel, ok, xD
 
 
+def is_infinite(ds: mi.DirectionSample3f):
+    """Whether a direction sample comes from an environment emitter (envmap, sky, constant).
+
+    The emitter flag decides, not ``ds.dist``: ``sunsky`` reports a finite distance."""
+    return mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite) | dr.isinf(ds.dist)
+
+
 def sample_light(scene: mi.Scene, xB, u):
     """``light`` technique: ω towards a sampled emitter point (or environment direction) and p(ω)."""
     it = dr.zeros(mi.Interaction3f)
     it.p = xB
     ds, _ = scene.sample_emitter_direction(it, u, False)
-    point = dr.select(dr.isinf(ds.dist), mi.Point3f(dr.inf), ds.p)
+    point = dr.select(is_infinite(ds), mi.Point3f(dr.inf), ds.p)
     return ds.d, ds.pdf, point
 
 

@@ -53,14 +53,17 @@ def bend_shading_normal(si: mi.SurfaceInteraction3f):
     an image discontinuity that follows no mesh edge, so no boundary term could account for it.
     The bend is continuous (no change at c = δ) and leaves flat shading (n_s = n_g) untouched
     unless the view is within δ of grazing."""
+    valid = si.is_valid()
     wi = si.to_world(si.wi)
     smooth = dr.norm(si.sh_frame.n - si.n) > 1e-6
     s = dr.sign(dr.dot(si.n, wi))
     c = s * dr.dot(si.sh_frame.n, wi)
-    bend = smooth & (c < MIN_SHADING_COS)
+    bend = valid & smooth & (c < MIN_SHADING_COS)
     n = dr.normalize(si.sh_frame.n + s * (MIN_SHADING_COS - c) * wi)
-    si.sh_frame = mi.Frame3f(dr.select(bend, n, si.sh_frame.n))
-    si.wi = si.to_local(wi)
+    frame = mi.Frame3f(dr.select(bend, n, si.sh_frame.n))
+    # Misses keep their fields untouched (their wi is the world direction the environment reads)
+    si.wi = dr.select(bend, frame.to_local(wi), si.wi)
+    si.sh_frame = dr.select(bend, frame, si.sh_frame)
     return si
 
 
@@ -86,7 +89,7 @@ def segment_ratio(prev_si, prev_bsdf, si, ray_d, active):
 
 def emitter_ratio(scene, si, bsdf, ds, active):
     """Derivative carrier of an NEE connection x → y (primal 1): f_s(x, ω)·Le(y, −ω)·G(x, y)."""
-    finite = dr.isfinite(ds.dist) & (ds.dist < dr.largest(mi.Float))
+    finite = ~(mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite) | dr.isinf(ds.dist))
     d = ds.p - si.p
     dist2 = dr.squared_norm(d)
     w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), ds.d)
