@@ -25,6 +25,7 @@ import mitsuba as mi
 from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
                                 pdf_wedge, ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
+from .interior import environment_direction
 
 TECHNIQUES = ("light", "dir", "mis")
 
@@ -74,7 +75,7 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool
     sin_phi = dr.norm(exw)
     sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
     coef = dr.select(ok, G * (dr.norm(xB - xD) * sin_phi * sigma), 0.0)
-    return coef, exw / sin_phi, uv, pixel, ok, xD
+    return coef, exw / sin_phi, uv, pixel, ok, xD, ~siS.is_valid()
 
 
 def is_infinite(ds: mi.DirectionSample3f):
@@ -113,14 +114,18 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
                 p_dir = pdf_wedge(edge)
             else:
                 (w, p_dir), p_light, point = sample_wedge(edge, u), None, None
-            coef, mhat, uv, pixel, ok, xD = segment_weight(scene, sensor, edge, w, p_light, p_dir,
+            coef, mhat, uv, pixel, ok, xD, env = segment_weight(scene, sensor, edge, w, p_light, p_dir,
                                                            technique == "mis", origin, point, width, height)
             coef *= (width * height) / n_samples
-            dr.eval(coef, mhat, uv, pixel, ok, xD)  # evaluate once: forward mode would re-trace otherwise
+            dr.eval(coef, mhat, uv, pixel, ok, xD, env)  # evaluate once: forward mode would re-trace otherwise
         # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
         ray = camera_ray(sensor, uv, width, height, ok)
         xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
-        v = coef * dr.dot(mhat, normalize(edge.xB - xD_t))
+        rel = normalize(edge.xB - xD_t)
+        w_src = environment_direction(scene, w)
+        if w_src is not None:  # a rotating environment moves the source end of the segment
+            rel = rel - dr.select(env, w_src, mi.Vector3f(0.0))
+        v = coef * dr.dot(mhat, rel)
         v = v - dr.detach(v)
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)

@@ -72,35 +72,52 @@ def triangle_area(si: mi.SurfaceInteraction3f):
     return 0.5 * dr.norm(dr.cross(si.dp_du, si.dp_dv))
 
 
-def segment_ratio(prev_si, prev_bsdf, si, ray_d, active):
+def segment_ratio(scene, prev_si, prev_bsdf, si, ray_d, active):
     """Derivative carrier of the segment x_{k-1} → x_k (primal 1).
 
     Hit: f_s(x_{k-1}, ω)·|n_k·ω|/d² · J_k with ω, d from the moving points; miss (environment):
-    f_s(x_{k-1}, ω) for the fixed sampled direction. ``si.wi`` is reset to the moving −ω."""
+    f_s(x_{k-1}, ω) with ω the sampled direction, turned with the environment when it rotates
+    (a material direction of the environment, as in :func:`emitter_ratio`, so that NEE and
+    BSDF samples of the environment use one parametrisation and their MIS weights stay valid).
+    ``si.wi`` is reset to the moving −ω on hits."""
     hit = si.is_valid()
     d = si.p - prev_si.p
     dist2 = dr.squared_norm(d)
-    w = dr.select(hit, d * dr.rsqrt(dr.select(hit, dist2, 1.0)), ray_d)
+    w_env = environment_direction(scene, ray_d)
+    w = dr.select(hit, d * dr.rsqrt(dr.select(hit, dist2, 1.0)), ray_d if w_env is None else w_env)
     si.wi = dr.select(hit, si.to_local(-w), si.wi)
     f = prev_bsdf.eval(mi.BSDFContext(), prev_si, prev_si.to_local(w), active)
     geom = dr.abs(dr.dot(si.n, w)) / dr.select(hit, dist2, 1.0) * triangle_area(si)
     return ratio(f) * dr.select(hit, ratio(geom), 1.0)
 
 
+def environment_direction(scene: mi.Scene, w):
+    """ω_src(θ) = T(θ) T(θ0)⁻¹ ω: the world direction of the environment's material direction
+    seen along ω, when the environment's ``to_world`` carries derivatives (else ``None``)."""
+    env = scene.environment()
+    if env is None:
+        return None
+    T = mi.traverse(env)["to_world"]
+    if not dr.grad_enabled(T.matrix):
+        return None
+    return T @ (dr.detach(T).inverse() @ mi.Vector3f(w))
+
+
 def emitter_ratio(scene, si, bsdf, ds, active):
-    """Derivative carrier of an NEE connection x → y (primal 1): f_s(x, ω)·Le(y, −ω)·G(x, y)."""
+    """Derivative carrier of an NEE connection x → y (primal 1): f_s(x, ω)·G(x, y).
+
+    Area lights: y is a fixed point, ω = normalize(y − x) and G = |n_y·ω|/|y − x|² move with x.
+    Environments: the sampled direction is a material direction of the environment, so a rotating
+    environment turns it, ω(θ) = T(θ)T(θ0)⁻¹ω, while its radiance stays attached to it (a sharp
+    sun then needs no derivative of Le across its rim)."""
     finite = ~(mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite) | dr.isinf(ds.dist))
     d = ds.p - si.p
     dist2 = dr.squared_norm(d)
-    w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), ds.d)
+    w_env = environment_direction(scene, ds.d)
+    w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), ds.d if w_env is None else w_env)
     f = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), active)
-    ds_ad = mi.DirectionSample3f(p=ds.p, n=ds.n, uv=ds.uv, time=ds.time, pdf=ds.pdf, delta=ds.delta,
-                                 d=w, dist=ds.dist, emitter=ds.emitter)
-    it = dr.zeros(mi.Interaction3f, dr.width(w))
-    it.p, it.n, it.t = si.p, si.n, si.t
-    Le = scene.eval_emitter_direction(it, ds_ad, active)
     geom = dr.abs(dr.dot(ds.n, w)) / dr.select(finite, dist2, 1.0)
-    return ratio(f) * ratio(Le) * dr.select(finite & ~ds.delta, ratio(geom), 1.0)
+    return ratio(f) * dr.select(finite & ~ds.delta, ratio(geom), 1.0)
 
 
 def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True,
@@ -122,7 +139,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     si = scene.ray_intersect(ray, active)
     for depth in range(max_depth):
         if ad and depth > 0:
-            carry *= segment_ratio(prev_si, prev_bsdf, si, ray.d, active)
+            carry *= segment_ratio(scene, prev_si, prev_bsdf, si, ray.d, active)
         si = bend_shading_normal(si)
         # Emission at the vertex reached by BSDF sampling (or by the camera ray)
         with dr.suspend_grad():
@@ -130,6 +147,8 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
             pdf_em = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_delta)
             w_bsdf = dr.select(prev_delta, 1.0, mis_weight(prev_pdf, pdf_em))
         Le = ds.emitter.eval(si, active)
+        if ad and depth > 0 and environment_direction(scene, ray.d) is not None:
+            Le = dr.select(si.is_valid(), Le, dr.detach(Le))  # attached to its material direction
         parts[depth] += dr.select(active, beta * carry * w_bsdf * Le, 0.0)
 
         active &= si.is_valid()
