@@ -97,7 +97,10 @@ def environment_direction(scene: mi.Scene, w):
     env = scene.environment()
     if env is None:
         return None
-    T = mi.traverse(env)["to_world"]
+    params = mi.traverse(env)
+    if "to_world" not in params:  # e.g. a constant environment
+        return None
+    T = params["to_world"]
     if not dr.grad_enabled(T.matrix):
         return None
     return T @ (dr.detach(T).inverse() @ mi.Vector3f(w))
