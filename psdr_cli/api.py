@@ -100,26 +100,33 @@ class GradResult:
     variant: str = ""
 
 
+def prepare_gradient(exp: Experiment, spp: int | None = None, scene=None):
+    """(scene, θ parameter, boundary edges, settings) of an experiment, variant activated."""
+    from .estimators.boundary_sampling import BoundaryEdges
+    from .gradient import Settings
+    from .parameters import Parameter
+    from .scene import build_scene
+
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
+    if spp is not None and spp < 1:
+        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    setup(exp)
+    scene = scene or build_scene(exp)
+    return scene, Parameter(scene, exp.parameter), BoundaryEdges.from_scene(scene), Settings.from_experiment(exp, spp)
+
+
 def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
                     scene=None, progress=None) -> dict:
     """Forward-mode gradient images dI/dθ of one view, without writing anything.
 
     Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
     each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
-    from .estimators.boundary_sampling import BoundaryEdges
-    from .gradient import Settings, forward_gradient
-    from .parameters import Parameter
-    from .scene import build_scene
+    from .gradient import forward_gradient
 
-    if exp.parameter is None:
-        raise PsdrError(f"{exp.file}: parameter: missing (the gradient needs a parameter to differentiate)")
-    setup(exp)
-    scene = scene or build_scene(exp)
-    parameter = Parameter(scene, exp.parameter)
-    edges = BoundaryEdges.from_scene(scene)
-    settings = Settings.from_experiment(exp, spp)
+    scene, parameter, edges, settings = prepare_gradient(exp, spp, scene)
     return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress)
-            for t in (terms or exp.estimator.terms)}
+            for t in (parse_terms(terms) or exp.estimator.terms)}
 
 
 def parse_terms(terms) -> tuple:
@@ -146,33 +153,22 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
     ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
     statistics. PNG previews use a diverging colour map shared by all terms."""
-    from .estimators.boundary_sampling import BoundaryEdges
-    from .gradient import Settings, forward_gradient
-    from .parameters import Parameter
+    from .gradient import forward_gradient
     from .reference import agreement, finite_difference
     from .render import render_view
-    from .scene import build_scene
 
-    if exp.parameter is None:
-        raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
-    if spp is not None and spp < 1:
-        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
     if fd is not None and not fd > 0:
         raise PsdrError(f"--fd: expected a positive step size, got {fd}")
     if fd_spp is not None and fd_spp < FD_BATCHES:
         raise PsdrError(f"--fd-spp: expected at least {FD_BATCHES} samples per pixel ({FD_BATCHES} batches), got {fd_spp}")
     terms = parse_terms(terms) or exp.estimator.terms
-    variant = setup(exp)
-    scene = build_scene(exp)
     views = parse_views(views, len(exp.scene.cameras))
-    parameter = Parameter(scene, exp.parameter)
-    edges = BoundaryEdges.from_scene(scene)
-    settings = Settings.from_experiment(exp, spp)
+    scene, parameter, edges, settings = prepare_gradient(exp, spp)
+    variant = setup(exp)
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
     folder = (Path(out).resolve() / exp.name if out else exp.run_dir) / "grad"
     result = GradResult(folder, views, parameter.name, variant=variant)
-    W, H = scene.resolution
     if progress:
         per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)
         progress.start(len(views) * per_view)
@@ -193,7 +189,7 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
         stats = None
         if fd:
             batches = finite_difference(scene, parameter, v, fd, fd_spp, seed=exp.seed, batches=FD_BATCHES,
-                                        progress=(lambda n: progress.advance(n)) if progress else None)
+                                        progress=progress.advance if progress else None)
             fd_image = np.mean(batches, axis=0)
             for c, ch in enumerate("RGB"):
                 channels[f"fd.{ch}"] = fd_image[..., c]

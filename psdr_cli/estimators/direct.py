@@ -25,7 +25,7 @@ import mitsuba as mi
 from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
                                 pdf_wedge, ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
-from .interior import environment_direction
+from .interior import environment_motion, turn
 
 TECHNIQUES = ("light", "dir", "mis")
 
@@ -103,6 +103,7 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
     if edges.count == 0:
         return img
     distr = edge_distribution(edges, P)
+    env_motion = environment_motion(scene)
     for t in (("light", "dir") if technique == "mis" else (technique,)):
         edge = sample_edge_point(edges, P, distr, sampler.next_1d())
         u = sampler.next_2d()
@@ -122,9 +123,8 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
         ray = camera_ray(sensor, uv, width, height, ok)
         xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
         rel = normalize(edge.xB - xD_t)
-        w_src = environment_direction(scene, w)
-        if w_src is not None:  # a rotating environment moves the source end of the segment
-            rel = rel - dr.select(env, w_src, mi.Vector3f(0.0))
+        if env_motion is not None:  # a rotating environment moves the source end of the segment
+            rel = rel - dr.select(env, turn(env_motion, w), mi.Vector3f(0.0))
         v = coef * dr.dot(mhat, rel)
         v = v - dr.detach(v)
         for c in range(3):

@@ -32,7 +32,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import interior
-from .interior import environment_direction
+from .interior import environment_motion, turn
 from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, ray_origin,
                                 sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
@@ -63,15 +63,15 @@ def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, hei
     return out
 
 
-def boundary_motion(scene, xB, xD, siS_ad, source_surface, coef_geometry, mhat, w_sample):
+def boundary_motion(env_motion, xB, xD, siS_ad, source_surface, coef_geometry, mhat, w_sample):
     """m̂·(motion of the visibility boundary) scaled as in the module docstring (AD, primal ≠ 0).
 
     ``coef_geometry`` holds the detached factor sinφ·σ·t_D (the 1/dist factor is added here).
     For an environment source that rotates, m̂·ω(θ) becomes m̂·(ω(θ) − ω_src(θ)) with ω_src the
-    environment's material direction (see :func:`interior.environment_direction`)."""
+    environment's material direction (see :func:`interior.environment_motion`)."""
     w = normalize(xB - xD)
-    w_src = environment_direction(scene, w_sample)  # a rotating environment moves the source end
-    env = coef_geometry * dr.dot(mhat, w if w_src is None else w - w_src)
+    w_src = turn(env_motion, w_sample)  # a rotating environment moves the source end
+    env = coef_geometry * dr.dot(mhat, w if env_motion is None else w - w_src)
     # Lanes without a source surface get a harmless stand-in (no NaN may enter the AD graph)
     xS = dr.select(source_surface, siS_ad.p, xB + w)
     nS = dr.select(source_surface, siS_ad.n, w)
@@ -117,6 +117,7 @@ def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, 
     siS_ad = scene.ray_intersect(ray_S, FOLLOW, False, ok & siS.is_valid())
     siD_ad = scene.ray_intersect(mi.Ray3f(origin, -w), FOLLOW, False, ok)
     surface = siS.is_valid()
+    env_motion = environment_motion(scene)
     for j, (D, uv, pixel, ok_j) in enumerate(walk, start=1):
         k_max = max_depth - 1 - j
         if k_max < 0:
@@ -132,7 +133,7 @@ def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, 
             xD_t = dr.select(live, scene.ray_intersect(ray, live).p, siD.p)
         else:
             xD_t = siD_ad.p
-        v = F * boundary_motion(scene, edge.xB, xD_t, siS_ad, surface, geometry, mhat, w)
+        v = F * boundary_motion(env_motion, edge.xB, xD_t, siS_ad, surface, geometry, mhat, w)
         v = dr.select(live, v - dr.detach(v), 0.0)
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, live)

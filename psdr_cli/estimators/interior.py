@@ -72,7 +72,7 @@ def triangle_area(si: mi.SurfaceInteraction3f):
     return 0.5 * dr.norm(dr.cross(si.dp_du, si.dp_dv))
 
 
-def segment_ratio(scene, prev_si, prev_bsdf, si, ray_d, active):
+def segment_ratio(env_motion, prev_si, prev_bsdf, si, ray_d, active):
     """Derivative carrier of the segment x_{k-1} → x_k (primal 1).
 
     Hit: f_s(x_{k-1}, ω)·|n_k·ω|/d² · J_k with ω, d from the moving points; miss (environment):
@@ -83,17 +83,17 @@ def segment_ratio(scene, prev_si, prev_bsdf, si, ray_d, active):
     hit = si.is_valid()
     d = si.p - prev_si.p
     dist2 = dr.squared_norm(d)
-    w_env = environment_direction(scene, ray_d)
-    w = dr.select(hit, d * dr.rsqrt(dr.select(hit, dist2, 1.0)), ray_d if w_env is None else w_env)
+    w = dr.select(hit, d * dr.rsqrt(dr.select(hit, dist2, 1.0)), turn(env_motion, ray_d))
     si.wi = dr.select(hit, si.to_local(-w), si.wi)
     f = prev_bsdf.eval(mi.BSDFContext(), prev_si, prev_si.to_local(w), active)
     geom = dr.abs(dr.dot(si.n, w)) / dr.select(hit, dist2, 1.0) * triangle_area(si)
     return ratio(f) * dr.select(hit, ratio(geom), 1.0)
 
 
-def environment_direction(scene: mi.Scene, w):
-    """ω_src(θ) = T(θ) T(θ0)⁻¹ ω: the world direction of the environment's material direction
-    seen along ω, when the environment's ``to_world`` carries derivatives (else ``None``)."""
+def environment_motion(scene: mi.Scene):
+    """M(θ) = T(θ) T(θ0)⁻¹ of the environment's ``to_world`` when it carries derivatives (a
+    rotating environment), else ``None``. M ω is the world direction of the environment's material
+    direction seen along ω at θ0."""
     env = scene.environment()
     if env is None:
         return None
@@ -103,10 +103,15 @@ def environment_direction(scene: mi.Scene, w):
     T = params["to_world"]
     if not dr.grad_enabled(T.matrix):
         return None
-    return T @ (dr.detach(T).inverse() @ mi.Vector3f(w))
+    return T @ dr.detach(T).inverse()
 
 
-def emitter_ratio(scene, si, bsdf, ds, active):
+def turn(motion, w):
+    """The direction ω moved with the environment (ω itself for a static one)."""
+    return w if motion is None else motion @ mi.Vector3f(w)
+
+
+def emitter_ratio(env_motion, si, bsdf, ds, active):
     """Derivative carrier of an NEE connection x → y (primal 1): f_s(x, ω)·G(x, y).
 
     Area lights: y is a fixed point, ω = normalize(y − x) and G = |n_y·ω|/|y − x|² move with x.
@@ -116,8 +121,7 @@ def emitter_ratio(scene, si, bsdf, ds, active):
     finite = ~(mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite) | dr.isinf(ds.dist))
     d = ds.p - si.p
     dist2 = dr.squared_norm(d)
-    w_env = environment_direction(scene, ds.d)
-    w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), ds.d if w_env is None else w_env)
+    w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), turn(env_motion, ds.d))
     f = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), active)
     geom = dr.abs(dr.dot(ds.n, w)) / dr.select(finite, dist2, 1.0)
     return ratio(f) * dr.select(finite & ~ds.delta, ratio(geom), 1.0)
@@ -139,10 +143,11 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     prev_bsdf = None
     prev_pdf = mi.Float(1.0)
     prev_delta = mi.Bool(True)  # the camera vertex: emission seen directly gets weight 1
+    env_motion = environment_motion(scene) if ad else None
     si = scene.ray_intersect(ray, active)
     for depth in range(max_depth):
         if ad and depth > 0:
-            carry *= segment_ratio(scene, prev_si, prev_bsdf, si, ray.d, active)
+            carry *= segment_ratio(env_motion, prev_si, prev_bsdf, si, ray.d, active)
         si = bend_shading_normal(si)
         # Emission at the vertex reached by BSDF sampling (or by the camera ray)
         with dr.suspend_grad():
@@ -150,7 +155,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
             pdf_em = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_delta)
             w_bsdf = dr.select(prev_delta, 1.0, mis_weight(prev_pdf, pdf_em))
         Le = ds.emitter.eval(si, active)
-        if ad and depth > 0 and environment_direction(scene, ray.d) is not None:
+        if depth > 0 and env_motion is not None:
             Le = dr.select(si.is_valid(), Le, dr.detach(Le))  # attached to its material direction
         parts[depth] += dr.select(active, beta * carry * w_bsdf * Le, 0.0)
 
@@ -169,7 +174,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
             w_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, pdf_bsdf))
         contrib = beta * carry * w_em * f_em * em_weight
         if ad:
-            contrib *= emitter_ratio(scene, si, bsdf, ds_em, active_em)
+            contrib *= emitter_ratio(env_motion, si, bsdf, ds_em, active_em)
         parts[depth + 1] += dr.select(active_em, contrib, 0.0)
 
         # BSDF sampling to the next vertex
