@@ -100,6 +100,18 @@ class GradResult:
     variant: str = ""
 
 
+def with_estimator(exp: Experiment, **overrides) -> Experiment:
+    """The experiment with estimator keys replaced (``None`` values are ignored); values are
+    checked like the YAML keys: ``sampling`` dir|light|mis, ``guiding`` none|grid|kdtree."""
+    from dataclasses import replace
+    allowed = {"sampling": ("dir", "light", "mis"), "guiding": ("none", "grid", "kdtree")}
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    for key, value in changes.items():
+        if key in allowed and value not in allowed[key]:
+            raise PsdrError(f"--{key.replace('_', '-')}: expected one of {', '.join(allowed[key])}, got '{value}'")
+    return replace(exp, estimator=replace(exp.estimator, **changes)) if changes else exp
+
+
 def prepare_gradient(exp: Experiment, spp: int | None = None, scene=None):
     """(scene, θ parameter, boundary edges, settings) of an experiment, variant activated."""
     from .estimators.boundary_sampling import BoundaryEdges
@@ -113,7 +125,9 @@ def prepare_gradient(exp: Experiment, spp: int | None = None, scene=None):
         raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
     setup(exp)
     scene = scene or build_scene(exp)
-    return scene, Parameter(scene, exp.parameter), BoundaryEdges.from_scene(scene), Settings.from_experiment(exp, spp)
+    settings = Settings.from_experiment(exp, spp)
+    edges = BoundaryEdges.from_scene(scene, sort=settings.edge_sort)
+    return scene, Parameter(scene, exp.parameter), edges, settings
 
 
 def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
@@ -122,11 +136,13 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
 
     Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
     each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
-    from .gradient import forward_gradient
+    from .gradient import forward_gradient, make_guides
 
     scene, parameter, edges, settings = prepare_gradient(exp, spp, scene)
-    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress)
-            for t in (parse_terms(terms) or exp.estimator.terms)}
+    terms = parse_terms(terms) or exp.estimator.terms
+    guides = make_guides(scene, edges, [view], terms, settings)
+    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress, guides)
+            for t in terms}
 
 
 def parse_terms(terms) -> tuple:
@@ -153,7 +169,7 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
     ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
     statistics. PNG previews use a diverging colour map shared by all terms."""
-    from .gradient import forward_gradient
+    from .gradient import forward_gradient, make_guides
     from .reference import agreement, finite_difference
     from .render import render_view
 
@@ -173,8 +189,11 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
         per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)
         progress.start(len(views) * per_view)
     for v in views:
+        t0 = time.perf_counter()
+        guides = make_guides(scene, edges, [v], terms, settings)
+        guide_seconds = time.perf_counter() - t0
         estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes,
-                                         progress.advance if progress else None) for t in terms}
+                                         progress.advance if progress else None, guides) for t in terms}
         image = estimates["interior"].primal if "interior" in estimates else \
             render_view(scene, v, settings.spp, seed=exp.seed)
         total = sum(e.gradient for e in estimates.values())
@@ -184,6 +203,8 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
                 channels[f"{name}.{ch}"] = g[..., c]
         header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.parameter": parameter.name,
                   "psdr.terms": ",".join(terms), "psdr.sampling": settings.sampling,
+                  "psdr.guiding": settings.guiding, "psdr.edge_sort": str(settings.edge_sort),
+                  "psdr.guide_seconds": f"{guide_seconds:.3f}",
                   "psdr.spp": {t: str(settings.samples(t)) for t in terms},
                   "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}
         stats = None
@@ -206,12 +227,14 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
         for name, g in previews:
             io.write_gradient_preview(folder / f"view_{v:03d}_{name}.png", g, scale)
         result.files.append(exr)
-        result.seconds.append({t: e.seconds for t, e in estimates.items()})
+        result.seconds.append({**({"guiding": guide_seconds} if guides.all() else {}),
+                               **{t: e.seconds for t, e in estimates.items()}})
         result.sums.append({**{t: float(e.gradient.sum()) for t, e in estimates.items()}, "total": float(total.sum())})
         result.agreement.append(stats)
     io.write_json(folder / "summary.json", {
         "experiment": str(exp.file), "parameter": result.parameter, "variant": variant, "terms": list(terms),
         "spp": {t: settings.samples(t) for t in terms}, "sampling": settings.sampling, "fd_h": fd,
+        "guiding": settings.guiding, "edge_sort": settings.edge_sort,
         "views": [{"view": v, "file": str(f), "seconds": s, "sums": m, "fd_agreement": a}
                   for v, f, s, m, a in zip(views, result.files, result.seconds, result.sums, result.agreement)]})
     return result

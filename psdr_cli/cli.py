@@ -136,10 +136,13 @@ def grad(config: Path = ConfigArg,
          views: Optional[str] = typer.Option(None, "--views", help="Views, e.g. 0,3 or 0-2 (default: all)."),
          fd: Optional[float] = typer.Option(None, "--fd", help="Also compute central finite differences with step H and report the agreement."),
          fd_spp: Optional[int] = typer.Option(None, "--fd-spp", help="Samples per pixel of the finite differences (default: 4 × spp)."),
+         sampling: Optional[str] = typer.Option(None, "--sampling", help="Boundary direction sampling: dir, light or mis (default: estimator.sampling)."),
+         guiding: Optional[str] = typer.Option(None, "--guiding", help="Boundary guiding: none, grid or kdtree (default: estimator.guiding)."),
+         edge_sort: Optional[bool] = typer.Option(None, "--edge-sort/--no-edge-sort", help="Sort edges into chains (default: estimator.edge_sort)."),
          out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")):
     """Gradient image dI/dθ per term (interior, primary, direct, indirect) and their total."""
     from . import api
-    exp = load_experiment(config)
+    exp = api.with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort)
     with Bar("grad") as bar:
         res = api.grad(exp, spp=spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar)
     table = Table(title=f"psdr grad: {exp.name} — d/dθ, θ = {res.parameter}")
@@ -147,7 +150,7 @@ def grad(config: Path = ConfigArg,
         table.add_column(col, justify="right" if col != "term" else "left")
     for v, secs, sums in zip(res.views, res.seconds, res.sums):
         for t, s in secs.items():
-            table.add_row(str(v), t, f"{sums[t]:.5g}", f"{s:.2f}")
+            table.add_row(str(v), t, f"{sums[t]:.5g}" if t in sums else "—", f"{s:.2f}")
         table.add_row(str(v), "[bold]total", f"[bold]{sums['total']:.5g}", f"{sum(secs.values()):.2f}")
     out.print(table)
     for v, a in zip(res.views, res.agreement):

@@ -273,7 +273,8 @@ class GridConfig:
 @dataclass
 class KdTreeConfig:
     samples_per_node: int = 32
-    threshold: float = 0.01
+    initial_samples: int = 65536
+    threshold: float = 0.002
     max_depth: int = 24
     max_leaves: int = 65536
 
@@ -287,7 +288,7 @@ class EstimatorConfig:
     sampling: str = "mis"
     guiding: str = "none"
     passes: int = 1
-    guide_epsilon: float = 0.01
+    guide_epsilon: float = 0.05
     edge_sort: bool = False
     grid: GridConfig = field(default_factory=GridConfig)
     kdtree: KdTreeConfig = field(default_factory=KdTreeConfig)
@@ -598,6 +599,7 @@ def parse_estimator(value, where) -> EstimatorConfig:
         d = KdTreeConfig()
         est.kdtree = KdTreeConfig(
             samples_per_node=k.get("samples_per_node", integer(4), d.samples_per_node),
+            initial_samples=k.get("initial_samples", integer(0), d.initial_samples),
             threshold=k.get("threshold", number(minimum=0), d.threshold),
             max_depth=k.get("max_depth", integer(1), d.max_depth),
             max_leaves=k.get("max_leaves", integer(1), d.max_leaves))

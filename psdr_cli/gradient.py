@@ -38,12 +38,16 @@ class Settings:
     passes: int = 1
     max_depth: int = 3
     seed: int = 0
+    guiding: str = "none"
+    edge_sort: bool = False
+    estimator: object = None  # the experiment's EstimatorConfig (guide parameters)
 
     @staticmethod
     def from_experiment(exp, spp: int | None = None) -> "Settings":
         e = exp.estimator
         return Settings(spp=spp or e.spp, primary_spp=e.primary_spp, boundary_spp=e.boundary_spp,
-                        sampling=e.sampling, passes=e.passes, max_depth=exp.scene.max_depth, seed=exp.seed)
+                        sampling=e.sampling, passes=e.passes, max_depth=exp.scene.max_depth, seed=exp.seed,
+                        guiding=e.guiding, edge_sort=e.edge_sort, estimator=e)
 
     def samples(self, term: str) -> int:
         """Samples per pixel of ``term``."""
@@ -69,12 +73,26 @@ def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
 
 
+def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings):
+    """Guides of the direct and indirect terms for ``views`` (empty when guiding is off)."""
+    from .guiding.targets import Guides, build_guides
+    if settings.guiding == "none" or settings.estimator is None:
+        return Guides()
+    est = settings.estimator
+    if est.guiding != settings.guiding:
+        from dataclasses import replace
+        est = replace(est, guiding=settings.guiding)
+    return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth, est,
+                        settings.seed)
+
+
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
-               settings: Settings):
+               settings: Settings, guides=None):
     """One pass of ``term`` for camera ``view`` with ``spp`` samples per pixel (flat W·H·3, AD).
 
     ``scene`` is a :class:`psdr_cli.scene.Scene`; its AD state (θ or vertex gradients) must be
-    set before the call."""
+    set before the call. ``guides`` (:class:`psdr_cli.guiding.targets.Guides`) guide the
+    direct and indirect terms."""
     mi_scene, sensor = scene.mi_scene, scene.sensors[view]
     width, height = scene.resolution
     if term == "interior":
@@ -85,9 +103,11 @@ def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed
     if term == "primary":
         return primary_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth)
     if term == "direct":
-        return direct_boundary(mi_scene, sensor, edges, P, n, sampler, settings.sampling)
+        return direct_boundary(mi_scene, sensor, edges, P, n, sampler, settings.sampling,
+                               guides.direct if guides else None)
     if term == "indirect":
-        return indirect_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth)
+        return indirect_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth,
+                                 guides.indirect if guides else None)
     raise ValueError(f"unknown term {term!r}")
 
 
@@ -113,7 +133,7 @@ class TermEstimate:
 
 
 def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Settings,
-                     min_passes: int = 1, progress=None) -> TermEstimate:
+                     min_passes: int = 1, progress=None, guides=None) -> TermEstimate:
     """dI/dθ of one term (forward mode), as the sample-weighted mean over its passes."""
     width, height = scene.resolution
     counts = term_passes(term, settings, width * height, min_passes)
@@ -124,7 +144,8 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
         theta = mi.Float(0.0)
         dr.enable_grad(theta)
         parameter.apply(theta)
-        img = term_image(scene, edges, view, term, spp, pass_seed(settings.seed, view, p, stream(term)), settings)
+        img = term_image(scene, edges, view, term, spp, pass_seed(settings.seed, view, p, stream(term)), settings,
+                         guides)
         dr.forward(theta)
         images.append(np.asarray(dr.grad(img), np.float64).reshape(height, width, 3))
         primal += np.asarray(dr.detach(img), np.float64).reshape(height, width, 3) * spp / total
@@ -139,7 +160,7 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
 
 
 def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int = 0,
-             scale: float = 1.0) -> mi.Float:
+             scale: float = 1.0, guides=None) -> mi.Float:
     """Sum of the requested terms for one pass (flat W·H·3, AD), for reverse mode.
 
     The primal value is the interior image (zero when ``interior`` is not requested)."""
@@ -148,5 +169,5 @@ def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int
     for term in terms:
         spp = term_passes(term, settings, width * height)[0]
         img = img + term_image(scene, edges, view, term, spp,
-                               pass_seed(settings.seed, view, pass_index, stream(term)), settings)
+                               pass_seed(settings.seed, view, pass_index, stream(term)), settings, guides)
     return img * scale

@@ -8,7 +8,10 @@
 - ``light`` technique (u2): Mitsuba's emitter sampling from x^B (emitter selection included),
   p(ω) in solid angle.
 
-A guide (next milestone) supplies u instead of independent uniforms and divides by its density.
+A guide (:mod:`psdr_cli.guiding`) supplies u instead of independent uniforms and the sample is
+divided by the guide's density g(u). With edge sorting (:mod:`psdr_cli.guiding.edge_sort`) the
+edge list is ordered into chains and some edges are traversed backwards, so that x^B(u1) is
+continuous along each chain.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..topology import build_topology
+from ..topology import build_topology, weld
 
 #: BSDFs through which a ray grazing a concave edge can continue (concave edges kept).
 TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric")
@@ -36,18 +39,24 @@ class BoundaryEdges:
     ``names`` order), so :meth:`positions` returns one differentiable buffer for all of them.
     ``ids``: v0, v1, v2 (face0 in winding order) and face1's three vertices (a copy of face0's
     for open edges); ``open``: border edges. ``meshes`` keeps (topology, vertex offset, smooth
-    shading) per object for the per-view primary (silhouette) edges.
+    shading) per object for the per-view primary (silhouette) edges. ``flip``: edges traversed
+    from v1 to v0 (edge sorting); ``chains``: the chain structure of the edge order (every edge
+    its own chain unless sorted).
     """
     names: list
     ids: list
     open: mi.Bool
     count: int
     meshes: list = None
+    flip: mi.Bool = None
+    chains: object = None
 
     @staticmethod
-    def from_scene(scene) -> "BoundaryEdges":
+    def from_scene(scene, sort: bool = False) -> "BoundaryEdges":
+        """Secondary edges of the scene's edge objects, ordered into chains when ``sort``."""
+        from ..guiding.edge_sort import Chains, sort_edges
         cols = [[] for _ in range(6)]
-        opens, names, meshes, offset = [], [], [], 0
+        opens, names, meshes, verts, offset = [], [], [], [], 0
         for name, om in scene.objects.items():
             if not om.edges:
                 continue
@@ -60,11 +69,31 @@ class BoundaryEdges:
                 c.append(arr + offset)
             opens.append(topo.open[sel])
             names.append(name)
+            verts.append(np.asarray(om.vertices, float))
             offset += len(om.vertices)
         if not names:
-            return BoundaryEdges([], [], mi.Bool(), 0, [])
-        ids = [mi.UInt32(np.concatenate(c).astype(np.uint32)) for c in cols]
-        return BoundaryEdges(names, ids, mi.Bool(np.concatenate(opens)), int(sum(len(o) for o in opens)), meshes)
+            return BoundaryEdges([], [], mi.Bool(), 0, [], mi.Bool(), Chains.unsorted(0))
+        cols = [np.concatenate(c).astype(np.uint32) for c in cols]
+        opens = np.concatenate(opens)
+        n = len(opens)
+        chains = Chains.unsorted(n)
+        if sort and n:
+            wid, rep = weld(np.concatenate(verts))
+            V = np.concatenate(verts)[rep]
+            chains = sort_edges(V, wid[cols[0]], wid[cols[1]])
+            cols = [c[chains.order] for c in cols]
+            opens = opens[chains.order]
+        return BoundaryEdges(names, [mi.UInt32(c) for c in cols], mi.Bool(opens), n, meshes,
+                             mi.Bool(chains.flip), chains)
+
+    def breakpoints(self, P) -> np.ndarray:
+        """u1 values where chains start (and 1.0): x^B(u1) is continuous between two of them."""
+        with dr.suspend_grad():
+            p0 = dr.gather(mi.Point3f, P, self.ids[0])
+            p1 = dr.gather(mi.Point3f, P, self.ids[1])
+            length = np.asarray(dr.norm(p1 - p0), np.float64)
+        cdf = np.concatenate([[0.0], np.cumsum(length)]) / max(length.sum(), 1e-30)
+        return np.unique(np.r_[cdf[self.chains.starts], 1.0])
 
     def positions(self, params) -> mi.Float:
         """Flat (AD) buffer of the vertex positions of all edge objects."""
@@ -85,6 +114,15 @@ class EdgeSample:
     pdf: mi.Float        # p(x^B) per unit length
 
 
+def primary_sample(sampler: mi.Sampler, guide=None):
+    """(u1, u2, g(u)): independent uniforms, or a draw from ``guide`` with its density g."""
+    u1, u2 = sampler.next_1d(), sampler.next_2d()
+    if guide is None:
+        return u1, u2, mi.Float(1.0)
+    u, g = guide.sample(sampler.next_1d(), mi.Point3f(u1, u2.x, u2.y))
+    return u.x, mi.Point2f(u.y, u.z), g
+
+
 def edge_distribution(edges: BoundaryEdges, P) -> mi.DiscreteDistribution:
     """Edge-selection distribution ∝ current (detached) edge lengths."""
     with dr.suspend_grad():
@@ -94,8 +132,10 @@ def edge_distribution(edges: BoundaryEdges, P) -> mi.DiscreteDistribution:
 
 
 def sample_edge_point(edges: BoundaryEdges, P, distr: mi.DiscreteDistribution, u1: mi.Float) -> EdgeSample:
-    """x^B = p0 + s (p1 − p0) for the edge k chosen by u1 (s reuses the remainder of u1)."""
+    """x^B = p0 + s (p1 − p0) for the edge k chosen by u1 (s reuses the remainder of u1, or is
+    1 − remainder on flipped edges)."""
     k, s = distr.sample_reuse(u1)
+    s = dr.select(dr.gather(mi.Bool, edges.flip, k), 1.0 - s, s)
     vid = [dr.gather(mi.UInt32, a, k) for a in edges.ids]
     p0, p1 = dr.gather(mi.Point3f, P, vid[0]), dr.gather(mi.Point3f, P, vid[1])
     xB = p0 + s * (p1 - p0)

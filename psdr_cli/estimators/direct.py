@@ -16,6 +16,13 @@ velocity form holds for static sources (area lights that do not move, environmen
 
 ``technique``: ``light`` (emitter sampling), ``dir`` (wedge sampling) or ``mis`` (one sample of
 each per pair, balance heuristic 1/(p(x^B)(p_light + p_dir)) on densities in (x^B, ω) measure).
+
+Guided sampling (paper §4): the primary samples u = (u1, u2) of a technique come from a guide g
+and the sample is divided by g(u) as well. With MIS the weights stay the balance heuristic of
+the *unguided* densities, w_t = p_t/(p_light + p_dir); any weights that sum to one give an
+unbiased estimator as long as each guided density is positive wherever its weighted integrand
+is, which the guide's uniform share ε guarantees. (The paper's Eq. 17 approximates the guided
+densities instead; it is not implemented.)
 """
 from __future__ import annotations
 
@@ -23,7 +30,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
-                                pdf_wedge, ray_origin, sample_edge_point, sample_wedge)
+                                pdf_wedge, primary_sample, ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
 from .interior import environment_motion, turn
 
@@ -94,30 +101,58 @@ def sample_light(scene: mi.Scene, xB, u):
     return ds.d, ds.pdf, point
 
 
+def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
+                    mis: bool, u1, u2):
+    """Detached boundary segments of one technique from primary samples (u1, u2).
+
+    Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env): ``coef`` is the u-space integrand
+    without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps its AD
+    dependence on ``P``."""
+    width, height = sensor.film().size()
+    edge = sample_edge_point(edges, P, distr, u1)
+    with dr.suspend_grad():
+        xB = dr.detach(edge.xB)
+        origin = ray_origin(edge)
+        if technique == "light":
+            w, p_light, point = sample_light(scene, xB, u2)
+            p_dir = pdf_wedge(edge)
+        else:
+            (w, p_dir), p_light, point = sample_wedge(edge, u2), None, None
+        coef, mhat, uv, pixel, ok, xD, env = segment_weight(scene, sensor, edge, w, p_light, p_dir, mis,
+                                                            origin, point, width, height)
+    return edge, w, coef, mhat, uv, pixel, ok, xD, env
+
+
+def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
+    """Guide target F̃(u) = Σ_views max_RGB |coef| for primary samples u (mi.Point3f)."""
+    with dr.suspend_grad():
+        distr = edge_distribution(edges, P)
+        total = mi.Float(0.0)
+        for sensor in sensors:
+            coef = direct_segments(scene, sensor, edges, P, distr, technique, mis, u.x,
+                                   mi.Point2f(u.y, u.z))[2]
+            total += dr.max(dr.abs(coef))
+        return total
+
+
 def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                    sampler: mi.Sampler, technique: str = "mis"):
+                    sampler: mi.Sampler, technique: str = "mis", guides=None):
     """Direct boundary contribution (flat W·H·3 image whose primal value is 0) from ``n_samples``
-    samples (pairs for MIS); ``P`` is the AD vertex buffer of the edge objects."""
+    samples (pairs for MIS); ``P`` is the AD vertex buffer of the edge objects. ``guides`` maps a
+    technique (``light``/``dir``) to a guide over its primary samples (None: uniform)."""
     width, height = sensor.film().size()
     img = dr.zeros(mi.Float, width * height * 3)
     if edges.count == 0:
         return img
     distr = edge_distribution(edges, P)
     env_motion = environment_motion(scene)
+    scale = dr.opaque(mi.Float, (width * height) / n_samples)
     for t in (("light", "dir") if technique == "mis" else (technique,)):
-        edge = sample_edge_point(edges, P, distr, sampler.next_1d())
-        u = sampler.next_2d()
+        u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
+        edge, w, coef, mhat, uv, pixel, ok, xD, env = direct_segments(scene, sensor, edges, P, distr, t,
+                                                                      technique == "mis", u1, u2)
         with dr.suspend_grad():
-            xB = dr.detach(edge.xB)
-            origin = ray_origin(edge)
-            if t == "light":
-                w, p_light, point = sample_light(scene, xB, u)
-                p_dir = pdf_wedge(edge)
-            else:
-                (w, p_dir), p_light, point = sample_wedge(edge, u), None, None
-            coef, mhat, uv, pixel, ok, xD, env = segment_weight(scene, sensor, edge, w, p_light, p_dir,
-                                                           technique == "mis", origin, point, width, height)
-            coef *= (width * height) / n_samples
+            coef *= scale / g
             dr.eval(coef, mhat, uv, pixel, ok, xD, env)  # evaluate once: forward mode would re-trace otherwise
         # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
         ray = camera_ray(sensor, uv, width, height, ok)

@@ -33,8 +33,8 @@ import mitsuba as mi
 
 from . import interior
 from .interior import environment_motion, turn
-from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, ray_origin,
-                                sample_edge_point, sample_wedge)
+from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
+                                ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
@@ -83,20 +83,17 @@ def boundary_motion(env_motion, xB, xD, siS_ad, source_surface, coef_geometry, m
     return dr.select(source_surface, surface, env)
 
 
-def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                      sampler: mi.Sampler, max_depth: int):
-    """Indirect boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` segments."""
+def indirect_segments(scene, sensor, edges: BoundaryEdges, P, distr, u1, u2, sampler, max_depth: int):
+    """Detached segments from primary samples (u1, u2) with both subpaths.
+
+    Returns (edge, ω, geometry, m̂, S, walk, siS, siD, mask): ``geometry`` = sinφ·σ·t_D/(p(x^B)p(ω)),
+    ``S[k]`` the source radiances, ``walk`` the detector terms (see :func:`detector_walk`)."""
     width, height = sensor.film().size()
-    img = dr.zeros(mi.Float, width * height * 3)
-    if edges.count == 0 or max_depth < 3:
-        return img  # paths with a boundary segment and ≥ 3 segments are needed
-    distr = edge_distribution(edges, P)
-    edge = sample_edge_point(edges, P, distr, sampler.next_1d())
-    u = sampler.next_2d()
+    edge = sample_edge_point(edges, P, distr, u1)
     with dr.suspend_grad():
         xB = dr.detach(edge.xB)
         origin = ray_origin(edge)
-        w, p_dir = sample_wedge(edge, u)
+        w, p_dir = sample_wedge(edge, u2)
         ok = in_wedge(edge, w)
         siD = scene.ray_intersect(mi.Ray3f(origin, -w), ok)
         ok &= siD.is_valid()
@@ -108,25 +105,61 @@ def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, 
         mhat = exw / sin_phi
         sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
         tD = dr.norm(xB - siD.p)
-        scale = (width * height) / n_samples / (edge.pdf * p_dir)
-        geometry = dr.select(ok, sin_phi * sigma * tD * scale, 0.0)
+        geometry = dr.select(ok, sin_phi * sigma * tD / (edge.pdf * p_dir), 0.0)
         walk = detector_walk(scene, sensor, siD, w, max_depth - 1, sampler, ok, width, height)
+    return edge, w, geometry, mhat, S, walk, siS, siD, ok
+
+
+def path_weight(S, D, ok_j, j: int, max_depth: int):
+    """F_j = D_j · Σ_k S_k over the source lengths k that complete a path of ≤ max_depth
+    segments (k ≥ 1 when j = 1: the (1, 0) split belongs to the direct term)."""
+    Ssum = mi.Color3f(0.0)
+    for k in range(1 if j == 1 else 0, max_depth - 1 - j + 1):
+        Ssum += S[k]
+    return dr.select(ok_j, D * Ssum, 0.0)
+
+
+def indirect_target(scene, sensors, edges: BoundaryEdges, P, sampler, max_depth: int, u):
+    """Guide target F̃(u) = Σ_views Σ_j max_RGB |F_j · geometry| (one random subpath pair)."""
+    with dr.suspend_grad():
+        distr = edge_distribution(edges, P)
+        total = mi.Float(0.0)
+        for sensor in sensors:
+            _, _, geometry, _, S, walk, _, _, _ = indirect_segments(
+                scene, sensor, edges, P, distr, u.x, mi.Point2f(u.y, u.z), sampler, max_depth)
+            for j, (D, _, _, ok_j) in enumerate(walk, start=1):
+                if max_depth - 1 - j < 0:
+                    break
+                total += dr.max(dr.abs(path_weight(S, D, ok_j, j, max_depth) * geometry))
+        return total
+
+
+def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
+                      sampler: mi.Sampler, max_depth: int, guide=None):
+    """Indirect boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` segments,
+    with primary samples from ``guide`` when given (divided by its density)."""
+    width, height = sensor.film().size()
+    img = dr.zeros(mi.Float, width * height * 3)
+    if edges.count == 0 or max_depth < 3:
+        return img  # paths with a boundary segment and ≥ 3 segments are needed
+    distr = edge_distribution(edges, P)
+    u1, u2, g = primary_sample(sampler, guide)
+    edge, w, geometry, mhat, S, walk, siS, siD, ok = indirect_segments(
+        scene, sensor, edges, P, distr, u1, u2, sampler, max_depth)
+    with dr.suspend_grad():
+        geometry *= dr.opaque(mi.Float, (width * height) / n_samples) / g
         dr.eval(S, walk, geometry, mhat, siS, siD)
+    origin = ray_origin(edge)
     # Moving end points (AD): the source material point, x^D as a material point (j ≥ 2)
-    ray_S = mi.Ray3f(origin, w)
-    siS_ad = scene.ray_intersect(ray_S, FOLLOW, False, ok & siS.is_valid())
+    siS_ad = scene.ray_intersect(mi.Ray3f(origin, w), FOLLOW, False, ok & siS.is_valid())
     siD_ad = scene.ray_intersect(mi.Ray3f(origin, -w), FOLLOW, False, ok)
     surface = siS.is_valid()
     env_motion = environment_motion(scene)
     for j, (D, uv, pixel, ok_j) in enumerate(walk, start=1):
-        k_max = max_depth - 1 - j
-        if k_max < 0:
+        if max_depth - 1 - j < 0:
             break
         with dr.suspend_grad():
-            Ssum = mi.Color3f(0.0)
-            for k in range(1 if j == 1 else 0, k_max + 1):
-                Ssum += S[k]
-            F = dr.select(ok_j, D * Ssum, 0.0)
+            F = path_weight(S, D, ok_j, j, max_depth)
             live = ok_j & (dr.max(F) > 0)
         if j == 1:  # camera vertex: x^D slides along the camera ray through its film position
             ray = camera_ray(sensor, uv, width, height, live)
