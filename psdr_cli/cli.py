@@ -166,10 +166,27 @@ def grad(config: Path = ConfigArg,
 
 @app.command("guide-stats")
 @guarded
-def guide_stats(config: Path = ConfigArg):
-    """Statistics and plots of the boundary-sampling guides (not implemented yet)."""
-    load_experiment(config)
-    _not_yet("guide-stats", "guiding is not built yet")
+def guide_stats(config: Path = ConfigArg,
+                guides: Optional[str] = typer.Option(None, "--guides", help="Guides to build: grid,kdtree (default: estimator.guiding, or both)."),
+                views: Optional[str] = typer.Option(None, "--views", help="Views the guides are built for (default: all)."),
+                out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")):
+    """Build the boundary guides with and without edge sorting; table, JSON and plots."""
+    from . import api
+    exp = load_experiment(config)
+    with Bar("guide-stats") as bar:
+        res = api.guide_stats(exp, kinds=guides, views=views, out=out_dir, progress=bar)
+    table = Table(title=f"psdr guide-stats: {exp.name}")
+    for col in ("sorted", "guide", "leaves", "depth", "KiB", "build s", "evals", "norm"):
+        table.add_column(col, justify="left" if col in ("sorted", "guide") else "right", no_wrap=True)
+    for key, stats in res.guides.items():
+        for label, s in stats.items():
+            table.add_row("yes" if key == "sorted" else "no", label, str(s["leaves"]), str(s["max_depth"]), f"{s['memory_bytes'] / 1024:.1f}",
+                          f"{s['build_seconds']:.2f}", str(s["evaluations"]), f"{s['normalization']:.3g}")
+    out.print(table)
+    for key, c in res.chains.items():
+        out.print(f"{key}: {c['edges']} edges in {c['chains']} chains (mean length {c['mean_chain_length']:.1f}); "
+                  f"the Kd-tree pre-splits u1 into that many pieces")
+    out.print(f"outputs in {res.folder}")
 
 
 @app.command()

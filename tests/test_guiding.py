@@ -185,3 +185,31 @@ def test_check_detects_a_biased_guide(tmp_path):
         sums.append(mean_se(np.array([block_sums(p) for p in est.passes])))
     (m0, s0), (m1, s1) = sums
     assert np.abs(m1 - m0).max() > 4.5 * np.hypot(s0, s1)[np.argmax(np.abs(m1 - m0))], sums
+
+
+def test_grad_and_guide_stats_cli(tmp_path, write_cfg):
+    """`psdr grad` takes the guiding options; `psdr guide-stats` writes its table, JSON and plots."""
+    import json
+    from conftest import run_cli
+    data = copy.deepcopy(SHADOW)
+    data["output"] = str(tmp_path / "runs")
+    data["estimator"] = {"spp": 4, "boundary_spp": 8, "terms": ["direct"], "kdtree": {"initial_samples": 4096}}
+    cfg = write_cfg(data)
+    r = run_cli("grad", cfg, "--guiding", "kdtree", "--sampling", "mis", "--edge-sort")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((tmp_path / "runs" / "shadow" / "grad" / "summary.json").read_text())
+    assert summary["guiding"] == "kdtree" and summary["edge_sort"] is True
+    assert "guiding" in summary["views"][0]["seconds"]
+    r = run_cli("grad", cfg, "--guiding", "octree")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--guiding" in r.stderr
+    r = run_cli("guide-stats", cfg, "--guides", "grid,kdtree")
+    assert r.returncode == 0, r.stderr
+    folder = tmp_path / "runs" / "shadow" / "guide_stats"
+    stats = json.loads((folder / "guide_stats.json").read_text())
+    assert set(stats["guides"]) == {"unsorted", "sorted"}
+    assert stats["chains"]["sorted"]["chains"] < stats["chains"]["unsorted"]["chains"] == stats["chains"]["unsorted"]["edges"]
+    for row in stats["guides"]["sorted"].values():
+        assert row["leaves"] > 0 and row["memory_bytes"] > 0 and row["evaluations"] > 0 and row["normalization"] > 0
+    assert (folder / "target_u1_light.png").stat().st_size > 1000
+    assert (folder / "leaves_kdtree_dir_sorted.png").exists()
+    assert "kdtree/light" in r.stdout

@@ -134,6 +134,7 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
         axis[node], split[node], child[node] = 0, breaks[mid], c
         axis += [-1, -1]; split += [0.0, 0.0]; child += [-1, -1]; leaf += [-1, -1]
         queue += [(c, i0, mid), (c + 1, mid, i1)]
+    axis, split, child, leaf = (np.array(axis), np.array(split, np.float64), np.array(child), np.array(leaf))
     ids, lo, hi = np.array(active_id), np.array(active_lo), np.array(active_hi)
     depth = np.zeros(len(ids), np.int64)
     share = hi[:, 0] - lo[:, 0]
@@ -164,8 +165,7 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
             want[keep] = True
         done = ~want
         if done.any():
-            for n, l in zip(ids[done], range(len(leaf_lo), len(leaf_lo) + int(done.sum()))):
-                leaf[n] = l
+            leaf[ids[done]] = np.arange(len(leaf_lo), len(leaf_lo) + int(done.sum()))
             leaf_lo += list(lo[done]); leaf_hi += list(hi[done])
             leaf_c += list(_corner_values(coef[done], mean[done]))
             deepest = max(deepest, int(depth[done].max()))
@@ -183,24 +183,31 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
         best = np.argmin(np.stack(errs, 1), axis=1)
         # children of split node k get active indices 2·rank(k) and 2·rank(k) + 1
         rank = np.cumsum(want) - 1
-        new_ids, new_lo, new_hi = [], [], []
-        for n, a, l0, h0 in zip(ids[want], best[want], lo[want], hi[want]):
-            c = len(axis)
-            mid = 0.5 * (l0[a] + h0[a])
-            axis[n], split[n], child[n] = int(a), mid, c
-            axis += [-1, -1]; split += [0.0, 0.0]; child += [-1, -1]; leaf += [-1, -1]
-            h_left, l_right = h0.copy(), l0.copy()
-            h_left[a] = mid; l_right[a] = mid
-            new_ids += [c, c + 1]; new_lo += [l0, l_right]; new_hi += [h_left, h0]
+        n_split, a = int(want.sum()), best[want]
+        parents, l0, h0 = ids[want], lo[want], hi[want]
+        rows = np.arange(n_split)
+        mid = 0.5 * (l0[rows, a] + h0[rows, a])
+        first = len(axis) + 2 * rows
+        axis[parents], split[parents], child[parents] = a, mid, first
+        axis = np.r_[axis, np.full(2 * n_split, -1)]
+        split = np.r_[split, np.zeros(2 * n_split)]
+        child = np.r_[child, np.full(2 * n_split, -1)]
+        leaf = np.r_[leaf, np.full(2 * n_split, -1)]
+        h_left, l_right = h0.copy(), l0.copy()
+        h_left[rows, a] = mid
+        l_right[rows, a] = mid
+        new_ids = np.stack([first, first + 1], 1).ravel()
+        new_lo = np.stack([l0, l_right], 1).reshape(-1, 3)
+        new_hi = np.stack([h_left, h0], 1).reshape(-1, 3)
         keep = want[sg]
         side = x[np.arange(len(x)), best[sg]] >= 0.5
         su, sf, sg = su[keep], sf[keep], (2 * rank[sg] + side)[keep]
-        ids, lo, hi = np.array(new_ids), np.array(new_lo), np.array(new_hi)
+        ids, lo, hi = new_ids, new_lo, new_hi
         depth = np.repeat(depth[want] + 1, 2)
         counts = np.full(len(ids), samples_per_node)
     stats = GuideStats("kdtree", max_depth=deepest, evaluations=evaluations, intervals=len(breaks) - 1)
     guide = KdTreeGuide(np.array(leaf_lo), np.array(leaf_hi), np.array(leaf_c), epsilon, stats,
-                        np.array(axis), np.array(split), np.array(child), np.array(leaf))
+                        axis, split, child, leaf)
     stats.memory_bytes = guide.memory_bytes()
     stats.build_seconds = time.perf_counter() - t0
     return guide

@@ -1,0 +1,75 @@
+"""PNG plots (matplotlib, headless), each written atomically."""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.collections import PatchCollection  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .io import atomic_path  # noqa: E402
+
+
+def save(fig, path):
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+
+
+def target_along_u1(path, curves: dict, title: str = ""):
+    """Fig. 5 of the paper: per edge order, x^B(u1) (three coordinates, top) and the mean target
+    over u2 along u1 (bottom). ``curves``: {label: (u1, xB (N,3), target (N,), breaks)}."""
+    labels = list(curves)
+    fig, axes = plt.subplots(2, len(labels), figsize=(5.5 * len(labels), 5.5), squeeze=False, sharex=True)
+    for col, label in enumerate(labels):
+        u1, xB, target, breaks = curves[label]
+        ax = axes[0, col]
+        for i, name in enumerate("xyz"):
+            ax.plot(u1, xB[:, i], lw=0.7, label=name)
+        ax.set_title(f"{label}: x^B(u1) — {len(breaks) - 1} continuous pieces")
+        ax.legend(loc="upper right", fontsize=7)
+        ax = axes[1, col]
+        ax.plot(u1, target, lw=0.7, color="k")
+        ax.set_yscale("symlog", linthresh=max(float(np.percentile(target[target > 0], 5)) if (target > 0).any() else 1e-6, 1e-12))
+        ax.set_xlabel("u1")
+        ax.set_ylabel("mean F̃ over u2")
+    if title:
+        fig.suptitle(title)
+    save(fig, path)
+
+
+def leaf_slice(path, lo, hi, density, u3: float = 0.5, u1_range=(0.0, 1.0), title: str = ""):
+    """Leaves of a guide cut by the plane u2.y = ``u3``, drawn in (u1, u2.x), coloured by log
+    density, for u1 in ``u1_range``."""
+    sel = (lo[:, 2] <= u3) & (hi[:, 2] > u3) & (hi[:, 0] > u1_range[0]) & (lo[:, 0] < u1_range[1])
+    fig, ax = plt.subplots(figsize=(9, 4))
+    rects = [Rectangle((a[0], a[1]), b[0] - a[0], b[1] - a[1]) for a, b in zip(lo[sel], hi[sel])]
+    d = np.log10(np.maximum(density[sel], 1e-6))
+    pc = PatchCollection(rects, cmap="viridis", edgecolor="w", linewidth=0.2)
+    pc.set_array(d)
+    ax.add_collection(pc)
+    ax.set_xlim(*u1_range)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("u1")
+    ax.set_ylabel("u2.x")
+    fig.colorbar(pc, ax=ax, label="log10 guide density")
+    ax.set_title(title or f"leaves at u2.y = {u3}")
+    save(fig, path)
+
+
+def lines(path, series: dict, xlabel: str, ylabel: str, title: str = "", logy: bool = False):
+    """Simple line plot: ``series`` = {label: (x, y)}."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, (x, y) in series.items():
+        ax.plot(x, y, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if logy:
+        ax.set_yscale("log")
+    if title:
+        ax.set_title(title)
+    if len(series) > 1:
+        ax.legend()
+    save(fig, path)
