@@ -112,9 +112,14 @@ def with_estimator(exp: Experiment, **overrides) -> Experiment:
     return replace(exp, estimator=replace(exp.estimator, **changes)) if changes else exp
 
 
+def edge_list(scene, estimator, sort: bool):
+    """The scene's boundary edges, sorted into chains with the experiment's chain parameters."""
+    from .estimators.boundary_sampling import BoundaryEdges
+    return BoundaryEdges.from_scene(scene, sort, estimator.chains.max_turn, estimator.chains.max_length)
+
+
 def prepare_gradient(exp: Experiment, spp: int | None = None, scene=None):
     """(scene, θ parameter, boundary edges, settings) of an experiment, variant activated."""
-    from .estimators.boundary_sampling import BoundaryEdges
     from .gradient import Settings
     from .parameters import Parameter
     from .scene import build_scene
@@ -126,7 +131,7 @@ def prepare_gradient(exp: Experiment, spp: int | None = None, scene=None):
     setup(exp)
     scene = scene or build_scene(exp)
     settings = Settings.from_experiment(exp, spp)
-    edges = BoundaryEdges.from_scene(scene, sort=settings.edge_sort)
+    edges = edge_list(scene, exp.estimator, settings.edge_sort)
     return scene, Parameter(scene, exp.parameter), edges, settings
 
 
@@ -256,7 +261,6 @@ def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None
     along u1, unsorted vs sorted: the paper's Fig. 5) and ``leaves_<kind>_<technique>.png``
     (leaf boundaries in the plane u2.y = ½) to ``<output>/<name>/guide_stats/``."""
     from . import plots
-    from .estimators.boundary_sampling import BoundaryEdges
     from .guiding.stats import chain_stats, guide_report, target_curve
     from .scene import build_scene
 
@@ -284,7 +288,7 @@ def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None
         progress.start(2 * (len(kinds) * len(techniques) + len(techniques)))
     for sort in (False, True):
         key = "sorted" if sort else "unsorted"
-        edges = BoundaryEdges.from_scene(scene, sort=sort)
+        edges = edge_list(scene, exp.estimator, sort)
         if edges.count == 0:
             raise PsdrError(f"{exp.file}: scene.objects: no object has boundary edges (edges: true)")
         result.chains[key] = chain_stats(edges)

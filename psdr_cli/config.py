@@ -267,16 +267,22 @@ class ParameterConfig:
 @dataclass
 class GridConfig:
     resolution: tuple = (64, 8, 8)
-    samples_per_cell: int = 16
+    samples_per_cell: int = 64
 
 
 @dataclass
 class KdTreeConfig:
     samples_per_node: int = 32
-    initial_samples: int = 65536
+    initial_samples: int = 262144
     threshold: float = 0.002
     max_depth: int = 24
     max_leaves: int = 65536
+
+
+@dataclass
+class ChainConfig:
+    max_turn: float = 60.0     # degrees: a chain stops at a sharper turn
+    max_length: int = 1024     # edges per chain
 
 
 @dataclass
@@ -290,6 +296,7 @@ class EstimatorConfig:
     passes: int = 1
     guide_epsilon: float = 0.05
     edge_sort: bool = False
+    chains: ChainConfig = field(default_factory=ChainConfig)
     grid: GridConfig = field(default_factory=GridConfig)
     kdtree: KdTreeConfig = field(default_factory=KdTreeConfig)
 
@@ -594,6 +601,12 @@ def parse_estimator(value, where) -> EstimatorConfig:
         if len(est.grid.resolution) != 3:
             raise where.child("grid").child("resolution").fail("expected a list of 3 integers [nx, ny, nz]")
         g.done()
+    if sec.has("chains"):
+        c = Section(sec.get("chains", lambda v, _: v), where.child("chains"))
+        d = ChainConfig()
+        est.chains = ChainConfig(max_turn=c.get("max_turn", number(minimum=0, maximum=180), d.max_turn),
+                                 max_length=c.get("max_length", integer(1), d.max_length))
+        c.done()
     if sec.has("kdtree"):
         k = Section(sec.get("kdtree", lambda v, _: v), where.child("kdtree"))
         d = KdTreeConfig()

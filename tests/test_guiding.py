@@ -119,13 +119,13 @@ def block_sums(image):
     return image.sum(-1).reshape(BLOCKS, b, BLOCKS, b).sum(axis=(1, 3)).ravel()
 
 
-def direct_sums(tmp_path, data, passes, **overrides):
-    """Block sums of the direct term per pass, shape (passes, BLOCKS²)."""
+def direct_sums(tmp_path, data, passes, term="direct", **overrides):
+    """Block sums of ``term`` per pass, shape (passes, BLOCKS²)."""
     exp = parse_experiment(copy.deepcopy(data), tmp_path / f"{data['name']}.yaml", cwd=tmp_path)
     exp = api.with_estimator(exp, **overrides)
     scene, parameter, edges, settings = api.prepare_gradient(exp)
-    guides = make_guides(scene, edges, [0], ("direct",), settings)
-    est = forward_gradient(scene, edges, parameter, 0, "direct", settings, passes, guides=guides)
+    guides = make_guides(scene, edges, [0], (term,), settings)
+    est = forward_gradient(scene, edges, parameter, 0, term, settings, passes, guides=guides)
     scale = len(est.passes) * np.array(est.weights)[:, None]
     return np.array([block_sums(p) for p in est.passes]) * scale, guides
 
@@ -165,6 +165,35 @@ def test_guided_agrees_with_unguided(tmp_path, scene):
               f"{m0[k]:.4g} ± {s0[k]:.2g}; max |z| {np.abs(z).max():.2f}")
         if np.abs(z).max() >= 4.5:
             failures.append((guiding, sampling, sort, m.round(3), s.round(3), z.round(2)))
+    assert not failures, failures
+
+
+def cornell_box():
+    """The indirect-light validation scene (sphere in a Cornell box), at R × R."""
+    import yaml
+    from conftest import REPO
+    data = yaml.safe_load((REPO / "configs" / "validation" / "cornell.yaml").read_text())
+    data["scene"]["film"] = {"width": R, "height": R}
+    data["estimator"] = {"spp": 4, "boundary_spp": 256, "terms": ["indirect"], "kdtree": {"initial_samples": 65536}}
+    return data
+
+
+@pytest.mark.slow
+def test_guided_indirect_agrees_with_unguided(tmp_path):
+    """The indirect term's guides (noisy targets: one random subpath pair per evaluation) keep the
+    estimate unbiased: grid and Kd-tree (sorted and not) against the unguided estimator."""
+    data = cornell_box()
+    m0, s0 = mean_se(direct_sums(tmp_path, data, 2 * PASSES, term="indirect", guiding="none")[0])
+    assert np.abs(m0).max() > 6 * s0[np.argmax(np.abs(m0))]  # the test has power
+    failures = []
+    for guiding, sort in (("grid", False), ("kdtree", False), ("kdtree", True)):
+        sums, guides = direct_sums(tmp_path, data, PASSES, term="indirect", guiding=guiding, edge_sort=sort)
+        assert guides.indirect is not None and guides.indirect.total > 0
+        m, s = mean_se(sums)
+        z = (m - m0) / np.maximum(np.hypot(s, s0), 1e-12)
+        print(f"indirect {guiding} sort={sort}: max |z| {np.abs(z).max():.2f}")
+        if np.abs(z).max() >= 4.5:
+            failures.append((guiding, sort, m.round(3), s.round(3), z.round(2)))
     assert not failures, failures
 
 

@@ -52,8 +52,9 @@ class BoundaryEdges:
     chains: object = None
 
     @staticmethod
-    def from_scene(scene, sort: bool = False) -> "BoundaryEdges":
-        """Secondary edges of the scene's edge objects, ordered into chains when ``sort``."""
+    def from_scene(scene, sort: bool = False, max_turn: float = 60.0, max_length: int = 1024) -> "BoundaryEdges":
+        """Secondary edges of the scene's edge objects, ordered into chains when ``sort`` (chains
+        stop at turns sharper than ``max_turn`` degrees and at ``max_length`` edges)."""
         from ..guiding.edge_sort import Chains, sort_edges
         cols = [[] for _ in range(6)]
         opens, names, meshes, verts, offset = [], [], [], [], 0
@@ -80,7 +81,7 @@ class BoundaryEdges:
         if sort and n:
             wid, rep = weld(np.concatenate(verts))
             V = np.concatenate(verts)[rep]
-            chains = sort_edges(V, wid[cols[0]], wid[cols[1]])
+            chains = sort_edges(V, wid[cols[0]], wid[cols[1]], max_turn, max_length)
             cols = [c[chains.order] for c in cols]
             opens = opens[chains.order]
         return BoundaryEdges(names, [mi.UInt32(c) for c in cols], mi.Bool(opens), n, meshes,

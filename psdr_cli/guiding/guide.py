@@ -8,11 +8,14 @@ u1, u2.x, u2.y). With x ∈ [0,1)³ the position inside the leaf,
     mass_leaf = volume · mean(c),   M = Σ mass_leaf,
     g(u) = ε + (1 − ε) · f(u) / M.
 
-The uniform share ε keeps every estimator unbiased where the guide missed a region. Sampling:
-with probability ε, u is uniform; otherwise a leaf is chosen ∝ its mass and x is drawn by
-inverting x3's marginal, then x2 | x3, then x1 | x2, x3 — each is linear, (1−t)a + t b, with
-the closed-form inverse t = ξ(a + b) / (a + √(a² + ξ(b² − a²))). A grid is the special case of
-equal corner values on a regular partition; the Kd-tree stores its split planes for lookups.
+The uniform share ε keeps every estimator unbiased where the guide missed a region. Because a
+constant plus a trilinear function is trilinear, g itself is trilinear in every leaf, with
+corners c'_ijk = ε + (1 − ε) c_ijk / M; sampling needs no separate uniform branch and no
+lookup: a leaf is chosen ∝ volume · mean(c'), then x is drawn by inverting x3's marginal, then
+x2 | x3, then x1 | x2, x3 — each is linear, (1−t)a + t b, with the closed-form inverse
+t = ξ(a + b) / (a + √(a² + ξ(b² − a²))), and g(u) is c' interpolated at x. A grid is the special
+case of equal corner values on a regular partition; the Kd-tree stores its split planes for
+lookups of g at arbitrary u (tests, plots).
 """
 from __future__ import annotations
 
@@ -70,16 +73,18 @@ class Guide:
         self.epsilon = float(epsilon) if self.total > 0 else 1.0
         self.stats = stats
         stats.leaves, stats.normalization = len(self.lo), self.total
+        # g = ε + (1 − ε) f / M, trilinear per leaf with corners c'
+        scale = 1.0 / self.total if self.total > 0 else 0.0
+        self.density_corners = self.epsilon + (1.0 - self.epsilon) * self.corners * scale
+        self.probability = vol * self.density_corners.mean(axis=1)  # sums to 1
         self._lo = mi.Float(self.lo.astype(np.float32).ravel())
         self._ext = mi.Float((self.hi - self.lo).astype(np.float32).ravel())
-        scale = 1.0 / self.total if self.total > 0 else 0.0
-        self._c = mi.Float((self.corners * scale).astype(np.float32).ravel())
-        self._distr = mi.DiscreteDistribution(mi.Float(self.mass.astype(np.float32))) if self.total > 0 else None
-        self._eps = mi.Float(self.epsilon)  # opaque: changing ε does not recompile kernels
-        dr.make_opaque(self._eps)
+        self._c = mi.Float(self.density_corners.astype(np.float32).ravel())
+        self._distr = mi.DiscreteDistribution(mi.Float(self.probability.astype(np.float32)))
 
     # -- lookups -------------------------------------------------------------------------------
-    def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
+    def leaf_of(self, u: mi.Point3f, active=True) -> mi.UInt32:
+        """Index of the leaf containing u (Dr.Jit; lanes with ``active`` false may return 0)."""
         raise NotImplementedError
 
     def leaf_of_np(self, u: np.ndarray) -> np.ndarray:
@@ -87,11 +92,11 @@ class Guide:
 
     def memory_bytes(self) -> int:
         """Bytes of the arrays the sampler keeps (boxes, corner values, leaf CDF)."""
-        return 4 * (len(self._lo) + len(self._ext) + len(self._c) + len(self.mass))
+        return 4 * (len(self._lo) + len(self._ext) + len(self._c) + len(self.probability))
 
     # -- density -------------------------------------------------------------------------------
     def _leaf_density(self, leaf, x):
-        """f(u)/M inside ``leaf`` at local position x (Dr.Jit)."""
+        """g(u) inside ``leaf`` at local position x (Dr.Jit)."""
         val = mi.Float(0.0)
         for c in range(8):
             w = ((x.x if c & 1 else 1.0 - x.x) * (x.y if c & 2 else 1.0 - x.y)
@@ -101,53 +106,33 @@ class Guide:
 
     def pdf(self, u: mi.Point3f) -> mi.Float:
         """g(u) (Dr.Jit)."""
-        if self._distr is None:
-            return mi.Float(1.0)
         leaf = self.leaf_of(u)
         lo = dr.gather(mi.Point3f, self._lo, leaf)
         ext = dr.gather(mi.Vector3f, self._ext, leaf)
-        return self._eps + (1.0 - self._eps) * self._leaf_density(leaf, (u - lo) / ext)
+        return self._leaf_density(leaf, (u - lo) / ext)
 
     def pdf_np(self, u: np.ndarray) -> np.ndarray:
         """g(u) (numpy, for tests and plots)."""
         u = np.atleast_2d(np.asarray(u, np.float64))
-        if self.total <= 0:
-            return np.ones(len(u))
         leaf = self.leaf_of_np(u)
         x = (u - self.lo[leaf]) / (self.hi[leaf] - self.lo[leaf])
-        f = np.einsum("nc,nc->n", trilinear_weights(x), self.corners[leaf]) / self.total
-        return self.epsilon + (1.0 - self.epsilon) * f
+        return np.einsum("nc,nc->n", trilinear_weights(x), self.density_corners[leaf])
 
     # -- sampling ------------------------------------------------------------------------------
-    def sample(self, u_mix: mi.Float, xi: mi.Point3f):
-        """u ~ g from a uniform ``u_mix`` (uniform vs guided, then leaf choice) and ``xi`` ∈ [0,1)³.
-
-        Returns (u, g(u))."""
-        if self._distr is None:
-            return xi, mi.Float(1.0)
-        guided = u_mix >= self._eps
-        leaf = self._distr.sample(dr.clip((u_mix - self._eps) / (1.0 - self._eps), 0.0, ONE_MINUS))
+    def sample(self, u_leaf: mi.Float, xi: mi.Point3f):
+        """u ~ g from a uniform ``u_leaf`` (leaf choice) and ``xi`` ∈ [0,1)³. Returns (u, g(u))."""
+        leaf = self._distr.sample(dr.clip(u_leaf, 0.0, ONE_MINUS))
         c = [dr.gather(mi.Float, self._c, leaf * 8 + k) for k in range(8)]
-        # x3 from its marginal: corner means over the faces x3 = 0 and x3 = 1
+        # x3 from its marginal: corner sums over the faces x3 = 0 and x3 = 1
         z = invert_linear(c[0] + c[1] + c[2] + c[3], c[4] + c[5] + c[6] + c[7], xi.z)
         e = [dr.lerp(c[k], c[k + 4], z) for k in range(4)]          # bilinear slice at x3
         y = invert_linear(e[0] + e[1], e[2] + e[3], xi.y)
         x = invert_linear(dr.lerp(e[0], e[2], y), dr.lerp(e[1], e[3], y), xi.x)
-        local = mi.Point3f(x, y, z)
         lo = dr.gather(mi.Point3f, self._lo, leaf)
         ext = dr.gather(mi.Vector3f, self._ext, leaf)
-        u_g = dr.clip(lo + ext * local, 0.0, ONE_MINUS)
-        u = dr.select(guided, u_g, xi)
-        density = dr.select(guided, self._leaf_density(leaf, local), 0.0)
-        # uniform draws still need g at their position: look up their leaf
-        density = dr.select(guided, density, self._uniform_branch_density(u, ~guided))
-        return u, self._eps + (1.0 - self._eps) * density
-
-    def _uniform_branch_density(self, u, active):
-        leaf = dr.select(active, self.leaf_of(u), 0)
-        lo = dr.gather(mi.Point3f, self._lo, leaf)
-        ext = dr.gather(mi.Vector3f, self._ext, leaf)
-        return self._leaf_density(leaf, (u - lo) / ext)
+        u = dr.clip(lo + ext * mi.Point3f(x, y, z), 0.0, ONE_MINUS)
+        density = dr.lerp(dr.lerp(e[0], e[1], x), dr.lerp(e[2], e[3], x), y)
+        return u, density
 
     def sample_np(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n samples u ~ g (numpy reference sampler used by tests)."""

@@ -41,7 +41,9 @@ class KdTreeGuide(Guide):
         self._child = mi.UInt32(np.maximum(child, 0).astype(np.uint32))
         self._leaf = mi.UInt32(np.maximum(leaf, 0).astype(np.uint32))
 
-    def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
+    def leaf_of(self, u: mi.Point3f, active=True) -> mi.UInt32:
+        active = mi.Bool(active)
+
         def body(node):
             ax = dr.gather(mi.Int32, self._axis, node)
             coord = dr.select(ax == 0, u.x, dr.select(ax == 1, u.y, u.z))
@@ -49,7 +51,7 @@ class KdTreeGuide(Guide):
             return (dr.gather(mi.UInt32, self._child, node) + dr.select(right, 1, 0),)
 
         node = dr.while_loop((mi.UInt32(0),),
-                             lambda node: dr.gather(mi.Int32, self._axis, node) >= 0, body,
+                             lambda node: active & (dr.gather(mi.Int32, self._axis, node) >= 0), body,
                              labels=("node",), label="kdtree_lookup")[0]
         return dr.gather(mi.UInt32, self._leaf, node)
 
