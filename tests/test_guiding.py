@@ -76,20 +76,18 @@ def test_trilinear_leaf_sampling_matches_density(variant):
     assert abs(np.einsum("nc,nc->n", trilinear_weights(np.full((1, 3), 0.5)), corners)[0] / corners.mean() - 1) < 1e-12
 
 
-SHADOW = {
-    "name": "shadow", "seed": 5,
-    "scene": {
-        "film": {"width": R, "height": R}, "max_depth": 2,
-        "cameras": [{"origin": [0, -2.2, 2.2], "target": [0, 0, 0.2], "fov": 40}],
-        "emitters": [{"type": "area", "center": [0.4, 0.9, 2.0], "normal": [0, 0, -1], "size": [0.6, 0.6],
-                      "radiance": 20}],
-        "objects": [{"name": "occ", "mesh": {"shape": "sphere", "radius": 0.3, "subdivisions": 2},
-                     "transform": {"translate": [0, 0, 0.6]},
-                     "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
-                    {"name": "floor", "mesh": {"shape": "plane", "size": 4},
-                     "bsdf": {"type": "diffuse", "reflectance": 0.8}, "edges": False}]},
-    "parameter": {"object": "occ", "kind": "translate", "axis": [1, 0, 0]},
-    "estimator": {"spp": 4, "boundary_spp": 256, "kdtree": {"initial_samples": 16384}}}
+def shadow_scene():
+    """The direct-term validation scene of test_direct_boundary at R × R, θ = x-translation."""
+    from test_direct_boundary import SHADOW as base
+    data = copy.deepcopy(base)
+    data["seed"] = 5
+    data["scene"]["film"] = {"width": R, "height": R}
+    data["parameter"] = {"object": "occ", "kind": "translate", "axis": [1, 0, 0]}
+    data["estimator"] = {"spp": 4, "boundary_spp": 256, "kdtree": {"initial_samples": 16384}}
+    return data
+
+
+SHADOW = shadow_scene()
 
 #: A glossy (flat-shaded, 300-face) bunny under a sky environment, rotated about z.
 ENVMAP = {
