@@ -28,7 +28,7 @@ class GridGuide(Guide):
         corners = np.repeat(np.asarray(values, np.float64)[:, None], 8, axis=1)
         super().__init__(idx / res, (idx + 1) / res, corners, epsilon, stats)
 
-    def leaf_of(self, u: mi.Point3f, active=True) -> mi.UInt32:
+    def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
         nx, ny, nz = self.resolution
         i = dr.minimum(mi.UInt32(u.x * nx), nx - 1)
         j = dr.minimum(mi.UInt32(u.y * ny), ny - 1)

@@ -83,8 +83,8 @@ class Guide:
         self._distr = mi.DiscreteDistribution(mi.Float(self.probability.astype(np.float32)))
 
     # -- lookups -------------------------------------------------------------------------------
-    def leaf_of(self, u: mi.Point3f, active=True) -> mi.UInt32:
-        """Index of the leaf containing u (Dr.Jit; lanes with ``active`` false may return 0)."""
+    def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
+        """Index of the leaf containing u (Dr.Jit)."""
         raise NotImplementedError
 
     def leaf_of_np(self, u: np.ndarray) -> np.ndarray:

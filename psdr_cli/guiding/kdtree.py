@@ -4,8 +4,9 @@ u1 is first cut at the given breakpoints (edge or chain boundaries), so that x^B
 continuous inside each interval; a balanced binary tree over those cuts forms the top of the
 tree. Below, every node r with box B_r is processed level by level, all active nodes at once:
 
-1. draw ``samples_per_node`` uniform points in each active box and evaluate F̃ at all of them
-   in one batch;
+1. draw new uniform points in each active box (``initial_samples`` spread over the first level,
+   ``samples_per_node`` per node below) and evaluate F̃ at all of them in one batch; a node also
+   keeps the earlier samples of its ancestors that fall inside it;
 2. fit F̃ ≈ a + b·(x − ½) by least squares in the box's local coordinates x ∈ [0,1)³; the fit
    error is err_r = |B_r| · mean |F̃ − fit|;
 3. if err_r > threshold · Î (Î = ∫F̃ estimated from the first level), the node is split in half
@@ -41,9 +42,7 @@ class KdTreeGuide(Guide):
         self._child = mi.UInt32(np.maximum(child, 0).astype(np.uint32))
         self._leaf = mi.UInt32(np.maximum(leaf, 0).astype(np.uint32))
 
-    def leaf_of(self, u: mi.Point3f, active=True) -> mi.UInt32:
-        active = mi.Bool(active)
-
+    def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
         def body(node):
             ax = dr.gather(mi.Int32, self._axis, node)
             coord = dr.select(ax == 0, u.x, dr.select(ax == 1, u.y, u.z))
@@ -51,7 +50,7 @@ class KdTreeGuide(Guide):
             return (dr.gather(mi.UInt32, self._child, node) + dr.select(right, 1, 0),)
 
         node = dr.while_loop((mi.UInt32(0),),
-                             lambda node: active & (dr.gather(mi.Int32, self._axis, node) >= 0), body,
+                             lambda node: dr.gather(mi.Int32, self._axis, node) >= 0, body,
                              labels=("node",), label="kdtree_lookup")[0]
         return dr.gather(mi.UInt32, self._leaf, node)
 
