@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.psdr-installed
 .PHONY: demo test install llvm clean help
 
 help:
-	@echo "make demo   set up .venv and run the built-in demo experiment (configs/demo.yaml)"
+	@echo "make demo   set up .venv and run the built-in reconstruction (configs/reconstruct_bunny.yaml) + its evaluation"
 	@echo "make test   set up .venv and run the test suite"
 
 llvm:
@@ -23,8 +23,9 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/psdr render configs/demo.yaml
-	@echo "demo outputs: runs/demo/render/ (EXR + PNG per view)"
+	$(BIN)/psdr optimize configs/reconstruct_bunny.yaml
+	$(BIN)/psdr evaluate configs/reconstruct_bunny.yaml
+	@echo "demo outputs: runs/reconstruct_bunny/ (final.ply, checkpoints/, previews/, log.csv, loss.png, chamfer.png)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q tests

@@ -319,3 +319,60 @@ def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None
         "epsilon": exp.estimator.guide_epsilon, "chains": result.chains, "guides": result.guides,
         "plots": [str(p) for p in result.plots]})
     return result
+
+
+def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print):
+    """Run ``psdr optimize`` (see :mod:`psdr_cli.optimize`); returns an OptimizeResult."""
+    from .optimize import optimize as run
+    return run(exp, iterations=iterations, resume=resume, progress=progress, warn=warn)
+
+
+@dataclass
+class EvaluateResult:
+    reference: Path
+    rows: list = field(default_factory=list)       # {mesh, iteration, seconds, chamfer_l1, chamfer_l2, hausdorff}
+    noise_floor: dict = field(default_factory=dict)
+    plots: list = field(default_factory=list)
+
+
+def evaluate(reference: Path, paths, samples: int = 100_000, seed: int = 0, json_out: Path | None = None,
+             progress=None) -> EvaluateResult:
+    """Chamfer/Hausdorff distances of meshes (or of every checkpoint of run folders) to
+    ``reference``; a run folder also gets ``chamfer.png`` (distance against iteration and time)."""
+    from dataclasses import asdict
+    from . import evaluate as ev
+    from . import plots
+
+    if samples < 100:
+        raise PsdrError(f"--samples: expected at least 100 points, got {samples}")
+    ref = ev.load(reference)
+    jobs = []  # (label, path, iteration, seconds, run folder)
+    for p in map(Path, paths):
+        if p.is_dir():
+            secs = ev.run_seconds(p)
+            jobs += [(str(path), path, i, secs.get(i, 0.0 if i == 0 else None), p) for i, path in ev.run_checkpoints(p)]
+        else:
+            jobs.append((str(p), p, None, None, None))
+    if not jobs:
+        raise PsdrError("evaluate: no meshes given (expected mesh files or `psdr optimize` run folders)")
+    result = EvaluateResult(Path(reference), noise_floor=asdict(ev.noise_floor(ref, samples, seed)))
+    if progress:
+        progress.start(len(jobs))
+    for label, path, iteration, seconds, run in jobs:
+        d = ev.distance(ev.load(path), ref, samples, seed)
+        result.rows.append({"mesh": label, "run": str(run) if run else None, "iteration": iteration,
+                            "seconds": seconds, **asdict(d)})
+        if progress:
+            progress.advance(1)
+    for run in sorted({r["run"] for r in result.rows if r["run"]}):
+        rows = [r for r in result.rows if r["run"] == run]
+        png = Path(run) / "chamfer.png"
+        it = [r["iteration"] for r in rows]
+        timed = [r for r in rows if r["seconds"] is not None]
+        plots.chamfer(png, it, [r["chamfer_l1"] for r in rows], [r["seconds"] for r in timed],
+                      [r["chamfer_l1"] for r in timed], result.noise_floor["chamfer_l1"])
+        result.plots.append(png)
+    if json_out:
+        io.write_json(Path(json_out), {"reference": str(reference), "samples": samples, "seed": seed,
+                                       "noise_floor": result.noise_floor, "meshes": result.rows})
+    return result

@@ -124,10 +124,6 @@ def render(config: Path = ConfigArg,
     out.print(f"{len(res.views)} view(s), {res.variant}, total {sum(res.seconds):.2f} s; outputs in {res.folder}")
 
 
-def _not_yet(command: str, issue: str):
-    fail(f"'psdr {command}' is not implemented yet ({issue})", 3)
-
-
 @app.command()
 @guarded
 def grad(config: Path = ConfigArg,
@@ -189,19 +185,93 @@ def guide_stats(config: Path = ConfigArg,
     out.print(f"outputs in {res.folder}")
 
 
-@app.command()
-@guarded
-def optimize(config: Path = ConfigArg):
-    """Shape reconstruction from images (not implemented yet)."""
-    load_experiment(config)
-    _not_yet("optimize", "inverse rendering is not built yet")
+class LossBar(Bar):
+    """Progress over iterations with the current loss."""
+
+    def __init__(self, label: str):
+        super().__init__(label)
+        self.progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn(),
+                                 console=console, transient=False)
+
+    def start(self, total: int, done: int = 0):
+        self.progress.__enter__()
+        self.task = self.progress.add_task(self.label, total=total, completed=done, loss="—")
+
+    def advance(self, n: int, loss: float | None = None):
+        self.progress.update(self.task, advance=n, **({"loss": f"{loss:.5g}"} if loss is not None else {}))
 
 
 @app.command()
 @guarded
-def evaluate(meshes: list[Path] = typer.Argument(None, help="Meshes or run folders to evaluate.")):
-    """Normalised Chamfer distance of meshes to a reference (not implemented yet)."""
-    _not_yet("evaluate", "evaluation is not built yet")
+def optimize(config: Path = ConfigArg,
+             resume: bool = typer.Option(False, "--resume", help="Continue from the run's saved state."),
+             iterations: Optional[int] = typer.Option(None, "--iterations", help="Total iterations (default: optimize.iterations).")):
+    """Reconstruct an object's shape from images (mini-batches, L1 loss, large steps, checkpoints)."""
+    from . import api
+    exp = load_experiment(config)
+    with LossBar("optimize") as bar:
+        res = api.optimize(exp, iterations=iterations, resume=resume, progress=bar,
+                           warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
+    if res.interrupted:
+        raise typer.Exit(130)
+    first = f"{res.losses[0]:.5g}" if res.losses else "—"
+    last = f"{res.losses[-1]:.5g}" if res.losses else "—"
+    out.print(f"{res.iterations} iterations (this run: {len(res.losses)}, resumed from {res.resumed_from}); "
+              f"loss {first} → {last}; final mesh {res.final}")
+    out.print(f"outputs in {res.folder} (checkpoints/, previews/, log.csv, loss.png); "
+              f"evaluate with: psdr evaluate {config}")
+
+
+@app.command()
+@guarded
+def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, meshes (.ply/.obj) and/or `psdr optimize` run folders."),
+             reference: Optional[Path] = typer.Option(None, "--reference", help="Reference mesh (default: evaluate.reference, or the run's reference.ply)."),
+             samples: Optional[int] = typer.Option(None, "--samples", help="Points sampled per surface (default 100000)."),
+             json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON.")):
+    """Normalised Chamfer and Hausdorff distances to a reference mesh (tables, JSON, plots)."""
+    from . import api
+    paths = list(paths or [])
+    seed = 0
+    configs = [p for p in paths if p.endswith((".yaml", ".yml"))]
+    targets = [Path(p) for p in paths if not p.endswith((".yaml", ".yml"))]
+    if len(configs) > 1:
+        raise PsdrError("evaluate: give at most one experiment file")
+    if configs:
+        exp = load_experiment(configs[0])
+        ev = exp.evaluate
+        if ev:
+            reference = reference or ev.reference
+            samples = samples or ev.samples
+            seed = ev.seed
+        if not targets:
+            targets = [exp.run_dir]
+        if reference is None and (exp.run_dir / "reference.ply").exists():
+            reference = exp.run_dir / "reference.ply"
+    if reference is None:
+        runs = [t for t in targets if (t / "reference.ply").exists()]
+        if runs:
+            reference = runs[0] / "reference.ply"
+    if reference is None:
+        raise PsdrError("evaluate: no reference mesh (give --reference gt.ply, evaluate.reference in the "
+                        "experiment, or a run folder with reference.ply)")
+    if not targets:
+        raise PsdrError("evaluate: nothing to evaluate (give meshes or `psdr optimize` run folders)")
+    with Bar("evaluate") as bar:
+        res = api.evaluate(reference, targets, samples or 100_000, seed, json_out, progress=bar)
+    table = Table(title=f"psdr evaluate: reference {reference}")
+    for col in ("mesh", "iteration", "seconds", "Chamfer-L1", "Chamfer-L2²", "Hausdorff"):
+        table.add_column(col, justify="left" if col == "mesh" else "right")
+    for r in res.rows:
+        table.add_row(Path(r["mesh"]).name if r["run"] else r["mesh"], "" if r["iteration"] is None else str(r["iteration"]),
+                      "" if r["seconds"] is None else f"{r['seconds']:.1f}", f"{r['chamfer_l1']:.5f}",
+                      f"{r['chamfer_l2']:.3e}", f"{r['hausdorff']:.4f}")
+    out.print(table)
+    nf = res.noise_floor
+    out.print(f"sampling noise floor (reference vs itself): Chamfer-L1 {nf['chamfer_l1']:.5f}, "
+              f"Chamfer-L2² {nf['chamfer_l2']:.2e}, Hausdorff {nf['hausdorff']:.4f}")
+    for p in res.plots:
+        out.print(f"plot: {p}")
 
 
 def run():

@@ -302,6 +302,46 @@ class EstimatorConfig:
 
 
 @dataclass
+class RemeshConfig:
+    method: str = "instant"          # instant (field-aligned) | isotropic | none
+    initial: int = 1500              # vertices of the remeshed initial shape
+    at: tuple = ()                   # iterations at which to remesh again
+    vertices: tuple = ()             # vertex budget at each of those iterations
+
+
+@dataclass
+class OptimizeConfig:
+    object: str
+    target_images: str | None = None       # glob of EXR files written by `psdr render`
+    target_mesh: MeshSpec | None = None    # ground-truth mesh (default: the object's own mesh)
+    target_spp: int = 256
+    init: MeshSpec | None = None           # initial shape (default: a sphere around the target)
+    init_transform: TransformConfig = field(default_factory=TransformConfig)
+    remesh: RemeshConfig = field(default_factory=RemeshConfig)
+    iterations: int = 200
+    batch_size: int = 4
+    learning_rate: float = 0.01
+    lambda_: float = 20.0
+    guide_every: int = 10
+    checkpoint_every: int = 50
+    preview_views: tuple = (0,)
+    albedo: bool = False
+    albedo_init: tuple | None = None       # default: the object's BSDF value
+    albedo_learning_rate: float = 0.02
+    envmap_rotation: bool = False
+    envmap_axis: tuple = (0.0, 0.0, 1.0)
+    envmap_init_deg: float = 0.0
+    envmap_learning_rate: float = 0.01
+
+
+@dataclass
+class EvaluateConfig:
+    reference: Path | None = None
+    samples: int = 100_000
+    seed: int = 0
+
+
+@dataclass
 class Experiment:
     """A parsed experiment file. ``base_dir`` is the folder relative paths are resolved against."""
     file: Path
@@ -312,8 +352,8 @@ class Experiment:
     scene: SceneConfig
     parameter: ParameterConfig | None
     estimator: EstimatorConfig
-    optimize: dict | None = None
-    evaluate: dict | None = None
+    optimize: OptimizeConfig | None = None
+    evaluate: EvaluateConfig | None = None
 
     @property
     def base_dir(self) -> Path:
@@ -621,10 +661,77 @@ def parse_estimator(value, where) -> EstimatorConfig:
     return est
 
 
-def _any_mapping(value, where):
-    """Sections whose subcommand is not implemented yet: must be a mapping; kept as given."""
-    Section(value, where)
-    return dict(value)
+def parse_remesh(value, where) -> RemeshConfig:
+    sec = Section(value, where)
+    r = RemeshConfig()
+    r.method = sec.get("method", choice("instant", "isotropic", "none"), r.method)
+    r.initial = sec.get("initial", integer(50), r.initial)
+    r.at = tuple(sec.get("at", list_of(integer(1)), []))
+    r.vertices = tuple(sec.get("vertices", list_of(integer(50)), []))
+    sec.done()
+    if len(r.at) != len(r.vertices):
+        raise where.child("vertices").fail(f"expected one vertex budget per entry of 'at' ({len(r.at)}), "
+                                           f"got {len(r.vertices)}")
+    if list(r.at) != sorted(set(r.at)):
+        raise where.child("at").fail("expected increasing iteration numbers")
+    return r
+
+
+def parse_optimize(base: Path) -> Parser:
+    def parse(value, where) -> OptimizeConfig:
+        sec = Section(value, where)
+        o = OptimizeConfig(object=sec.get("object", string))
+        if sec.has("target"):
+            t = Section(sec.get("target", lambda v, _: v), where.child("target"))
+            if t.has("images") and t.has("mesh"):
+                raise where.child("target").fail("give either 'images' or 'mesh', not both")
+            o.target_images = t.get("images", string, None)
+            if o.target_images is not None and not Path(o.target_images).is_absolute():
+                o.target_images = str(base / o.target_images)
+            o.target_mesh = t.get("mesh", parse_mesh(base), None)
+            o.target_spp = t.get("spp", integer(1), o.target_spp)
+            t.done()
+        if sec.has("init"):
+            i = Section(sec.get("init", lambda v, _: v), where.child("init"))
+            o.init = i.get("mesh", parse_mesh(base))
+            o.init_transform = i.get("transform", parse_transform, TransformConfig())
+            i.done()
+        o.remesh = sec.get("remesh", parse_remesh, RemeshConfig())
+        o.iterations = sec.get("iterations", integer(1), o.iterations)
+        o.batch_size = sec.get("batch_size", integer(1), o.batch_size)
+        o.learning_rate = sec.get("learning_rate", number(positive=True), o.learning_rate)
+        o.lambda_ = sec.get("lambda", number(minimum=0), o.lambda_)
+        o.guide_every = sec.get("guide_every", integer(1), o.guide_every)
+        o.checkpoint_every = sec.get("checkpoint_every", integer(1), o.checkpoint_every)
+        o.preview_views = tuple(sec.get("preview_views", list_of(integer(0), min_len=1), list(o.preview_views)))
+        if sec.has("albedo"):
+            a = Section(sec.get("albedo", lambda v, _: v), where.child("albedo"))
+            o.albedo = True
+            o.albedo_init = a.get("init", color, None)
+            o.albedo_learning_rate = a.get("learning_rate", number(positive=True), o.albedo_learning_rate)
+            a.done()
+        if sec.has("envmap_rotation"):
+            e = Section(sec.get("envmap_rotation", lambda v, _: v), where.child("envmap_rotation"))
+            o.envmap_rotation = True
+            o.envmap_axis = e.get("axis", vector(3, nonzero=True), o.envmap_axis)
+            o.envmap_init_deg = e.get("init_deg", number(), o.envmap_init_deg)
+            o.envmap_learning_rate = e.get("learning_rate", number(positive=True), o.envmap_learning_rate)
+            e.done()
+        sec.done()
+        return o
+    return parse
+
+
+def parse_evaluate(base: Path) -> Parser:
+    def parse(value, where) -> EvaluateConfig:
+        sec = Section(value, where)
+        e = EvaluateConfig()
+        e.reference = sec.get("reference", path_relative_to(base), None)
+        e.samples = sec.get("samples", integer(100), e.samples)
+        e.seed = sec.get("seed", integer(0), e.seed)
+        sec.done()
+        return e
+    return parse
 
 
 # --------------------------------------------------------------------------------------------
@@ -646,8 +753,8 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
         scene=sec.get("scene", parse_scene(base)),
         parameter=sec.get("parameter", parse_parameter, None),
         estimator=sec.get("estimator", parse_estimator, EstimatorConfig()),
-        optimize=sec.get("optimize", _any_mapping, None),
-        evaluate=sec.get("evaluate", _any_mapping, None),
+        optimize=sec.get("optimize", parse_optimize(base), None),
+        evaluate=sec.get("evaluate", parse_evaluate(base), None),
     )
     sec.done()
     if "/" in exp.name or exp.name in (".", ".."):
@@ -657,6 +764,17 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
         if exp.parameter.object not in names:
             raise where.child("parameter").child("object").fail(
                 f"unknown object '{exp.parameter.object}' (scene objects: {', '.join(names) or 'none'})")
+    if exp.optimize:
+        names = [o.name for o in exp.scene.objects]
+        if exp.optimize.object not in names:
+            raise where.child("optimize").child("object").fail(
+                f"unknown object '{exp.optimize.object}' (scene objects: {', '.join(names) or 'none'})")
+        bad = [v for v in exp.optimize.preview_views if v >= len(exp.scene.cameras)]
+        if bad and not exp.optimize.target_images:
+            raise where.child("optimize").child("preview_views").fail(
+                f"view {bad[0]} does not exist (the scene has views 0..{len(exp.scene.cameras) - 1})")
+        if exp.optimize.envmap_rotation and not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
+            raise where.child("optimize").child("envmap_rotation").fail("needs an envmap or sky emitter")
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")

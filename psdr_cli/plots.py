@@ -73,3 +73,17 @@ def lines(path, series: dict, xlabel: str, ylabel: str, title: str = "", logy: b
     if len(series) > 1:
         ax.legend()
     save(fig, path)
+
+
+def chamfer(path, iterations, values, seconds, timed_values, floor: float):
+    """Chamfer distance against iteration (left) and optimisation time (right), log scale, with
+    the sampling noise floor."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for ax, x, y, label in ((axes[0], iterations, values, "iteration"), (axes[1], seconds, timed_values, "seconds")):
+        ax.plot(x, y, "o-", ms=3)
+        ax.axhline(floor, color="gray", ls="--", lw=0.8, label="sampling noise floor")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel("Chamfer-L1 (reference bbox = 1)")
+        ax.legend(fontsize=7)
+    save(fig, path)

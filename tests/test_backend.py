@@ -52,9 +52,10 @@ def test_no_arguments_prints_help_with_every_subcommand():
         assert cmd in proc.stdout
 
 
-def test_unimplemented_subcommands_say_so(tmp_path, write_cfg):
+def test_optimize_without_its_section_is_a_one_line_error(tmp_path, write_cfg):
     proc = run_cli("optimize", write_cfg(experiment()), cwd=tmp_path)
-    assert proc.returncode == 3 and "not implemented yet" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.returncode == 2 and "optimize: missing" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
 
 
 def test_grad_without_parameter_is_a_one_line_error(tmp_path, write_cfg):

@@ -1,0 +1,518 @@
+"""Inverse rendering (``psdr optimize``): reconstruct an object's shape from images.
+
+Each iteration renders a mini-batch of views with the psdr estimator in reverse mode and takes
+one step on the L1 image loss
+
+    L = (1/|B|) Σ_{v ∈ B} mean |I_v(x) − T_v|,
+
+with the vertex positions x parametrised by the "large steps" latent u = (I + λL) x (Nicolet et
+al. 2021, ``mi.ad.LargeSteps``) and updated by ``mi.ad.Adam(uniform=True)``. The object's albedo
+and the environment's rotation angle can be optimised jointly. The shape is remeshed
+(field-aligned, :mod:`psdr_cli.remesh`) before the first iteration and on a schedule.
+
+Nothing already saved is lost: the state (mesh, optimiser moments, iteration) is written
+atomically after every iteration, checkpoints and previews at ``checkpoint_every``, and
+``resume=True`` continues from the saved state. View batches and sample seeds depend only on
+(seed, iteration), so a resumed run draws what the uninterrupted run would have drawn.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import io as _io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import io
+from .errors import PsdrError
+
+LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
+              "seconds_total", "skipped")
+
+
+# --------------------------------------------------------------------------------------------
+# Run folder
+# --------------------------------------------------------------------------------------------
+@dataclass
+class RunFiles:
+    root: Path
+
+    @property
+    def checkpoints(self):
+        return self.root / "checkpoints"
+
+    @property
+    def previews(self):
+        return self.root / "previews"
+
+    @property
+    def targets(self):
+        return self.root / "targets"
+
+    @property
+    def state(self):
+        return self.root / "state.npz"
+
+    @property
+    def log(self):
+        return self.root / "log.csv"
+
+    @property
+    def reference(self):
+        return self.root / "reference.ply"
+
+    @property
+    def final(self):
+        return self.root / "final.ply"
+
+    def checkpoint(self, iteration: int) -> Path:
+        return self.checkpoints / f"iter_{iteration:04d}.ply"
+
+
+def write_mesh(path: Path, V, F):
+    """PLY written atomically (opens in MeshLab and Blender)."""
+    from .meshes import write_ply
+    with io.atomic_path(path) as tmp:
+        write_ply(tmp, V, F)
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth, targets, initial shape
+# --------------------------------------------------------------------------------------------
+def ground_truth(exp):
+    """World-space (V, F) of the target shape: ``target.mesh`` (placed with the object's
+    transform) or the object's own mesh in the scene."""
+    from . import meshes
+    from .scene import object_mesh
+    cfg = exp.optimize
+    obj = next(o for o in exp.scene.objects if o.name == cfg.object)
+    if cfg.target_mesh is None:
+        return object_mesh(obj, str(exp.file))
+    V, F = meshes.load_mesh(cfg.target_mesh, str(exp.file))
+    return meshes.apply_transform(V, meshes.transform_matrix(obj.transform)), F
+
+
+def initial_shape(exp, reference):
+    """(V, F) of ``init`` (with its transform), or a sphere around the reference's bounding box."""
+    from . import meshes
+    cfg = exp.optimize
+    if cfg.init is not None:
+        V, F = meshes.load_mesh(cfg.init, str(exp.file))
+        return meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform)), F
+    if reference is None:
+        raise PsdrError(f"{exp.file}: optimize.init: required when the targets are images "
+                        f"(e.g. init: {{mesh: {{shape: sphere, radius: 0.5}}}})")
+    V, F = reference
+    lo, hi = V.min(0), V.max(0)
+    Vs, Fs = meshes.sphere(radius=0.5 * float((hi - lo).max()), subdivisions=3)
+    return Vs + (lo + hi) / 2, Fs
+
+
+def target_key(exp, reference, spp: int) -> str:
+    """Hash of everything a cached target image depends on."""
+    h = hashlib.sha256()
+    h.update(json.dumps(asdict(exp.scene), default=str, sort_keys=True).encode())
+    h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
+    h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
+    h.update(f"{spp}:{exp.seed}".encode())
+    return h.hexdigest()[:16]
+
+
+def render_targets(exp, files: RunFiles, reference, progress=None):
+    """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
+    in ``targets/`` (reused while the scene, the ground truth and spp are unchanged)."""
+    from .render import render_view
+    from .scene import build_scene
+    cfg = exp.optimize
+    key = target_key(exp, reference, cfg.target_spp)
+    paths = [files.targets / f"view_{v:03d}.exr" for v in range(len(exp.scene.cameras))]
+    cached = all(p.exists() for p in paths) and all(
+        io.read_exr(p)["__header__"].get("psdr.target_key") == key for p in paths)
+    if cached:
+        return [io.read_rgb_exr(p).astype(np.float64) for p in paths]
+    scene = build_scene(exp, objects={cfg.object: reference})
+    images = []
+    for v, p in enumerate(paths):
+        image = render_view(scene, v, cfg.target_spp, seed=exp.seed + 7919)
+        cam = exp.scene.cameras[v]
+        io.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
+                                    "psdr.camera": {"origin": cam.origin, "target": cam.target, "up": cam.up,
+                                                    "fov": cam.fov}})
+        io.write_preview(p.with_suffix(".png"), image)
+        images.append(image)
+        if progress:
+            progress(v)
+    return images
+
+
+def image_targets(exp):
+    """(images, cameras) from ``target.images`` (EXR files written by ``psdr render``)."""
+    import glob
+    from .config import CameraConfig
+    pattern = exp.optimize.target_images
+    paths = sorted(glob.glob(pattern))
+    if not paths:
+        raise PsdrError(f"{exp.file}: optimize.target.images: no file matches '{pattern}'")
+    images, cameras = [], []
+    for p in paths:
+        try:
+            exr = io.read_exr(p)
+            cam = json.loads(exr["__header__"]["psdr.camera"])
+        except KeyError:
+            raise PsdrError(f"{p}: no 'psdr.camera' header (target images must come from `psdr render`)") from None
+        except Exception as exc:  # noqa: BLE001 - unreadable EXR
+            raise PsdrError(f"{p}: cannot read the EXR target ({str(exc).splitlines()[0] if str(exc) else exc})") from None
+        image = np.stack([exr["R"], exr["G"], exr["B"]], -1).astype(np.float64)
+        if image.shape[:2] != (exp.scene.height, exp.scene.width):
+            raise PsdrError(f"{p}: image is {image.shape[1]}×{image.shape[0]}, but scene.film is "
+                            f"{exp.scene.width}×{exp.scene.height}")
+        images.append(image)
+        cameras.append(CameraConfig(origin=tuple(cam["origin"]), target=tuple(cam["target"]),
+                                    up=tuple(cam["up"]), fov=float(cam["fov"])))
+    return images, cameras
+
+
+# --------------------------------------------------------------------------------------------
+# Optimisation state
+# --------------------------------------------------------------------------------------------
+@dataclass
+class State:
+    """Everything needed to continue a run: mesh, optimiser moments, extra unknowns."""
+    iteration: int
+    V: np.ndarray
+    F: np.ndarray
+    adam: dict = field(default_factory=dict)     # name -> (t, m, v)
+    values: dict = field(default_factory=dict)   # extra unknowns: albedo (3,), envmap angle (1,)
+    seconds: float = 0.0                         # optimisation time so far
+    u: np.ndarray | None = None                  # large-steps latent (V = solve(u) exactly as before)
+    basis: np.ndarray | None = None              # vertices LargeSteps was built from (orders u)
+
+    def save(self, path: Path):
+        arrays = {"V": self.V, "F": self.F, "u": self.u, "basis": self.basis}
+        for k, (t, m, v) in self.adam.items():
+            arrays[f"adam_{k}_m"], arrays[f"adam_{k}_v"] = m, v
+        for k, v in self.values.items():
+            arrays[f"value_{k}"] = v
+        meta = {"iteration": self.iteration, "seconds": self.seconds,
+                "adam_t": {k: int(t) for k, (t, _, _) in self.adam.items()}}
+        with io.atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+
+    @staticmethod
+    def load(path: Path) -> "State":
+        try:
+            with np.load(path) as z:
+                meta = json.loads(bytes(z["meta"]).decode())
+                adam = {k: (t, z[f"adam_{k}_m"], z[f"adam_{k}_v"]) for k, t in meta["adam_t"].items()}
+                values = {k[6:]: z[k] for k in z.files if k.startswith("value_")}
+                return State(meta["iteration"], z["V"], z["F"], adam, values, meta.get("seconds", 0.0),
+                             z["u"], z["basis"])
+        except Exception as exc:  # noqa: BLE001 - a damaged state file
+            raise PsdrError(f"{path}: cannot read the saved state ({type(exc).__name__}); "
+                            f"delete it to start over") from None
+
+
+def adam_export(opt, key):
+    """(t, m, v) of one Adam entry as numpy (``mi.ad.Adam.state[key][3]``)."""
+    t, m, v, _ = opt.state[key][3]
+    return int(np.asarray(t)[0]), np.asarray(m, np.float32), np.asarray(v, np.float32)
+
+
+def adam_import(opt, key, saved):
+    """Restore (t, m, v) into an Adam entry that was just assigned."""
+    import mitsuba as mi
+    value, flag, lr, (t0, _, _, extra) = opt.state[key]
+    t, m, v = saved
+    if len(m) != dr_width(value):
+        return  # shape changed (remeshed since): start the moments afresh
+    opt.state[key] = (value, flag, lr, (type(t0)([t]), mi.Float(m), mi.Float(v), extra))
+
+
+def dr_width(x) -> int:
+    import drjit as dr
+    return dr.width(x)
+
+
+# --------------------------------------------------------------------------------------------
+# The optimisation
+# --------------------------------------------------------------------------------------------
+@dataclass
+class OptimizeResult:
+    folder: Path
+    iterations: int = 0
+    resumed_from: int = 0
+    losses: list = field(default_factory=list)
+    final: Path | None = None
+    checkpoints: list = field(default_factory=list)
+    interrupted: bool = False
+    skipped: int = 0
+
+
+class Problem:
+    """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
+
+    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None):
+        import mitsuba as mi
+        from .config import ParameterConfig
+        from .parameters import Parameter
+        from .scene import build_scene
+        self.exp, self.cfg = exp, exp.optimize
+        self.scene = build_scene(exp, objects={self.cfg.object: (V, F)}, cameras=cameras)
+        self.params = mi.traverse(self.scene.mi_scene)
+        self.key = f"{self.cfg.object}.vertex_positions"
+        self.F = np.asarray(F, np.int64)
+        # LargeSteps welds and orders the vertices by position: a resumed run rebuilds it from the
+        # same vertices as the original so that the saved u means the same thing
+        self.basis = np.asarray(V if basis is None else basis, np.float64)
+        self.steps = mi.ad.LargeSteps(mi.Float(self.basis.astype(np.float32).ravel()),
+                                      self.params[f"{self.cfg.object}.faces"], self.cfg.lambda_)
+        self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
+        # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
+        self.opt["u"] = mi.Float(np.asarray(u, np.float32)) if u is not None else \
+            self.steps.to_differential(self.params[self.key])
+        self.albedo_key = self.envmap = None
+        if self.cfg.albedo:
+            keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.")
+                    and k.endswith(("reflectance.value", "base_color.value"))]
+            if not keys:
+                raise PsdrError(f"{exp.file}: optimize.albedo: the object's BSDF has no constant "
+                                f"reflectance/base_color to optimise")
+            self.albedo_key = keys[0]
+            init = state_values.get("albedo")
+            if init is None:
+                init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
+            init = np.asarray(init, np.float64).ravel()
+            if isinstance(self.params[self.albedo_key], mi.Color3f):  # RGB texture
+                self.opt["albedo"] = mi.Color3f(*(float(x) for x in np.broadcast_to(init, 3)))
+            else:  # a grey (uniform) reflectance stays grey
+                self.opt["albedo"] = mi.Float(float(init.mean()))
+            self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
+        if self.cfg.envmap_rotation:
+            self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
+            init = state_values.get("envmap_angle")
+            self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
+                                                else math.radians(self.cfg.envmap_init_deg))
+            self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
+
+    def apply(self):
+        """Write the optimiser's variables into the scene (AD-attached)."""
+        import drjit as dr
+        self.params[self.key] = self.steps.from_differential(self.opt["u"])
+        if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
+            self.params[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
+        if self.envmap:
+            self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
+        else:
+            self.params.update()
+
+    def vertices(self) -> np.ndarray:
+        import drjit as dr
+        return np.asarray(dr.detach(self.params[self.key]), np.float64).reshape(-1, 3)
+
+    def values(self) -> dict:
+        out = {}
+        if self.albedo_key:
+            out["albedo"] = np.asarray(self.opt["albedo"], np.float64).ravel()
+        if self.envmap:
+            out["envmap_angle"] = np.asarray(self.opt["envmap_angle"], np.float64).ravel()
+        return out
+
+    def export(self, iteration: int, seconds: float) -> State:
+        adam = {k: adam_export(self.opt, k) for k in self.opt.keys()}
+        return State(iteration, self.vertices(), self.F, adam, self.values(), seconds,
+                     np.asarray(self.opt["u"], np.float32), self.basis)
+
+
+def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
+    """The mini-batch of iteration ``iteration``: a function of (seed, iteration) only."""
+    rng = np.random.default_rng([seed, iteration])
+    return sorted(rng.choice(count, size=min(size, count), replace=False).tolist())
+
+
+def read_log(path: Path, before: int) -> list:
+    """Rows of ``log.csv`` for iterations < ``before`` (later rows belong to unsaved work)."""
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return [r for r in csv.DictReader(f) if int(r["iteration"]) < before]
+
+
+def write_log(path: Path, rows: list):
+    buf = _io.StringIO()
+    w = csv.DictWriter(buf, LOG_FIELDS)
+    w.writeheader()
+    w.writerows(rows)
+    with io.atomic_path(path) as tmp:
+        Path(tmp).write_text(buf.getvalue())
+
+
+def strip(target, current, zoom: int = 3):
+    """target | current | |difference| side by side, pixels enlarged ``zoom`` times, linear RGB."""
+    gap = np.ones((target.shape[0], 2, 3))
+    row = np.concatenate([target, gap, current, gap, np.abs(target - current)], axis=1)
+    return np.repeat(np.repeat(row, zoom, axis=0), zoom, axis=1)
+
+
+def optimize(exp, iterations: int | None = None, resume: bool = False, progress=None, warn=print) -> OptimizeResult:
+    """Run (or continue) the optimisation of ``exp.optimize``; see the module docstring.
+
+    ``progress``: optional object with ``start(total)``, ``advance(n, loss)``; ``warn``: one-line
+    messages (NaN gradients, interruption)."""
+    import drjit as dr
+    import mitsuba as mi
+    from .api import setup
+    from .estimators.boundary_sampling import BoundaryEdges
+    from .gradient import Settings, ad_image, make_guides
+    from .remesh import remesh
+
+    cfg = exp.optimize
+    if cfg is None:
+        raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
+    total = iterations or cfg.iterations
+    if total < 1:
+        raise PsdrError(f"--iterations: expected a positive number, got {total}")
+    setup(exp)
+    files = RunFiles(exp.run_dir)
+    state = State.load(files.state) if resume and files.state.exists() else None
+    if resume and state is None:
+        warn(f"--resume: no saved state in {files.root}; starting from the beginning")
+    # Targets and reference
+    cameras = None
+    if cfg.target_images:
+        targets, cameras = image_targets(exp)
+        reference = None
+    else:
+        reference = ground_truth(exp)
+        if not files.reference.exists():
+            write_mesh(files.reference, *reference)
+        targets = render_targets(exp, files, reference)
+    n_views = len(targets)
+    bad = [v for v in cfg.preview_views if v >= n_views]
+    if bad:
+        raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{n_views - 1})")
+    # Shape
+    if state is None:
+        V, F = initial_shape(exp, reference)
+        if cfg.remesh.method != "none":
+            V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method)
+        start, values, seconds_so_far = 0, {}, 0.0
+        write_mesh(files.checkpoint(0), V, F)
+    else:
+        V, F, start, values, seconds_so_far = state.V, state.F, state.iteration, state.values, state.seconds
+    result = OptimizeResult(files.root, resumed_from=start)
+    problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else ()))
+    if state is not None:
+        for k, saved in state.adam.items():
+            if k in problem.opt.keys():
+                adam_import(problem.opt, k, saved)
+    rows = read_log(files.log, start)
+    write_log(files.log, rows)
+    settings = Settings.from_experiment(exp)
+    terms = exp.estimator.terms
+    width, height = problem.scene.resolution
+    target_arrays = [mi.Float(np.asarray(t, np.float32).ravel()) for t in targets]
+    guides, guides_at = None, None
+    if progress:
+        progress.start(total, start)
+    it = start
+    try:
+        for it in range(start, total):
+            t_start = time.perf_counter()
+            if it in cfg.remesh.at and it > 0:
+                k = cfg.remesh.at.index(it)
+                V2, F2 = remesh(problem.vertices(), problem.F, cfg.remesh.vertices[k], cfg.remesh.method
+                                if cfg.remesh.method != "none" else "isotropic")
+                problem = Problem(exp, V2, F2, cameras, problem.values())
+                guides = None
+            problem.apply()
+            problem.scene.objects[cfg.object].vertices = problem.vertices()
+            problem.scene.objects[cfg.object].faces = problem.F
+            edges = BoundaryEdges.from_scene(problem.scene, settings.edge_sort,
+                                             exp.estimator.chains.max_turn, exp.estimator.chains.max_length)
+            t_guide = time.perf_counter()
+            if settings.guiding != "none" and (guides is None or it - guides_at >= cfg.guide_every):
+                with dr.suspend_grad():
+                    guides = make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
+                guides_at = it
+            t_render = time.perf_counter()
+            views = batch_views(exp.seed, it, n_views, cfg.batch_size)
+            loss = mi.Float(0.0)
+            for v in views:
+                settings.seed = exp.seed
+                img = ad_image(problem.scene, edges, v, terms, settings, pass_index=it, guides=guides)
+                loss += dr.mean(dr.abs(img - target_arrays[v])) / len(views)
+            dr.backward(loss)
+            loss_value = float(loss[0])
+            t_post = time.perf_counter()
+            grads = [np.asarray(dr.grad(problem.opt[k])) for k in problem.opt.keys()]
+            skipped = not all(np.isfinite(g).all() for g in grads) or not math.isfinite(loss_value)
+            if skipped:
+                warn(f"iteration {it}: non-finite gradient or loss; update skipped")
+                result.skipped += 1
+                for k in problem.opt.keys():
+                    dr.set_grad(problem.opt[k], 0.0)
+            else:
+                problem.opt.step()
+            t_end = time.perf_counter()
+            seconds_so_far += t_end - t_start
+            row = {"iteration": it, "loss": f"{loss_value:.6g}", "vertices": len(problem.vertices()),
+                   "seconds_guiding": f"{t_render - t_guide:.4f}", "seconds_rendering": f"{t_post - t_render:.4f}",
+                   "seconds_post": f"{(t_guide - t_start) + (t_end - t_post):.4f}",
+                   "seconds_total": f"{seconds_so_far:.3f}", "skipped": int(skipped)}
+            rows.append(row)
+            result.losses.append(loss_value)
+            # Persist: the log row, then the state after this iteration (a kill in between leaves
+            # a row that --resume drops, never a saved iteration without its row), checkpoints
+            with open(files.log, "a", newline="") as f:
+                csv.DictWriter(f, LOG_FIELDS).writerow(row)
+            problem.apply()
+            problem.export(it + 1, seconds_so_far).save(files.state)
+            if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == total:
+                result.checkpoints.append(save_checkpoint(problem, files, it + 1, targets, exp))
+            if progress:
+                progress.advance(1, loss_value)
+        it = total
+    except KeyboardInterrupt:
+        result.interrupted = True
+        warn(f"interrupted during iteration {it}: {it} completed iterations are saved in {files.state}; "
+             f"continue with --resume")
+        return result
+    result.iterations = total
+    write_mesh(files.final, problem.vertices(), problem.F)
+    result.final = files.final
+    plot_loss(files, read_log(files.log, total))
+    io.write_json(files.root / "optimize.json", {
+        "experiment": str(exp.file), "iterations": total, "resumed_from": start, "views": n_views,
+        "final": str(files.final), "final_vertices": int(len(problem.vertices())),
+        "values": {k: v.tolist() for k, v in problem.values().items()}, "skipped_updates": result.skipped,
+        "seconds": seconds_so_far})
+    return result
+
+
+def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> Path:
+    """iter_NNNN.ply and a target | current | |difference| strip per preview view."""
+    import drjit as dr
+    from .render import render_view
+    path = files.checkpoint(iteration)
+    write_mesh(path, problem.vertices(), problem.F)
+    with dr.suspend_grad():
+        for v in exp.optimize.preview_views:
+            current = render_view(problem.scene, v, 16, seed=exp.seed)
+            io.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(targets[v], current))
+    return path
+
+
+def plot_loss(files: RunFiles, rows: list):
+    from . import plots
+    if not rows:
+        return
+    it = np.array([int(r["iteration"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    plots.lines(files.root / "loss.png", {"L1 loss": (it, loss)}, "iteration", "image L1 loss",
+                "psdr optimize", logy=True)
