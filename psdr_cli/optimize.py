@@ -311,6 +311,21 @@ class Problem:
         else:
             self.params.update()
 
+    def release(self):
+        """Detach the scene from the optimiser's AD graph (nothing may linger in Dr.Jit's global
+        AD state after a run, e.g. for later forward-mode work in the same process)."""
+        import drjit as dr
+        import mitsuba as mi
+        with dr.suspend_grad():
+            self.params[self.key] = dr.detach(self.params[self.key])
+            if self.albedo_key:
+                self.params[self.albedo_key] = dr.detach(self.params[self.albedo_key])
+            for k in (self.envmap.keys if self.envmap else ()):
+                self.params[k] = mi.AffineTransform4f(dr.detach(self.params[k].matrix))
+            self.params.update()
+        for k in list(self.opt.keys()):
+            dr.disable_grad(self.opt[k])
+
     def vertices(self) -> np.ndarray:
         import drjit as dr
         return np.asarray(dr.detach(self.params[self.key]), np.float64).reshape(-1, 3)
@@ -415,11 +430,10 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     write_log(files.log, rows)
     settings = Settings.from_experiment(exp)
     terms = exp.estimator.terms
-    width, height = problem.scene.resolution
     target_arrays = [mi.Float(np.asarray(t, np.float32).ravel()) for t in targets]
-    guides, guides_at = None, None
     if progress:
         progress.start(total, start)
+    guides, guides_at = None, None
     it = start
     try:
         for it in range(start, total):
@@ -428,6 +442,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
                 k = cfg.remesh.at.index(it)
                 V2, F2 = remesh(problem.vertices(), problem.F, cfg.remesh.vertices[k], cfg.remesh.method
                                 if cfg.remesh.method != "none" else "isotropic")
+                problem.release()
                 problem = Problem(exp, V2, F2, cameras, problem.values())
                 guides = None
             problem.apply()
@@ -483,6 +498,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         warn(f"interrupted during iteration {it}: {it} completed iterations are saved in {files.state}; "
              f"continue with --resume")
         return result
+    finally:
+        problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
     result.iterations = total
     write_mesh(files.final, problem.vertices(), problem.F)
     result.final = files.final
