@@ -224,3 +224,22 @@ def test_albedo_and_environment_rotation_are_recovered(tmp_path):
     albedo, angle = np.array(values["albedo"]), float(values["envmap_angle"][0])
     assert np.abs(albedo - 0.6).max() < 0.1, albedo
     assert abs(np.degrees(angle)) < 8, np.degrees(angle)
+
+
+def test_targets_from_images_on_disk(tmp_path):
+    """EXR targets written by `psdr render` (cameras from their headers) drive the optimisation;
+    a glob that matches nothing is a one-line error."""
+    data = copy.deepcopy(TINY)
+    cfg = write(tmp_path, data, "scene.yaml")
+    r = run_cli("render", cfg, "--spp", "8", "--out", tmp_path / "shots")
+    assert r.returncode == 0, r.stderr
+    data["optimize"].update(iterations=2, remesh={"method": "none"},
+                            target={"images": str(tmp_path / "shots" / "tiny" / "render" / "view_*.exr")})
+    r = run_cli("optimize", write(tmp_path, data, "from_images.yaml"))
+    assert r.returncode == 0, r.stderr
+    run = tmp_path / "runs" / "tiny"
+    assert (run / "final.ply").exists() and not (run / "reference.ply").exists()
+    assert len(log_rows(run)) == 2
+    data["optimize"]["target"] = {"images": str(tmp_path / "nothing_*.exr")}
+    r = run_cli("optimize", write(tmp_path, data, "bad.yaml"))
+    assert r.returncode == 2 and "no file matches" in r.stderr and len(r.stderr.strip().splitlines()) == 1
