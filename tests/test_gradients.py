@@ -53,12 +53,10 @@ def runs(tmp_path_factory):
     return out
 
 
-KNOWN_TILE_BIAS = pytest.mark.xfail(
-    reason="open issue: tiles along the right wall of the Cornell box sit 2-4 standard errors above "
-           "the finite differences (image sum agrees); not yet explained", strict=False)
-
-
-@pytest.mark.parametrize("name", [n if n != "cornell" else pytest.param(n, marks=KNOWN_TILE_BIAS) for n in RUNS])
+# Known (docs/gradients.md): at sample counts well above these, paths of three segments in the
+# Cornell box differ slightly from Mitsuba's prb_projective and from finite differences (floor and
+# right-wall tiles, ~0.2 per 4×4 tile); at two segments they agree. This check runs as specified.
+@pytest.mark.parametrize("name", list(RUNS))
 def test_total_gradient_matches_finite_differences(runs, name):
     proc, view = runs[name]
     assert "agrees" in proc.stdout
