@@ -53,6 +53,7 @@ def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int,
     Returns (importance W_e, direction to the camera d0, film position in pixels, camera-ray hit, mask).
     The camera ray through the film position must land on x (scale-relative tolerance).
     """
+    active = mi.Bool(active)  # a copy: `&=` below must not narrow the caller's mask
     it = dr.zeros(mi.Interaction3f)
     it.p = x
     ds, importance = sensor.sample_direction(it, mi.Point2f(0.5), active)
