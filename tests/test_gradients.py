@@ -117,3 +117,27 @@ def test_environment_rotation_matches_finite_differences(tmp_path):
     path.write_text(yaml.safe_dump(cfg))
     _, view = run_grad(path, tmp_path, 0.004, 256, 4096, "--terms", "interior,direct")
     assert_agrees(view)
+
+
+def test_indirect_term_carries_light_that_arrives_by_way_of_a_wall():
+    """configs/validation/indirect.yaml: the floor the camera sees is lit only via a wall, and a
+    black ball moving between light and wall changes that light. On the lower part of the image
+    (no silhouette, no direct light: the primary and direct terms are exactly zero there) the
+    indirect term alone must match finite differences. (A bug that kept detector subpaths only
+    where x^D itself was camera-visible made this region ≈ 0 instead of ≈ −80.)"""
+    from psdr_cli import api
+    from psdr_cli.config import load_experiment
+    from psdr_cli.gradient import forward_gradient
+    from psdr_cli.reference import finite_difference, mean_and_error
+    exp = load_experiment(VALIDATION / "indirect.yaml")
+    scene, parameter, edges, settings = api.prepare_gradient(exp)
+    settings.spp = settings.primary_spp = settings.boundary_spp = 256
+    est = {t: forward_gradient(scene, edges, parameter, 0, t, settings, min_passes=8)
+           for t in ("primary", "direct", "indirect")}
+    lower = np.s_[12:, :]  # pixel rows 12..31
+    assert all(np.abs(est[t].gradient[lower]).max() == 0 for t in ("primary", "direct"))
+    ours, ours_se = mean_and_error([p[lower].sum() for p in est["indirect"].passes], est["indirect"].weights)
+    fd, fd_se = mean_and_error([b[lower].sum() for b in finite_difference(scene, parameter, 0, 0.01, 32768,
+                                                                           seed=3, batches=8)])
+    assert abs(fd) > 10 * fd_se and abs(ours) > 5 * ours_se  # a real signal on both sides
+    assert abs(ours - fd) < 3 * np.hypot(ours_se, fd_se), (ours, ours_se, fd, fd_se)
