@@ -16,7 +16,8 @@ from .errors import ConfigError, PsdrError  # noqa: E402
 
 __version__ = "0.1.0"
 
-_LAZY = {"render": "api", "setup": "api", "build_scene": "scene"}
+_LAZY = {"render": "api", "setup": "api", "build_scene": "scene", "grad": "api", "gradient_images": "api",
+         "guide_stats": "api", "optimize": "api", "evaluate": "api"}
 
 
 def __getattr__(name):
@@ -26,4 +27,5 @@ def __getattr__(name):
     raise AttributeError(name)
 
 
-__all__ = ["Experiment", "load_experiment", "ConfigError", "PsdrError", "render", "setup", "build_scene"]
+__all__ = ["Experiment", "load_experiment", "ConfigError", "PsdrError", "render", "setup", "build_scene", "grad",
+           "gradient_images", "guide_stats", "optimize", "evaluate"]
