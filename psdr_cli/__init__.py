@@ -16,8 +16,9 @@ from .errors import ConfigError, PsdrError  # noqa: E402
 
 __version__ = "0.1.0"
 
+# (``optimize`` and ``evaluate`` are also module names: use ``psdr_cli.api.optimize`` / ``.evaluate``)
 _LAZY = {"render": "api", "setup": "api", "build_scene": "scene", "grad": "api", "gradient_images": "api",
-         "guide_stats": "api", "optimize": "api", "evaluate": "api"}
+         "guide_stats": "api"}
 
 
 def __getattr__(name):
@@ -28,4 +29,4 @@ def __getattr__(name):
 
 
 __all__ = ["Experiment", "load_experiment", "ConfigError", "PsdrError", "render", "setup", "build_scene", "grad",
-           "gradient_images", "guide_stats", "optimize", "evaluate"]
+           "gradient_images", "guide_stats"]

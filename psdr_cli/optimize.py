@@ -38,37 +38,18 @@ LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rende
 # --------------------------------------------------------------------------------------------
 # Run folder
 # --------------------------------------------------------------------------------------------
-@dataclass
 class RunFiles:
-    root: Path
+    """Paths inside a run folder ``<output>/<name>/``."""
 
-    @property
-    def checkpoints(self):
-        return self.root / "checkpoints"
-
-    @property
-    def previews(self):
-        return self.root / "previews"
-
-    @property
-    def targets(self):
-        return self.root / "targets"
-
-    @property
-    def state(self):
-        return self.root / "state.npz"
-
-    @property
-    def log(self):
-        return self.root / "log.csv"
-
-    @property
-    def reference(self):
-        return self.root / "reference.ply"
-
-    @property
-    def final(self):
-        return self.root / "final.ply"
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.checkpoints = self.root / "checkpoints"
+        self.previews = self.root / "previews"
+        self.targets = self.root / "targets"
+        self.state = self.root / "state.npz"
+        self.log = self.root / "log.csv"
+        self.reference = self.root / "reference.ply"
+        self.final = self.root / "final.ply"
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
