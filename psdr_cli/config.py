@@ -274,6 +274,7 @@ class GridConfig:
 class KdTreeConfig:
     samples_per_node: int = 32
     initial_samples: int = 262144
+    interval_share: float = 0.1
     threshold: float = 0.002
     max_depth: int = 24
     max_leaves: int = 65536
@@ -653,6 +654,7 @@ def parse_estimator(value, where) -> EstimatorConfig:
         est.kdtree = KdTreeConfig(
             samples_per_node=k.get("samples_per_node", integer(4), d.samples_per_node),
             initial_samples=k.get("initial_samples", integer(0), d.initial_samples),
+            interval_share=k.get("interval_share", number(minimum=0, maximum=1), d.interval_share),
             threshold=k.get("threshold", number(minimum=0), d.threshold),
             max_depth=k.get("max_depth", integer(1), d.max_depth),
             max_leaves=k.get("max_leaves", integer(1), d.max_leaves))

@@ -14,6 +14,10 @@ tree. Below, every node r with box B_r is processed level by level, all active n
    i.e. the axis along which the parent's single fit is worst. Otherwise, or at ``max_depth``, or
    when ``max_leaves`` is reached (largest errors split first), it becomes a leaf whose corner
    values are the fit at the 8 corners, clamped at 0 and rescaled to the sample mean.
+4. Every leaf's function is blended with the mean of F̃ over its u1 interval,
+   f ← (1 − β) f + β · mass_interval / width_interval (β = ``interval_share``): inside an edge
+   (or chain) that carries mass, a sub-region the samples missed keeps a density of at least β
+   times the interval's average instead of only the global uniform share ε.
 
 Lookups walk the stored split planes from the root (``dr.while_loop``).
 """
@@ -99,6 +103,16 @@ def _corner_values(coef, mean):
     return np.where((avg > 0)[:, None], c, mean[:, None])
 
 
+def blend_interval_mean(lo, hi, corners, breaks, share: float):
+    """(1 − share)·corners + share·(mean of the fit over the leaf's u1 interval)."""
+    if share <= 0 or len(corners) == 0:
+        return corners
+    k = np.clip(np.searchsorted(breaks, 0.5 * (lo[:, 0] + hi[:, 0])) - 1, 0, len(breaks) - 2)
+    mass = np.prod(hi - lo, axis=1) * corners.mean(axis=1)
+    mean = np.bincount(k, mass, minlength=len(breaks) - 1) / np.diff(breaks)
+    return (1.0 - share) * corners + share * mean[k][:, None]
+
+
 def _new_samples(rng, lo, hi, counts):
     """counts[k] uniform points in box k: (u (M,3), group (M,))."""
     group = np.repeat(np.arange(len(counts)), counts)
@@ -107,7 +121,7 @@ def _new_samples(rng, lo, hi, counts):
 
 def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
                  max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
-                 seed: int = 0, initial_samples: int = 0) -> KdTreeGuide:
+                 seed: int = 0, initial_samples: int = 0, interval_share: float = 0.1) -> KdTreeGuide:
     """Kd-tree guide of ``target`` (numpy u (N,3) → F̃ ≥ 0 (N,)), u1 pre-split at ``breaks``.
 
     The first level spends ``initial_samples`` evaluations (spread over the intervals ∝ their
@@ -206,9 +220,10 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
         ids, lo, hi = new_ids, new_lo, new_hi
         depth = np.repeat(depth[want] + 1, 2)
         counts = np.full(len(ids), samples_per_node)
+    leaf_lo, leaf_hi, leaf_c = np.array(leaf_lo), np.array(leaf_hi), np.array(leaf_c)
+    leaf_c = blend_interval_mean(leaf_lo, leaf_hi, leaf_c, breaks, interval_share)
     stats = GuideStats("kdtree", max_depth=deepest, evaluations=evaluations, intervals=len(breaks) - 1)
-    guide = KdTreeGuide(np.array(leaf_lo), np.array(leaf_hi), np.array(leaf_c), epsilon, stats,
-                        axis, split, child, leaf)
+    guide = KdTreeGuide(leaf_lo, leaf_hi, leaf_c, epsilon, stats, axis, split, child, leaf)
     stats.memory_bytes = guide.memory_bytes()
     stats.build_seconds = time.perf_counter() - t0
     return guide

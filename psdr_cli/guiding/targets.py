@@ -68,7 +68,7 @@ def build_guide(kind: str, target, breaks, estimator, seed: int):
         return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
     k = estimator.kdtree
     return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, k.initial_samples)
+                        estimator.guide_epsilon, seed, k.initial_samples, k.interval_share)
 
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
