@@ -243,3 +243,19 @@ def test_targets_from_images_on_disk(tmp_path):
     data["optimize"]["target"] = {"images": str(tmp_path / "nothing_*.exr")}
     r = run_cli("optimize", write(tmp_path, data, "bad.yaml"))
     assert r.returncode == 2 and "no file matches" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_guided_optimisation_rebuilds_its_guides_on_schedule(tmp_path):
+    """With estimator.guiding set, guides are built at iteration 0 and every guide_every
+    iterations (their time is logged in seconds_guiding), and the run completes."""
+    from psdr_cli import api
+    from psdr_cli.config import load_experiment
+    data = copy.deepcopy(TINY)
+    data["estimator"].update(guiding="kdtree", edge_sort=True, kdtree={"initial_samples": 4096})
+    data["optimize"].update(iterations=5, guide_every=2, remesh={"method": "none"})
+    exp = load_experiment(write(tmp_path, data))
+    api.optimize(exp, warn=lambda m: None)
+    rows = log_rows(exp.run_dir)
+    built = [float(r["seconds_guiding"]) > 0 for r in rows]
+    assert built == [True, False, True, False, True], [r["seconds_guiding"] for r in rows]
+    assert (exp.run_dir / "final.ply").exists()
