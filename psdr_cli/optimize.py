@@ -208,16 +208,13 @@ def adam_export(opt, key):
 def adam_import(opt, key, saved):
     """Restore (t, m, v) into an Adam entry that was just assigned."""
     import mitsuba as mi
-    value, flag, lr, (t0, _, _, extra) = opt.state[key]
-    t, m, v = saved
-    if len(m) != dr_width(value):
-        return  # shape changed (remeshed since): start the moments afresh
-    opt.state[key] = (value, flag, lr, (type(t0)([t]), mi.Float(m), mi.Float(v), extra))
-
-
-def dr_width(x) -> int:
     import drjit as dr
-    return dr.width(x)
+    value, flag, lr, (t0, m0, v0, extra) = opt.state[key]
+    t, m, v = saved
+    if np.size(m) != np.size(np.asarray(m0)):
+        return  # shape changed (remeshed since): start the moments afresh
+    restore = lambda a, like: dr.unravel(type(like), mi.Float(np.ravel(a))) if dr.depth_v(like) > 1 else type(like)(np.ravel(a))
+    opt.state[key] = (value, flag, lr, (type(t0)([t]), restore(m, m0), restore(v, v0), extra))
 
 
 # --------------------------------------------------------------------------------------------
@@ -339,6 +336,17 @@ def read_log(path: Path, before: int) -> list:
         return [r for r in csv.DictReader(f) if int(r["iteration"]) < before]
 
 
+def clear_run(files: RunFiles):
+    """Remove a previous run's state, checkpoints and previews (targets stay: they are cached by
+    content hash)."""
+    import shutil
+    files.state.unlink(missing_ok=True)
+    for folder in (files.checkpoints, files.previews):
+        shutil.rmtree(folder, ignore_errors=True)
+    for name in ("final.ply", "optimize.json", "loss.png", "chamfer.png"):
+        (files.root / name).unlink(missing_ok=True)
+
+
 def write_log(path: Path, rows: list):
     buf = _io.StringIO()
     w = csv.DictWriter(buf, LOG_FIELDS)
@@ -394,6 +402,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{n_views - 1})")
     # Shape
     if state is None:
+        clear_run(files)  # a fresh run must never be confused with (or resumed as) an older one
         V, F = initial_shape(exp, reference)
         if cfg.remesh.method != "none":
             V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method)
@@ -414,7 +423,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     target_arrays = [mi.Float(np.asarray(t, np.float32).ravel()) for t in targets]
     if progress:
         progress.start(total, start)
-    guides, guides_at = None, None
+    guides = None
     it = start
     try:
         for it in range(start, total):
@@ -432,10 +441,10 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             edges = BoundaryEdges.from_scene(problem.scene, settings.edge_sort,
                                              exp.estimator.chains.max_turn, exp.estimator.chains.max_length)
             t_guide = time.perf_counter()
-            if settings.guiding != "none" and (guides is None or it - guides_at >= cfg.guide_every):
+            anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
+            if settings.guiding != "none" and (guides is None or (it - anchor) % cfg.guide_every == 0):
                 with dr.suspend_grad():
                     guides = make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
-                guides_at = it
             t_render = time.perf_counter()
             views = batch_views(exp.seed, it, n_views, cfg.batch_size)
             loss = mi.Float(0.0)
@@ -463,14 +472,15 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
                    "seconds_total": f"{seconds_so_far:.3f}", "skipped": int(skipped)}
             rows.append(row)
             result.losses.append(loss_value)
-            # Persist: the log row, then the state after this iteration (a kill in between leaves
-            # a row that --resume drops, never a saved iteration without its row), checkpoints
+            # Persist: the log row, the checkpoint when due, then the state after this iteration
+            # (a kill before the state is saved repeats this iteration on --resume: its log row is
+            # dropped and its checkpoint rewritten, so nothing saved is ever missing)
             with open(files.log, "a", newline="") as f:
                 csv.DictWriter(f, LOG_FIELDS).writerow(row)
             problem.apply()
-            problem.export(it + 1, seconds_so_far).save(files.state)
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == total:
                 result.checkpoints.append(save_checkpoint(problem, files, it + 1, targets, exp))
+            problem.export(it + 1, seconds_so_far).save(files.state)
             if progress:
                 progress.advance(1, loss_value)
         it = total

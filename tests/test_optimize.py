@@ -259,3 +259,36 @@ def test_guided_optimisation_rebuilds_its_guides_on_schedule(tmp_path):
     built = [float(r["seconds_guiding"]) > 0 for r in rows]
     assert built == [True, False, True, False, True], [r["seconds_guiding"] for r in rows]
     assert (exp.run_dir / "final.ply").exists()
+
+
+def test_rgb_albedo_moments_survive_resume(tmp_path):
+    """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
+    from psdr_cli import api
+    from psdr_cli.config import load_experiment
+    from psdr_cli.optimize import State
+    data = copy.deepcopy(TINY)
+    data["scene"]["objects"][0]["bsdf"] = {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}
+    data["optimize"].update(iterations=2, remesh={"method": "none"}, albedo={"init": 0.3})
+    exp = load_experiment(write(tmp_path, data))
+    api.optimize(exp, warn=lambda m: None)
+    saved = State.load(exp.run_dir / "state.npz")
+    assert saved.adam["albedo"][0] == 2
+    from psdr_cli.optimize import Problem, adam_import, adam_export
+    problem = Problem(exp, saved.V, saved.F, None, saved.values, saved.u, saved.basis)
+    adam_import(problem.opt, "albedo", saved.adam["albedo"])
+    t, m, v = adam_export(problem.opt, "albedo")
+    assert t == 2 and np.allclose(m, saved.adam["albedo"][1]) and np.allclose(v, saved.adam["albedo"][2])
+    problem.release()
+
+
+def test_fresh_run_clears_the_previous_runs_state(tmp_path):
+    from psdr_cli import api
+    from psdr_cli.config import load_experiment
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=2, remesh={"method": "none"}, checkpoint_every=1)
+    exp = load_experiment(write(tmp_path, data))
+    api.optimize(exp, warn=lambda m: None)
+    assert (exp.run_dir / "checkpoints" / "iter_0002.ply").exists()
+    api.optimize(exp, iterations=1, warn=lambda m: None)
+    assert not (exp.run_dir / "checkpoints" / "iter_0002.ply").exists()
+    assert json.loads((exp.run_dir / "optimize.json").read_text())["iterations"] == 1

@@ -46,7 +46,7 @@ def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, hei
     Returns a list over j = 1..depth of (D_j, film position, pixel, mask)."""
     out = []
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    si, w_in, beta, active = siD, w, mi.Color3f(1.0), mi.Bool(active)
+    si, w_in, beta, active = mi.SurfaceInteraction3f(siD), w, mi.Color3f(1.0), mi.Bool(active)  # copies: the caller's stay intact
     for j in range(1, depth + 1):
         value, uv, pixel, ok, _ = connect_camera(scene, sensor, si.p, w_in, active, width, height)
         out.append((beta * value, uv, pixel, ok))

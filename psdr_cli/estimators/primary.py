@@ -94,7 +94,8 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(P), dr.gather(mi.UInt32, mi.UInt32(ids0), k)),
                            dr.gather(mi.Point3f, dr.detach(P), dr.gather(mi.UInt32, mi.UInt32(ids1), k)), ok)
         sides = [interior.radiance(scene, sampler, ray, max_depth, ok) for ray in rays]
-        delta = dr.select(ok, (sides[0] - sides[1]) * (total / n_samples), 0.0)
+        # opaque: the edge length sum changes with the geometry and must not be baked into the kernel
+        delta = dr.select(ok, (sides[0] - sides[1]) * dr.opaque(mi.Float, total / n_samples), 0.0)
         pixel = dr.select(ok, film_pixel(qd, width), 0)
         dr.eval(delta, pixel, n_s, ok)
     v = delta * dr.dot(n_s, q)
