@@ -4,11 +4,14 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.psdr-installed
 
-.PHONY: demo test install llvm clean help
+SCALE  ?= cpu
+
+.PHONY: demo test install llvm clean help figures fig5
 
 help:
 	@echo "make demo   set up .venv and run the built-in reconstruction (configs/reconstruct_bunny.yaml) + its evaluation"
 	@echo "make test   set up .venv and run the test suite"
+	@echo "make figures [SCALE=cpu|paper]   paper reproductions into docs/results/ (so far: fig5)"
 
 llvm:
 	@bash scripts/ensure-llvm.sh
@@ -26,6 +29,13 @@ demo: $(STAMP)
 	$(BIN)/psdr optimize configs/reconstruct_bunny.yaml
 	$(BIN)/psdr evaluate configs/reconstruct_bunny.yaml
 	@echo "demo outputs: runs/reconstruct_bunny/ (final.ply, checkpoints/, previews/, log.csv, loss.png, chamfer.png)"
+
+# Paper reproductions (configs/paper/$(SCALE)/, outputs in docs/results/; SCALE=cpu or paper).
+# Only fig5 exists so far; fig6, fig8, fig9, fig10 and table2 are still to come.
+figures: fig5
+
+fig5: $(STAMP)
+	$(BIN)/psdr guide-stats configs/paper/$(SCALE)/fig5_egg.yaml --guides kdtree
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q tests
