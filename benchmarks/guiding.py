@@ -50,96 +50,24 @@ def label(guiding, sampling, sort):
     return f"{guiding}/{sampling}" + ("/sorted" if sort else "")
 
 
-def rel_mse(g, ref):
-    return float(((g - ref) ** 2).sum() / max((ref ** 2).sum(), 1e-30))
-
-
-class Bench:
-    """One scene: the parsed experiment, its Mitsuba scene and the edge lists (unsorted, sorted)."""
-
-    def __init__(self, name):
-        from psdr_cli import api
-        from psdr_cli.config import load_experiment
-        from psdr_cli.estimators.boundary_sampling import BoundaryEdges
-        self.exp = load_experiment(REPO / "configs" / "benchmarks" / f"{name}.yaml")
-        self.scene, self.parameter, _, _ = api.prepare_gradient(self.exp)
-        self.edges = {s: BoundaryEdges.from_scene(self.scene, sort=s) for s in (False, True)}
-        self.name = name
-
-    def settings(self, guiding, sampling, sort, seed):
-        from psdr_cli import api
-        from psdr_cli.gradient import Settings
-        exp = api.with_estimator(self.exp, guiding=guiding, sampling=sampling, edge_sort=sort)
-        st = Settings.from_experiment(exp)
-        st.seed = seed
-        return st
-
-    def passes(self, st, sort, n, guides):
-        """Mean direct-term image over n passes and the seconds they took."""
-        from psdr_cli.gradient import forward_gradient
-        st.passes = n
-        st_spp = st.boundary_spp
-        st.boundary_spp = st_spp * n
-        est = forward_gradient(self.scene, self.edges[sort], self.parameter, 0, "direct", st, n, guides=guides)
-        st.boundary_spp = st_spp
-        return est.gradient, est.seconds
-
-    def guides(self, st, sort):
-        from psdr_cli.gradient import make_guides
-        t0 = time.perf_counter()
-        g = make_guides(self.scene, self.edges[sort], [0], ("direct",), st)
-        return g, time.perf_counter() - t0
-
-    def trial(self, guiding, sampling, sort, seed, budget):
-        """One equal-time trial: (image, seconds used, guide seconds, passes, guides)."""
-        st = self.settings(guiding, sampling, sort, seed)
-        t0 = time.perf_counter()
-        guides, build = self.guides(st, sort)
-        images, n = [], 0
-        while True:
-            img, _ = self.passes(self.settings(guiding, sampling, sort, seed * 1000 + n), sort, 1, guides)
-            images.append(img)
-            n += 1
-            if time.perf_counter() - t0 >= budget:
-                break
-        return np.mean(images, axis=0), time.perf_counter() - t0, build, n, guides
-
-
 def run_scene(name, args, log):
-    b = Bench(name)
+    from psdr_cli.compare import Comparison, Variant
+    from psdr_cli.config import load_experiment
+    b = Comparison(load_experiment(REPO / "configs" / "benchmarks" / f"{name}.yaml"), ("direct",))
     log(f"[{name}] reference: unguided MIS, {args.ref_passes} passes")
-    st = b.settings("none", "mis", False, 99)
-    from psdr_cli.gradient import forward_gradient
-    st.passes, st.boundary_spp = args.ref_passes, st.boundary_spp * args.ref_passes
-    est = forward_gradient(b.scene, b.edges[False], b.parameter, 0, "direct", st, args.ref_passes)
-    ref, ref_s = est.gradient, est.seconds
-    # the reference's own error, E Σ(ref − truth)² / Σref², is subtracted from every relMSE
-    ref_noise = float(np.var(est.passes, axis=0, ddof=1).sum() / args.ref_passes / max((ref ** 2).sum(), 1e-30))
+    ref, ref_noise, ref_s = b.reference(args.ref_passes)
     log(f"[{name}]   {ref_s:.1f} s, reference relMSE ≈ {ref_noise:.2g}")
     rows, images = [], {}
     for guiding, sampling, sort in CONFIGS:
         lab = label(guiding, sampling, sort)
-        b.trial(guiding, sampling, sort, 7, 0.0)  # warm-up: compile kernels
-        # iteration cost: one pass without guides build (the render alone) for the build ratio
-        st = b.settings(guiding, sampling, sort, 5)
-        guides, build = b.guides(st, sort)
-        _, pass_s = b.passes(st, sort, 1, guides)
-        errs, used, builds, npasses = [], [], [], []
-        for t in range(args.trials):
-            img, secs, bs, n, _ = b.trial(guiding, sampling, sort, 11 + t, args.budget)
-            errs.append((rel_mse(img, ref) - ref_noise) * secs / args.budget)
-            used.append(secs), builds.append(bs), npasses.append(n)
-            if t == 0:
-                images[lab] = img
-        stats = {k: {"leaves": g.stats.leaves, "max_depth": g.stats.max_depth, "memory_bytes": g.stats.memory_bytes,
-                     "evaluations": g.stats.evaluations} for k, g in guides.all()}
+        r = b.measure(Variant(lab, guiding, sampling, sort), ref, ref_noise, args.budget, args.trials)
+        images[lab] = r.image
         row = {"config": lab, "guiding": guiding, "sampling": sampling, "edge_sort": sort,
-               "rel_mse": float(np.mean(errs)), "rel_mse_trials": errs, "seconds": used, "passes": npasses,
-               "build_seconds": float(np.mean(builds)), "pass_seconds": pass_s,
-               "build_over_iteration": float(np.mean(builds)) / pass_s if guiding != "none" else 0.0,
-               "guides": stats}
+               "rel_mse": r.rel_mse, "rel_mse_trials": r.rel_mse_trials, "seconds": r.seconds, "passes": r.passes,
+               "build_seconds": r.build_seconds, "pass_seconds": r.pass_seconds,
+               "build_over_iteration": r.build_over_pass, "guides": r.guides}
         rows.append(row)
-        log(f"[{name}] {lab:22s} relMSE {row['rel_mse']:.4g}  passes {npasses}  build {row['build_seconds']:.2f}s "
+        log(f"[{name}] {lab:22s} relMSE {r.rel_mse:.4g}  passes {r.passes}  build {row['build_seconds']:.2f}s "
             f"(×{row['build_over_iteration']:.2f} of a pass)")
     return {"scene": name, "reference_passes": args.ref_passes, "reference_seconds": ref_s,
             "reference_rel_mse": ref_noise,

@@ -376,3 +376,65 @@ def evaluate(reference: Path, paths, samples: int = 100_000, seed: int = 0, json
         io.write_json(Path(json_out), {"reference": str(reference), "samples": samples, "seed": seed,
                                        "noise_floor": result.noise_floor, "meshes": result.rows})
     return result
+
+
+@dataclass
+class CompareResult:
+    folder: Path
+    rows: list = field(default_factory=list)     # psdr_cli.compare.Row
+    reference_rel_mse: float = 0.0
+
+
+def compare(exp: Experiment, out: Path | None = None, progress=None) -> CompareResult:
+    """Run the experiment's ``compare:`` section (see :mod:`psdr_cli.compare`); writes
+    ``compare.json``, ``compare.md``, ``grid.png`` and one EXR per variant to
+    ``<output>/<name>/compare/``."""
+    from . import plots
+    from .compare import Comparison
+    cfg = exp.compare
+    if cfg is None:
+        raise PsdrError(f"{exp.file}: compare: missing (expected variants: [{{label: ..., guiding: ...}}, ...])")
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (compare needs the scalar θ of the gradient)")
+    if cfg.view >= len(exp.scene.cameras):
+        raise PsdrError(f"{exp.file}: compare.view: view {cfg.view} does not exist (0..{len(exp.scene.cameras) - 1})")
+    setup(exp)
+    folder = (Path(out).resolve() / exp.name if out else exp.run_dir) / "compare"
+    c = Comparison(exp, cfg.terms, cfg.view)
+    if progress:
+        progress.start(len(cfg.variants) + 1)
+    ref, noise, ref_s = c.reference(cfg.reference_passes)
+    if progress:
+        progress.advance(1)
+    result = CompareResult(folder, reference_rel_mse=noise)
+    for v in cfg.variants:
+        row = c.measure(v, ref, noise, cfg.budget_seconds, cfg.trials)
+        result.rows.append(row)
+        io.write_rgb_exr(folder / f"{v.label.replace('/', '_').replace(' ', '_')}.exr", row.image,
+                         {"psdr.variant": v.label, "psdr.rel_mse": f"{row.rel_mse:.6g}"})
+        if progress:
+            progress.advance(1)
+    io.write_rgb_exr(folder / "reference.exr", ref, {"psdr.passes": str(cfg.reference_passes)})
+    plots.gradient_grid(folder / "grid.png", ref, [(r.variant.label, r.image, r.rel_mse) for r in result.rows],
+                        f"{exp.name}: {'+'.join(cfg.terms)} gradient, "
+                        + (f"{cfg.budget_seconds:g} s per variant" if any(v.passes is None for v in cfg.variants)
+                           else "equal samples"))
+    table = ["| variant | guiding | sampling | sorted | budget | relMSE | passes | build s | build / pass |",
+             "|---|---|---|---|---|---:|---:|---:|---:|"]
+    for r in result.rows:
+        v = r.variant
+        table.append(f"| {v.label} | {v.guiding} | {v.sampling} | {'yes' if v.edge_sort else 'no'} | "
+                     f"{f'{v.passes} passes' if v.passes else f'{cfg.budget_seconds:g} s'} | {r.rel_mse:.4g} | "
+                     f"{int(np.mean(r.passes))} | {r.build_seconds:.2f} | {r.build_over_pass:.1f} |")
+    with io.atomic_path(folder / "compare.md") as tmp:
+        Path(tmp).write_text("\n".join(table) + "\n")
+    io.write_json(folder / "compare.json", {
+        "experiment": str(exp.file), "terms": list(cfg.terms), "view": cfg.view, "budget_seconds": cfg.budget_seconds,
+        "trials": cfg.trials, "reference_passes": cfg.reference_passes, "reference_seconds": ref_s,
+        "reference_rel_mse": noise,
+        "variants": [{"label": r.variant.label, "guiding": r.variant.guiding, "sampling": r.variant.sampling,
+                      "edge_sort": r.variant.edge_sort, "fixed_passes": r.variant.passes, "rel_mse": r.rel_mse,
+                      "rel_mse_trials": r.rel_mse_trials, "seconds": r.seconds, "passes": r.passes,
+                      "build_seconds": r.build_seconds, "pass_seconds": r.pass_seconds, "guides": r.guides}
+                     for r in result.rows]})
+    return result

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -183,6 +184,24 @@ def guide_stats(config: Path = ConfigArg,
         out.print(f"{key}: {c['edges']} edges in {c['chains']} chains (mean length {c['mean_chain_length']:.1f}); "
                   f"the Kd-tree pre-splits u1 into that many pieces")
     out.print(f"outputs in {res.folder}")
+
+
+@app.command()
+@guarded
+def compare(config: Path = ConfigArg,
+            out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")):
+    """Equal-time / equal-sample comparison of boundary estimators (the experiment's compare: section)."""
+    from . import api
+    exp = load_experiment(config)
+    with Bar("compare") as bar:
+        res = api.compare(exp, out=out_dir, progress=bar)
+    table = Table(title=f"psdr compare: {exp.name} (reference relMSE ≈ {res.reference_rel_mse:.2g})")
+    for col in ("variant", "relMSE", "passes", "build s"):
+        table.add_column(col, justify="left" if col == "variant" else "right")
+    for r in res.rows:
+        table.add_row(r.variant.label, f"{r.rel_mse:.4g}", str(int(np.mean(r.passes))), f"{r.build_seconds:.2f}")
+    out.print(table)
+    out.print(f"outputs in {res.folder} (compare.md, compare.json, grid.png, one EXR per variant)")
 
 
 class LossBar(Bar):

@@ -336,6 +336,16 @@ class OptimizeConfig:
 
 
 @dataclass
+class CompareConfig:
+    variants: list                       # of psdr_cli.compare.Variant
+    terms: tuple = ("direct",)
+    view: int = 0
+    budget_seconds: float = 6.0
+    trials: int = 2
+    reference_passes: int = 1024
+
+
+@dataclass
 class EvaluateConfig:
     reference: Path | None = None
     samples: int = 100_000
@@ -355,6 +365,7 @@ class Experiment:
     estimator: EstimatorConfig
     optimize: OptimizeConfig | None = None
     evaluate: EvaluateConfig | None = None
+    compare: CompareConfig | None = None
 
     @property
     def base_dir(self) -> Path:
@@ -724,6 +735,31 @@ def parse_optimize(base: Path) -> Parser:
     return parse
 
 
+def parse_compare(value, where) -> CompareConfig:
+    from .compare import Variant
+    sec = Section(value, where)
+    variants = []
+    for v, w in sec.get("variants", list_of(lambda x, wh: (x, wh), min_len=1)):
+        vs = Section(v, w)
+        variants.append(Variant(label=vs.get("label", string),
+                                guiding=vs.get("guiding", choice("none", "grid", "kdtree"), "none"),
+                                sampling=vs.get("sampling", choice("dir", "light", "mis"), "mis"),
+                                edge_sort=vs.get("edge_sort", boolean, False),
+                                passes=vs.get("passes", integer(1), None)))
+        vs.done()
+    labels = [v.label for v in variants]
+    if len(set(labels)) != len(labels):
+        raise where.child("variants").fail("variant labels must be unique")
+    c = CompareConfig(variants=variants)
+    c.terms = sec.get("terms", _terms, c.terms)
+    c.view = sec.get("view", integer(0), c.view)
+    c.budget_seconds = sec.get("budget_seconds", number(positive=True), c.budget_seconds)
+    c.trials = sec.get("trials", integer(1), c.trials)
+    c.reference_passes = sec.get("reference_passes", integer(2), c.reference_passes)
+    sec.done()
+    return c
+
+
 def parse_evaluate(base: Path) -> Parser:
     def parse(value, where) -> EvaluateConfig:
         sec = Section(value, where)
@@ -757,6 +793,7 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
         estimator=sec.get("estimator", parse_estimator, EstimatorConfig()),
         optimize=sec.get("optimize", parse_optimize(base), None),
         evaluate=sec.get("evaluate", parse_evaluate(base), None),
+        compare=sec.get("compare", parse_compare, None),
     )
     sec.done()
     if "/" in exp.name or exp.name in (".", ".."):

@@ -87,3 +87,20 @@ def chamfer(path, iterations, values, seconds, timed_values, floor: float):
         ax.set_ylabel("Chamfer-L1 (reference bbox = 1)")
         ax.legend(fontsize=7)
     save(fig, path)
+
+
+def gradient_grid(path, reference, images, title: str, columns: int = 6):
+    """Reference and variants' gradient images (sum over RGB) with a shared diverging scale and
+    each variant's relMSE under its label. ``images``: [(label, (H, W, 3), relMSE)]."""
+    n = len(images) + 1
+    rows = (n + columns - 1) // columns
+    fig, axes = plt.subplots(rows, columns, figsize=(2.2 * columns, 2.4 * rows), squeeze=False)
+    scale = float(np.percentile(np.abs(reference.sum(-1)), 99)) or 1.0
+    for ax in axes.ravel():
+        ax.axis("off")
+    panels = [("reference", reference, None)] + list(images)
+    for ax, (label, img, err) in zip(axes.ravel(), panels):
+        ax.imshow(img.sum(-1), cmap="RdBu_r", vmin=-scale, vmax=scale)
+        ax.set_title(label + (f"\nrelMSE {err:.3g}" if err is not None else ""), fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    save(fig, path)

@@ -240,3 +240,25 @@ def test_grad_and_guide_stats_cli(tmp_path, write_cfg):
     assert (folder / "target_u1_light.png").stat().st_size > 1000
     assert (folder / "leaves_kdtree_dir_sorted.png").exists()
     assert "kdtree/light" in r.stdout
+
+
+def test_compare_cli_equal_samples(tmp_path, write_cfg):
+    """`psdr compare` runs its variants (equal samples here), writes table, JSON, grid and EXRs;
+    a guided variant's error is finite and a missing section is a one-line error."""
+    import json
+    from conftest import run_cli
+    data = copy.deepcopy(SHADOW)
+    data["output"] = str(tmp_path / "runs")
+    data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct"], "kdtree": {"initial_samples": 4096}}
+    data["compare"] = {"terms": ["direct"], "trials": 1, "reference_passes": 16, "variants": [
+        {"label": "none", "passes": 4}, {"label": "kdtree", "guiding": "kdtree", "passes": 4}]}
+    r = run_cli("compare", write_cfg(data))
+    assert r.returncode == 0, r.stderr
+    folder = tmp_path / "runs" / "shadow" / "compare"
+    out = json.loads((folder / "compare.json").read_text())
+    assert [v["label"] for v in out["variants"]] == ["none", "kdtree"]
+    assert all(np.isfinite(v["rel_mse"]) and v["passes"] == [4] for v in out["variants"])
+    assert out["variants"][1]["guides"] and (folder / "grid.png").exists() and (folder / "kdtree.exr").exists()
+    del data["compare"]
+    r = run_cli("compare", write_cfg(data, "no_compare.yaml"))
+    assert r.returncode == 2 and "compare: missing" in r.stderr and len(r.stderr.strip().splitlines()) == 1
