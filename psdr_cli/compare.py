@@ -75,19 +75,25 @@ class Comparison:
                         self.settings(variant, seed))
         return g, time.perf_counter() - t0
 
+    def pass_settings(self, variant: Variant, seed: int, term: str, n: int):
+        """Settings of ``n`` passes of ``term``: its per-pass sample count times ``n``
+        (a fresh copy per term, so the terms' counts do not compound)."""
+        st = self.settings(variant, seed)
+        st.passes = n
+        if term == "interior":
+            st.spp *= n
+        elif term == "primary":
+            st.primary_spp *= n
+        else:
+            st.boundary_spp *= n
+        return st
+
     def passes(self, variant: Variant, seed: int, n: int, guides):
         """(mean image over n passes of boundary_spp, per-pass images, seconds)."""
         from .gradient import forward_gradient
-        st = self.settings(variant, seed)
         total, images, seconds = None, [], 0.0
         for term in self.terms:
-            st.passes = n
-            if term == "interior":
-                st.spp *= n
-            elif term == "primary":
-                st.primary_spp *= n
-            else:
-                st.boundary_spp *= n
+            st = self.pass_settings(variant, seed, term, n)
             est = forward_gradient(self.scene, self.edges[variant.edge_sort], self.parameter, self.view, term, st,
                                    n, guides=guides)
             images = est.passes if not images else [a + b for a, b in zip(images, est.passes)]

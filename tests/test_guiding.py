@@ -262,3 +262,25 @@ def test_compare_cli_equal_samples(tmp_path, write_cfg):
     del data["compare"]
     r = run_cli("compare", write_cfg(data, "no_compare.yaml"))
     assert r.returncode == 2 and "compare: missing" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatch):
+    """n passes of a multi-term comparison ask every boundary term for n × boundary_spp samples
+    (a shared Settings once compounded them: the second term got n² × boundary_spp)."""
+    from psdr_cli import gradient
+    from psdr_cli.compare import Comparison, Variant
+    data = copy.deepcopy(SHADOW)
+    data["output"] = str(tmp_path / "runs")
+    data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct", "indirect"]}
+    exp = parse_experiment(data, tmp_path / "shadow.yaml", cwd=tmp_path)
+    api.setup(exp)
+    asked = {}
+
+    def fake(scene, edges, parameter, view, term, settings, min_passes=1, progress=None, guides=None):
+        asked[term] = (settings.boundary_spp, min_passes)
+        zero = np.zeros((2, 2, 3))
+        return gradient.TermEstimate(term, zero, [zero] * min_passes, [1 / min_passes] * min_passes, 0.0, None)
+
+    monkeypatch.setattr(gradient, "forward_gradient", fake)
+    Comparison(exp, ("direct", "indirect")).passes(Variant("none"), 1, 8, None)
+    assert asked == {"direct": (128, 8), "indirect": (128, 8)}
