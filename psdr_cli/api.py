@@ -333,10 +333,11 @@ class EvaluateResult:
     rows: list = field(default_factory=list)       # {mesh, iteration, seconds, chamfer_l1, chamfer_l2, hausdorff}
     noise_floor: dict = field(default_factory=dict)
     plots: list = field(default_factory=list)
+    report: Path | None = None
 
 
 def evaluate(reference: Path, paths, samples: int = 100_000, seed: int = 0, json_out: Path | None = None,
-             progress=None) -> EvaluateResult:
+             progress=None, report: Path | None = None, labels: list | None = None, title: str = "") -> EvaluateResult:
     """Chamfer/Hausdorff distances of meshes (or of every checkpoint of run folders) to
     ``reference``; a run folder also gets ``chamfer.png`` (distance against iteration and time)."""
     from dataclasses import asdict
@@ -375,7 +376,44 @@ def evaluate(reference: Path, paths, samples: int = 100_000, seed: int = 0, json
     if json_out:
         io.write_json(Path(json_out), {"reference": str(reference), "samples": samples, "seed": seed,
                                        "noise_floor": result.noise_floor, "meshes": result.rows})
+    if report:
+        runs = [Path(p) for p in paths if Path(p).is_dir()]
+        result.report = write_run_report(Path(report), ref, runs, labels or [p.name for p in runs], result, title)
     return result
+
+
+def write_run_report(folder: Path, ref, runs: list, labels: list, result: EvaluateResult, title: str = "") -> Path:
+    """Side-by-side report of several runs in ``folder``: ``chamfer.png`` (Chamfer against
+    iteration and time, one line per run), ``meshes.png`` (reference and final meshes, neutral
+    shading, final Chamfer-L1 under each), ``evaluate.md`` (final distances and the Table 2 time
+    split per run), ``evaluate.json`` and a copy of each final mesh as ``<label>.ply``."""
+    import shutil
+    from . import evaluate as ev
+    from . import plots
+    backend.select_variant("auto")  # the mesh pictures render with Mitsuba
+    folder.mkdir(parents=True, exist_ok=True)
+    series, panels, table, summary = {}, [("reference", ev.mesh_view(*ref, ref[0]))], [], []
+    for run, label in zip(runs, labels):
+        rows = [r for r in result.rows if r["run"] == str(run)]
+        series[label] = ([r["iteration"] for r in rows], [r["seconds"] for r in rows], [r["chamfer_l1"] for r in rows])
+        last, s = rows[-1], ev.run_summary(run)
+        panels.append((f"{label}\nChamfer-L1 {last['chamfer_l1']:.4f}", ev.mesh_view(*ev.load(last["mesh"]), ref[0])))
+        shutil.copyfile(last["mesh"], folder / f"{label}.ply")
+        summary.append({"label": label, "run": str(run), "final": last, **s})
+        table.append(f"| {label} | {s['iterations']} | {s['seconds']:.0f} | {last['chamfer_l1']:.4f} | "
+                     f"{last['chamfer_l2']:.2e} | {last['hausdorff']:.3f} | {s['guide_bytes'] / 1024:.0f} KiB | "
+                     f"{s['seconds_guiding']:.3f} | {s['seconds_rendering']:.3f} | {s['seconds_post']:.3f} |")
+    floor = result.noise_floor["chamfer_l1"]
+    plots.chamfer_runs(folder / "chamfer.png", series, floor, title)
+    plots.image_grid(folder / "meshes.png", panels, title)
+    header = ["| run | iterations | optimisation s | Chamfer-L1 | Chamfer-L2² | Hausdorff | guide memory | "
+              "guiding s/it | render s/it | post s/it |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    with io.atomic_path(folder / "evaluate.md") as tmp:
+        Path(tmp).write_text("\n".join(header + table) + f"\n\nSampling noise floor (Chamfer-L1): {floor:.5f}\n")
+    io.write_json(folder / "evaluate.json", {"noise_floor": result.noise_floor, "runs": summary})
+    with io.atomic_path(folder / "reference.ply") as tmp:
+        shutil.copyfile(result.reference, tmp)
+    return folder
 
 
 @dataclass
@@ -438,3 +476,59 @@ def compare(exp: Experiment, out: Path | None = None, progress=None) -> CompareR
                       "build_seconds": r.build_seconds, "pass_seconds": r.pass_seconds, "guides": r.guides}
                      for r in result.rows]})
     return result
+
+
+#: The paper's Table 2 (Yan et al. 2022; 32-core Threadripper Pro 3975WX + RTX Titan), for reference:
+#: (scene, figure, target images, parameters, batch size, iterations, guiding memory, guiding s,
+#: render s, post-processing s) per iteration.
+PAPER_TABLE2 = (
+    ("Dodoco", "Fig. 1", 70, "450,000", 2, 3000, "4 MB", 1.34, 2.59, 0.310),
+    ("Jumpy Dumpty", "Fig. 9", 140, "60,000", 2, 520, "2 MB", 0.61, 1.11, 0.016),
+    ("Klee", "Fig. 9", 40, "60,000", 1, 200, "2 MB", 0.33, 0.82, 0.016),
+    ("Kirby", "Fig. 10", 35, "15,000", 1, 400, "80 KB", 0.91, 3.67, 0.017),
+    ("Bunny in glass", "Fig. 10", 50, "30,000", 2, 2000, "128 KB", 1.79, 17.55, 0.022),
+    ("Bunny shadow 2", "Fig. 10", 70, "30,000", 2, 600, "2 MB", 0.47, 0.72, 0.012),
+    ("Duck", "Fig. 11", 35, "3,205,728", 1, 400, "2 MB", 0.34, 0.94, 0.092),
+    ("Mora", "Fig. 11", 70, "150,001", 1, 1600, "4 MB", 0.43, 1.01, 0.109),
+    ("Glass Dodoco", "Fig. 11", 140, "60,000", 1, 700, "400 KB", 0.94, 5.76, 0.093),
+)
+
+
+def table2(experiments: list, out: Path) -> Path:
+    """The paper's Table 2 for our runs: per run of each experiment (all its optimize.variants),
+    the configuration (target images, image size, samples, parameters = 3 × vertices, batch
+    size, iterations) and the measured per-iteration time split (guiding, rendering,
+    post-processing) and guide memory, from the runs' logs; the paper's own rows follow,
+    labelled as such. Written as markdown to ``out``."""
+    from . import evaluate as ev
+    from .optimize import variant_experiments
+    rows = ["| experiment | run | target images | image | spp (int/prim/bdry) | # param. | batch | # iter. | "
+            "guide memory | guiding s/it | render s/it | post s/it |",
+            "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for exp in experiments:
+        if exp.optimize is None:
+            raise PsdrError(f"{exp.file}: optimize: missing (table2 reports `psdr optimize` runs)")
+        for label, run in variant_experiments(exp):
+            if not (run.run_dir / "log.csv").exists():
+                raise PsdrError(f"table2: run {run.run_dir} does not exist yet (run `psdr optimize {exp.file}` first)")
+            s, e = ev.run_summary(run.run_dir), run.estimator
+            memory = f"{s['guide_bytes'] / 1024:.0f} KiB" if s["guide_bytes"] else "—"
+            rows.append(f"| {exp.name} | {label or '—'} | {s['views'] or len(exp.scene.cameras)} | "
+                        f"{exp.scene.width}×{exp.scene.height} | {e.spp}/{e.primary_spp}/{e.boundary_spp} | "
+                        f"{3 * s['vertices']:,} | {exp.optimize.batch_size} | {s['iterations']} | {memory} | "
+                        f"{s['seconds_guiding']:.3f} s | {s['seconds_rendering']:.3f} s | {s['seconds_post']:.3f} s |")
+    paper = ["| scene | figure | target images | # param. | batch | # iter. | guide memory | guiding s/it | "
+             "render s/it | post s/it |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    paper += [f"| {r[0]} | {r[1]} | {r[2]} | {r[3]} | {r[4]} | {r[5]} | {r[6]} | {r[7]:.2f} s | {r[8]:.2f} s | "
+              f"{r[9]:.3f} s |" for r in PAPER_TABLE2]
+    text = ("## Our runs (measured on this machine)\n\n" + "\n".join(rows) +
+            "\n\nGuiding: building the guides (amortised: rebuilt every `guide_every` iterations); render: the "
+            "differentiable rendering of the mini-batch and its backward pass; post: the large-steps update, "
+            "edge extraction and scene update.\n\n"
+            "## The paper's Table 2 (for reference; their hardware: 32-core CPU and an RTX Titan GPU)\n\n"
+            + "\n".join(paper) + "\n")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(out) as tmp:
+        Path(tmp).write_text(text)
+    return out

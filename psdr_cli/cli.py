@@ -225,20 +225,23 @@ class LossBar(Bar):
 @guarded
 def optimize(config: Path = ConfigArg,
              resume: bool = typer.Option(False, "--resume", help="Continue from the run's saved state."),
-             iterations: Optional[int] = typer.Option(None, "--iterations", help="Total iterations (default: optimize.iterations).")):
+             iterations: Optional[int] = typer.Option(None, "--iterations", help="Total iterations (default: optimize.iterations)."),
+             variant: Optional[list[str]] = typer.Option(None, "--variant", help="Run only this variant of optimize.variants (repeatable; default: all).")):
     """Reconstruct an object's shape from images (mini-batches, L1 loss, large steps, checkpoints)."""
     from . import api
+    from .optimize import variant_experiments
     exp = load_experiment(config)
-    with LossBar("optimize") as bar:
-        res = api.optimize(exp, iterations=iterations, resume=resume, progress=bar,
-                           warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
-    if res.interrupted:
-        raise typer.Exit(130)
-    first = f"{res.losses[0]:.5g}" if res.losses else "—"
-    last = f"{res.losses[-1]:.5g}" if res.losses else "—"
-    out.print(f"{res.iterations} iterations (this run: {len(res.losses)}, resumed from {res.resumed_from}); "
-              f"loss {first} → {last}; final mesh {res.final}")
-    out.print(f"outputs in {res.folder} (checkpoints/, previews/, log.csv, loss.png); "
+    for label, run_exp in variant_experiments(exp, variant):
+        with LossBar(f"optimize {label}" if label else "optimize") as bar:
+            res = api.optimize(run_exp, iterations=iterations, resume=resume, progress=bar,
+                               warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
+        if res.interrupted:
+            raise typer.Exit(130)
+        first = f"{res.losses[0]:.5g}" if res.losses else "—"
+        last = f"{res.losses[-1]:.5g}" if res.losses else "—"
+        out.print(f"{label + ': ' if label else ''}{res.iterations} iterations (this run: {len(res.losses)}, "
+                  f"resumed from {res.resumed_from}); loss {first} → {last}; final mesh {res.final}")
+    out.print(f"outputs in {exp.run_dir} (checkpoints/, previews/, log.csv, loss.png); "
               f"evaluate with: psdr evaluate {config}")
 
 
@@ -247,11 +250,12 @@ def optimize(config: Path = ConfigArg,
 def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, meshes (.ply/.obj) and/or `psdr optimize` run folders."),
              reference: Optional[Path] = typer.Option(None, "--reference", help="Reference mesh (default: evaluate.reference, or the run's reference.ply)."),
              samples: Optional[int] = typer.Option(None, "--samples", help="Points sampled per surface (default 100000)."),
-             json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON.")):
+             json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON."),
+             report: Optional[Path] = typer.Option(None, "--report", help="Folder for a side-by-side report of the runs (default with optimize.variants: the experiment's run folder).")):
     """Normalised Chamfer and Hausdorff distances to a reference mesh (tables, JSON, plots)."""
     from . import api
     paths = list(paths or [])
-    seed = 0
+    seed, labels, title = 0, None, ""
     configs = [p for p in paths if p.endswith((".yaml", ".yml"))]
     targets = [Path(p) for p in paths if not p.endswith((".yaml", ".yml"))]
     if len(configs) > 1:
@@ -264,9 +268,17 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
             samples = samples or ev.samples
             seed = ev.seed
         if not targets:
-            targets = [exp.run_dir]
-        if reference is None and (exp.run_dir / "reference.ply").exists():
-            reference = exp.run_dir / "reference.ply"
+            from .optimize import variant_experiments
+            runs = variant_experiments(exp) if exp.optimize else [(None, exp)]
+            targets = [e.run_dir for _, e in runs]
+            if runs[0][0] is not None:
+                labels, title = [label for label, _ in runs], exp.name
+                report = report or exp.run_dir
+                missing = [str(t) for t in targets if not (t / "log.csv").exists()]
+                if missing:
+                    raise PsdrError(f"evaluate: run {missing[0]} does not exist yet (run `psdr optimize {configs[0]}` first)")
+        if reference is None:
+            reference = next((t / "reference.ply" for t in targets if (t / "reference.ply").exists()), None)
     if reference is None:
         runs = [t for t in targets if (t / "reference.ply").exists()]
         if runs:
@@ -277,7 +289,8 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
     if not targets:
         raise PsdrError("evaluate: nothing to evaluate (give meshes or `psdr optimize` run folders)")
     with Bar("evaluate") as bar:
-        res = api.evaluate(reference, targets, samples or 100_000, seed, json_out, progress=bar)
+        res = api.evaluate(reference, targets, samples or 100_000, seed, json_out, progress=bar,
+                           report=report, labels=labels, title=title)
     table = Table(title=f"psdr evaluate: reference {reference}")
     for col in ("mesh", "iteration", "seconds", "Chamfer-L1", "Chamfer-L2²", "Hausdorff"):
         table.add_column(col, justify="left" if col == "mesh" else "right")
@@ -291,6 +304,20 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
               f"Chamfer-L2² {nf['chamfer_l2']:.2e}, Hausdorff {nf['hausdorff']:.4f}")
     for p in res.plots:
         out.print(f"plot: {p}")
+    if res.report:
+        out.print(f"report: {res.report} (evaluate.md, chamfer.png, meshes.png, evaluate.json)")
+
+
+@app.command()
+@guarded
+def table2(configs: list[Path] = typer.Argument(..., help="Experiment files whose `psdr optimize` runs to report."),
+           out_file: Path = typer.Option(Path("table2.md"), "--out", help="Markdown file to write.")):
+    """The paper's Table 2 for finished optimize runs: configuration, per-iteration time split
+    (guiding, rendering, post-processing) and guide memory, with the paper's rows for reference."""
+    from . import api
+    path = api.table2([load_experiment(c) for c in configs], out_file)
+    out.print(path.read_text())
+    out.print(f"written: {path}")
 
 
 def run():

@@ -333,6 +333,20 @@ class OptimizeConfig:
     envmap_axis: tuple = (0.0, 0.0, 1.0)
     envmap_init_deg: float = 0.0
     envmap_learning_rate: float = 0.01
+    seconds: float | None = None           # wall-clock budget of the optimisation (equal-time runs)
+    variants: tuple = ()                   # of RunVariant: one run folder each, <output>/<name>/<label>
+    target_seed: int | None = None         # not a YAML key: a variant's targets use its base experiment's seed
+
+
+@dataclass
+class RunVariant:
+    """One run of an ablation: its folder label and the estimator keys (and seed) it overrides
+    (None: keep). The targets do not depend on the seed of the run."""
+    label: str
+    guiding: str | None = None
+    sampling: str | None = None
+    edge_sort: bool | None = None
+    seed: int | None = None                # replicate runs: another seed, same everything else
 
 
 @dataclass
@@ -730,9 +744,28 @@ def parse_optimize(base: Path) -> Parser:
             o.envmap_init_deg = e.get("init_deg", number(), o.envmap_init_deg)
             o.envmap_learning_rate = e.get("learning_rate", number(positive=True), o.envmap_learning_rate)
             e.done()
+        o.seconds = sec.get("seconds", number(positive=True), None)
+        if sec.has("variants"):
+            o.variants = tuple(sec.get("variants", list_of(parse_run_variant, min_len=1)))
+            labels = [v.label for v in o.variants]
+            if len(set(labels)) != len(labels):
+                raise where.child("variants").fail("variant labels must be unique")
         sec.done()
         return o
     return parse
+
+
+def parse_run_variant(value, where) -> RunVariant:
+    sec = Section(value, where)
+    v = RunVariant(label=sec.get("label", string))
+    if not v.label or "/" in v.label or v.label in (".", "..") or v.label != v.label.strip():
+        raise where.child("label").fail(f"expected a plain folder name, got '{v.label}'")
+    v.guiding = sec.get("guiding", choice("none", "grid", "kdtree"), None)
+    v.sampling = sec.get("sampling", choice("dir", "light", "mis"), None)
+    v.edge_sort = sec.get("edge_sort", boolean, None)
+    v.seed = sec.get("seed", integer(0), None)
+    sec.done()
+    return v
 
 
 def parse_compare(value, where) -> CompareConfig:

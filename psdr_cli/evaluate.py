@@ -98,3 +98,48 @@ def run_seconds(folder: Path) -> dict:
         return {}
     with open(log, newline="") as f:
         return {int(r["iteration"]) + 1: float(r["seconds_total"]) for r in csv.DictReader(f)}
+
+
+def run_summary(folder: Path) -> dict:
+    """Per-iteration time split and guide memory of a ``psdr optimize`` run (the columns of the
+    paper's Table 2), from its log.csv and optimize.json:
+
+        guiding / rendering / post-processing seconds = mean over the logged iterations,
+        guide memory = the largest guide set built (bytes)."""
+    import json
+    folder = Path(folder)
+    log = folder / "log.csv"
+    if not log.exists():
+        raise PsdrError(f"{folder}: no log.csv (expected a `psdr optimize` run folder)")
+    with open(log, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise PsdrError(f"{log}: no iterations logged")
+    mean = lambda key: float(np.mean([float(r[key]) for r in rows]))  # noqa: E731
+    info = json.loads((folder / "optimize.json").read_text()) if (folder / "optimize.json").exists() else {}
+    return {"iterations": len(rows), "seconds": float(rows[-1]["seconds_total"]),
+            "seconds_guiding": mean("seconds_guiding"), "seconds_rendering": mean("seconds_rendering"),
+            "seconds_post": mean("seconds_post"), "vertices": int(rows[-1]["vertices"]),
+            "guide_bytes": max(int(r.get("guide_bytes") or 0) for r in rows), "views": info.get("views")}
+
+
+def mesh_view(V, F, reference_V, size: int = 160, spp: int = 64, direction=(0.55, -1.0, 0.45)) -> np.ndarray:
+    """A neutral picture of a mesh for side-by-side comparisons (H, W, 3 in [0, 1] sRGB): grey
+    two-sided diffuse under a constant sky and a directional key light, framed on the *reference's*
+    bounding sphere so that all meshes of one comparison share the camera."""
+    import mitsuba as mi
+    from .io import srgb
+    from .scene import look_at, mitsuba_mesh
+    lo, hi = reference_V.min(0), reference_V.max(0)
+    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 3},
+        "sensor": {"type": "perspective", "fov": 32, "to_world": look_at(centre + d * radius * 3.6, centre, (0, 0, 1)),
+                   "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.35}},
+        "key": {"type": "directional", "direction": [-0.4, 0.8, -0.9], "irradiance": {"type": "rgb", "value": 2.2}},
+        "mesh": mitsuba_mesh("mesh", V, F, {"type": "twosided", "bsdf": {
+            "type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}}),
+    })
+    return srgb(np.asarray(mi.render(scene, spp=spp), np.float64)[..., :3])

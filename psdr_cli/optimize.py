@@ -14,6 +14,10 @@ Nothing already saved is lost: the state (mesh, optimiser moments, iteration) is
 atomically after every iteration, checkpoints and previews at ``checkpoint_every``, and
 ``resume=True`` continues from the saved state. View batches and sample seeds depend only on
 (seed, iteration), so a resumed run draws what the uninterrupted run would have drawn.
+
+An optional wall-clock budget (``optimize.seconds``, optimisation time only) ends a run early,
+for equal-time comparisons; ``optimize.variants`` turns one experiment into an ablation whose
+runs (estimator overrides) live in ``<output>/<name>/<label>/`` (:func:`variant_experiments`).
 """
 from __future__ import annotations
 
@@ -32,12 +36,33 @@ from . import io
 from .errors import PsdrError
 
 LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
-              "seconds_total", "skipped")
+              "seconds_total", "skipped", "guide_bytes")
 
 
 # --------------------------------------------------------------------------------------------
 # Run folder
 # --------------------------------------------------------------------------------------------
+def variant_experiments(exp, labels=None) -> list:
+    """[(label, experiment)] of the runs of ``exp``: itself (label None) without
+    ``optimize.variants``, else one experiment per variant (all, or those in ``labels``) with
+    the variant's estimator keys and the run folder ``<output>/<name>/<label>``."""
+    from dataclasses import replace
+    from .api import with_estimator
+    variants = exp.optimize.variants if exp.optimize else ()
+    if not variants:
+        if labels:
+            raise PsdrError(f"{exp.file}: optimize.variants: missing (--variant needs the experiment's variants)")
+        return [(None, exp)]
+    known = [v.label for v in variants]
+    unknown = [l for l in labels or () if l not in known]
+    if unknown:
+        raise PsdrError(f"--variant: unknown variant '{unknown[0]}' (variants of {exp.file.name}: {', '.join(known)})")
+    return [(v.label, replace(with_estimator(exp, guiding=v.guiding, sampling=v.sampling, edge_sort=v.edge_sort),
+                              output=exp.run_dir, name=v.label, seed=exp.seed if v.seed is None else v.seed,
+                              optimize=replace(exp.optimize, target_seed=exp.seed)))
+            for v in variants if not labels or v.label in labels]
+
+
 class RunFiles:
     """Paths inside a run folder ``<output>/<name>/``."""
 
@@ -94,13 +119,19 @@ def initial_shape(exp, reference):
     return Vs + (lo + hi) / 2, Fs
 
 
+def target_seed(exp) -> int:
+    """Seed of the target renders: the experiment's (for a variant, the base experiment's, so
+    that every run of an ablation fits the same images)."""
+    return exp.seed if exp.optimize.target_seed is None else exp.optimize.target_seed
+
+
 def target_key(exp, reference, spp: int) -> str:
     """Hash of everything a cached target image depends on."""
     h = hashlib.sha256()
     h.update(json.dumps(asdict(exp.scene), default=str, sort_keys=True).encode())
     h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
     h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
-    h.update(f"{spp}:{exp.seed}".encode())
+    h.update(f"{spp}:{target_seed(exp)}".encode())
     return h.hexdigest()[:16]
 
 
@@ -119,7 +150,7 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
     scene = build_scene(exp, objects={cfg.object: reference})
     images = []
     for v, p in enumerate(paths):
-        image = render_view(scene, v, cfg.target_spp, seed=exp.seed + 7919)
+        image = render_view(scene, v, cfg.target_spp, seed=target_seed(exp) + 7919)
         cam = exp.scene.cameras[v]
         io.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
                                     "psdr.camera": {"origin": cam.origin, "target": cam.target, "up": cam.up,
@@ -427,6 +458,9 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     it = start
     try:
         for it in range(start, total):
+            if cfg.seconds is not None and seconds_so_far >= cfg.seconds:
+                total = it  # the time budget is spent (a resumed run that had finished)
+                break
             t_start = time.perf_counter()
             if it in cfg.remesh.at and it > 0:
                 k = cfg.remesh.at.index(it)
@@ -469,7 +503,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             row = {"iteration": it, "loss": f"{loss_value:.6g}", "vertices": len(problem.vertices()),
                    "seconds_guiding": f"{t_render - t_guide:.4f}", "seconds_rendering": f"{t_post - t_render:.4f}",
                    "seconds_post": f"{(t_guide - t_start) + (t_end - t_post):.4f}",
-                   "seconds_total": f"{seconds_so_far:.3f}", "skipped": int(skipped)}
+                   "seconds_total": f"{seconds_so_far:.3f}", "skipped": int(skipped),
+                   "guide_bytes": sum(g.stats.memory_bytes for _, g in guides.all()) if guides else 0}
             rows.append(row)
             result.losses.append(loss_value)
             # Persist: the log row, the checkpoint when due, then the state after this iteration
@@ -478,11 +513,15 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             with open(files.log, "a", newline="") as f:
                 csv.DictWriter(f, LOG_FIELDS).writerow(row)
             problem.apply()
+            if cfg.seconds is not None and seconds_so_far >= cfg.seconds:
+                total = it + 1  # time budget spent: this is the last iteration
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == total:
                 result.checkpoints.append(save_checkpoint(problem, files, it + 1, targets, exp))
             problem.export(it + 1, seconds_so_far).save(files.state)
             if progress:
                 progress.advance(1, loss_value)
+            if it + 1 == total:
+                break
         it = total
     except KeyboardInterrupt:
         result.interrupted = True

@@ -104,3 +104,38 @@ def gradient_grid(path, reference, images, title: str, columns: int = 6):
         ax.set_title(label + (f"\nrelMSE {err:.3g}" if err is not None else ""), fontsize=7)
     fig.suptitle(title, fontsize=9)
     save(fig, path)
+
+
+def chamfer_runs(path, runs: dict, floor: float, title: str = ""):
+    """Chamfer distance of several runs against iteration (left) and optimisation time (right),
+    log scale; ``runs`` = {label: (iterations, seconds, values)} (seconds may hold None)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    colours = plt.cm.tab10.colors if len(runs) <= 10 else plt.cm.tab20.colors
+    for k, (label, (its, secs, vals)) in enumerate(runs.items()):
+        style = dict(color=colours[k % len(colours)], ms=3, label=label)
+        axes[0].plot(its, vals, "o-", **style)
+        timed = [(s, v) for s, v in zip(secs, vals) if s is not None]
+        axes[1].plot([s for s, _ in timed], [v for _, v in timed], "o-", **style)
+    for ax, label in zip(axes, ("iteration", "optimisation seconds")):
+        ax.axhline(floor, color="gray", ls="--", lw=0.8, label="sampling noise floor")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel("Chamfer-L1 (reference bbox = 1)")
+        ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    save(fig, path)
+
+
+def image_grid(path, panels: list, title: str = "", columns: int = 4):
+    """sRGB pictures in a grid with a caption under each; ``panels`` = [(caption, (H, W, 3) in [0, 1])]."""
+    rows = (len(panels) + columns - 1) // columns
+    fig, axes = plt.subplots(rows, columns, figsize=(2.6 * columns, 2.9 * rows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (caption, img) in zip(axes.ravel(), panels):
+        ax.imshow(np.clip(img, 0, 1))
+        ax.set_title(caption, fontsize=7, y=-0.2)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    save(fig, path)

@@ -292,3 +292,71 @@ def test_fresh_run_clears_the_previous_runs_state(tmp_path):
     api.optimize(exp, iterations=1, warn=lambda m: None)
     assert not (exp.run_dir / "checkpoints" / "iter_0002.ply").exists()
     assert json.loads((exp.run_dir / "optimize.json").read_text())["iterations"] == 1
+
+
+def test_variants_time_budget_report_and_table2(tmp_path):
+    """optimize.variants runs one folder per variant; optimize.seconds ends each run at the first
+    iteration past the budget (and --resume then adds nothing); `psdr evaluate` on the experiment
+    writes the side-by-side report and `psdr table2` the time split of every run."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=400, seconds=4.0, remesh={"method": "none"}, checkpoint_every=50)
+    data["optimize"]["variants"] = [{"label": "grid", "guiding": "grid"},
+                                    {"label": "plain", "guiding": "none", "sampling": "light"}]
+    cfg = write(tmp_path, data)
+    r = run_cli("optimize", cfg)
+    assert r.returncode == 0, r.stderr
+    root = tmp_path / "runs" / "tiny"
+    counts = {}
+    for label in ("grid", "plain"):
+        rows = log_rows(root / label)
+        seconds = [float(row["seconds_total"]) for row in rows]
+        assert len(rows) < 400 and seconds[-1] >= 4.0 and all(s < 4.0 for s in seconds[:-1])
+        assert (root / label / "final.ply").exists()
+        assert (root / label / "checkpoints" / f"iter_{len(rows):04d}.ply").exists()
+        counts[label] = len(rows)
+    assert int(log_rows(root / "grid")[0]["guide_bytes"]) > 0 == int(log_rows(root / "plain")[0]["guide_bytes"])
+    r = run_cli("optimize", cfg, "--resume", "--variant", "grid")
+    assert r.returncode == 0, r.stderr
+    assert len(log_rows(root / "grid")) == counts["grid"]
+    r = run_cli("optimize", cfg, "--variant", "nope")
+    assert r.returncode == 2 and "--variant" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+    r = run_cli("evaluate", cfg, "--samples", "2000")
+    assert r.returncode == 0, r.stderr
+    table = (root / "evaluate.md").read_text()
+    assert "| grid |" in table and "| plain |" in table
+    for name in ("chamfer.png", "meshes.png", "grid.ply", "plain.ply", "reference.ply", "evaluate.json"):
+        assert (root / name).stat().st_size > 0, name
+    report = json.loads((root / "evaluate.json").read_text())
+    assert [run["iterations"] for run in report["runs"]] == [counts["grid"], counts["plain"]]
+
+    r = run_cli("table2", cfg, "--out", str(tmp_path / "table2.md"))
+    assert r.returncode == 0, r.stderr
+    text = (tmp_path / "table2.md").read_text()
+    assert "| tiny | grid | 3 |" in text and "| tiny | plain | 3 |" in text and "Jumpy Dumpty" in text
+
+
+def test_variant_labels_are_checked(tmp_path):
+    data = copy.deepcopy(TINY)
+    data["optimize"]["variants"] = [{"label": "a/b"}]
+    r = run_cli("optimize", write(tmp_path, data))
+    assert r.returncode == 2 and "optimize.variants" in r.stderr and "plain folder name" in r.stderr
+    data["optimize"]["variants"] = [{"label": "a"}, {"label": "a", "sampling": "dir"}]
+    r = run_cli("optimize", write(tmp_path, data))
+    assert r.returncode == 2 and "unique" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_variant_experiments_share_the_targets(tmp_path):
+    """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
+    from psdr_cli.config import parse_experiment
+    from psdr_cli.optimize import target_key, variant_experiments
+    data = copy.deepcopy(TINY)
+    data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
+    exp = parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)
+    (la, a), (lb, b) = variant_experiments(exp)
+    assert (la, lb) == ("a", "b") and a.run_dir == exp.run_dir / "a" and b.run_dir == exp.run_dir / "b"
+    assert a.estimator.sampling == "light" and a.estimator.edge_sort is False and a.seed == exp.seed
+    assert b.estimator.sampling == exp.estimator.sampling and b.estimator.edge_sort is True and b.seed == 42
+    ref = (np.zeros((3, 3)), np.zeros((1, 3), int))
+    assert target_key(a, ref, 8) == target_key(b, ref, 8) == target_key(exp, ref, 8)
+    assert [label for label, _ in variant_experiments(exp, ["b"])] == ["b"]
