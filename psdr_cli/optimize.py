@@ -75,6 +75,7 @@ class RunFiles:
         self.log = self.root / "log.csv"
         self.reference = self.root / "reference.ply"
         self.final = self.root / "final.ply"
+        self.run = self.root / "run.json"          # fingerprint of the experiment the run belongs to
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
@@ -367,6 +368,27 @@ def read_log(path: Path, before: int) -> list:
         return [r for r in csv.DictReader(f) if int(r["iteration"]) < before]
 
 
+def run_fingerprint(exp) -> str:
+    """Hash of what a run's result depends on: scene, estimator, seed and the optimize section
+    except the keys that only extend or observe it (iterations, seconds, checkpoint_every,
+    preview_views). ``--resume`` continues a run only while this is unchanged (runs saved
+    before fingerprints existed are continued)."""
+    from dataclasses import replace
+    opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
+    h = hashlib.sha256()
+    for part in (exp.scene, exp.estimator, opt):
+        h.update(json.dumps(asdict(part), default=str, sort_keys=True).encode())
+    h.update(str(exp.seed).encode())
+    return h.hexdigest()[:16]
+
+
+def saved_fingerprint(files: RunFiles) -> str | None:
+    try:
+        return json.loads(files.run.read_text())["fingerprint"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
 def clear_run(files: RunFiles):
     """Remove a previous run's state, checkpoints and previews (targets stay: they are cached by
     content hash)."""
@@ -417,6 +439,9 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     state = State.load(files.state) if resume and files.state.exists() else None
     if resume and state is None:
         warn(f"--resume: no saved state in {files.root}; starting from the beginning")
+    if state is not None and saved_fingerprint(files) not in (None, run_fingerprint(exp)):
+        warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; starting from the beginning")
+        state = None
     # Targets and reference
     cameras = None
     if cfg.target_images:
@@ -434,6 +459,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     # Shape
     if state is None:
         clear_run(files)  # a fresh run must never be confused with (or resumed as) an older one
+        io.write_json(files.run, {"fingerprint": run_fingerprint(exp)})
         V, F = initial_shape(exp, reference)
         if cfg.remesh.method != "none":
             V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method)

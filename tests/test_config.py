@@ -128,3 +128,18 @@ def test_yaml_error_reports_line(tmp_path):
     path.write_text("scene:\n  film: {width: 3\n")
     with pytest.raises(ConfigError, match=r"broken.yaml: line \d+, column \d+: invalid YAML"):
         load_experiment(path)
+
+
+def test_every_shipped_experiment_file_is_valid():
+    """All experiment files in configs/ (demo, validation, benchmarks, both paper scales) parse,
+    and each paper reproduction exists at both scales."""
+    from pathlib import Path
+    from psdr_cli.config import load_experiment
+    root = Path(__file__).resolve().parent.parent / "configs"
+    files = sorted(root.rglob("*.yaml"))
+    assert len(files) > 10
+    for f in files:
+        load_experiment(f)
+    cpu = {f.name for f in (root / "paper" / "cpu").glob("*.yaml")}
+    paper = {f.name for f in (root / "paper" / "paper").glob("*.yaml")}
+    assert cpu == paper and {"fig9_bunny.yaml", "fig10_glass.yaml", "fig10_shadow.yaml"} <= cpu

@@ -360,3 +360,21 @@ def test_variant_experiments_share_the_targets(tmp_path):
     ref = (np.zeros((3, 3)), np.zeros((1, 3), int))
     assert target_key(a, ref, 8) == target_key(b, ref, 8) == target_key(exp, ref, 8)
     assert [label for label, _ in variant_experiments(exp, ["b"])] == ["b"]
+
+
+def test_resume_restarts_when_the_experiment_changed(tmp_path):
+    """--resume continues a run of the same experiment (more iterations extend it) but starts
+    afresh, with a warning, when a key the result depends on has changed."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=3, remesh={"method": "none"})
+    r = run_cli("optimize", write(tmp_path, data))
+    assert r.returncode == 0, r.stderr
+    run = tmp_path / "runs" / "tiny"
+    data["optimize"]["iterations"] = 5
+    r = run_cli("optimize", write(tmp_path, data), "--resume")
+    assert r.returncode == 0 and "changed" not in r.stderr and "resumed from 3" in r.stdout.replace("\n", " ")
+    assert len(log_rows(run)) == 5
+    data["optimize"]["learning_rate"] = 0.02
+    r = run_cli("optimize", write(tmp_path, data), "--resume")
+    assert r.returncode == 0 and "changed since" in (r.stdout + r.stderr).replace("\n", " ")
+    assert len(log_rows(run)) == 5 and "resumed from 0" in r.stdout.replace("\n", " ")
