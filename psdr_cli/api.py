@@ -398,16 +398,17 @@ def write_run_report(folder: Path, ref, runs: list, labels: list, result: Evalua
         series[label] = ([r["iteration"] for r in rows], [r["seconds"] for r in rows], [r["chamfer_l1"] for r in rows])
         last, s = rows[-1], ev.run_summary(run)
         panels.append((f"{label}\nChamfer-L1 {last['chamfer_l1']:.4f}", ev.mesh_view(*ev.load(last["mesh"]), ref[0])))
-        shutil.copyfile(last["mesh"], folder / f"{label}.ply")
+        with io.atomic_path(folder / f"{label}.ply") as tmp:
+            shutil.copyfile(last["mesh"], tmp)
         summary.append({"label": label, "run": str(run), "final": last, **s})
-        table.append(f"| {label} | {s['iterations']} | {s['seconds']:.0f} | {last['chamfer_l1']:.4f} | "
+        table.append(f"| {label} | {s['iterations']} | {s['vertices']} | {s['seconds']:.0f} | {last['chamfer_l1']:.4f} | "
                      f"{last['chamfer_l2']:.2e} | {last['hausdorff']:.3f} | {s['guide_bytes'] / 1024:.0f} KiB | "
                      f"{s['seconds_guiding']:.3f} | {s['seconds_rendering']:.3f} | {s['seconds_post']:.3f} |")
     floor = result.noise_floor["chamfer_l1"]
     plots.chamfer_runs(folder / "chamfer.png", series, floor, title)
     plots.image_grid(folder / "meshes.png", panels, title)
-    header = ["| run | iterations | optimisation s | Chamfer-L1 | Chamfer-L2² | Hausdorff | guide memory | "
-              "guiding s/it | render s/it | post s/it |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    header = ["| run | iterations | vertices | optimisation s | Chamfer-L1 | Chamfer-L2² | Hausdorff | guide memory | "
+              "guiding s/it | render s/it | post s/it |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     with io.atomic_path(folder / "evaluate.md") as tmp:
         Path(tmp).write_text("\n".join(header + table) + f"\n\nSampling noise floor (Chamfer-L1): {floor:.5f}\n")
     io.write_json(folder / "evaluate.json", {"noise_floor": result.noise_floor, "runs": summary})

@@ -241,7 +241,8 @@ def optimize(config: Path = ConfigArg,
         last = f"{res.losses[-1]:.5g}" if res.losses else "—"
         out.print(f"{label + ': ' if label else ''}{res.iterations} iterations (this run: {len(res.losses)}, "
                   f"resumed from {res.resumed_from}); loss {first} → {last}; final mesh {res.final}")
-    out.print(f"outputs in {exp.run_dir} (checkpoints/, previews/, log.csv, loss.png); "
+    where = f"{exp.run_dir}/<variant>/" if exp.optimize.variants else f"{exp.run_dir}/"
+    out.print(f"outputs in {where} (checkpoints/, previews/, log.csv, loss.png); "
               f"evaluate with: psdr evaluate {config}")
 
 

@@ -760,6 +760,8 @@ def parse_run_variant(value, where) -> RunVariant:
     v = RunVariant(label=sec.get("label", string))
     if not v.label or "/" in v.label or v.label in (".", "..") or v.label != v.label.strip():
         raise where.child("label").fail(f"expected a plain folder name, got '{v.label}'")
+    if v.label == "reference":
+        raise where.child("label").fail("'reference' is taken (the report's reference.ply); choose another label")
     v.guiding = sec.get("guiding", choice("none", "grid", "kdtree"), None)
     v.sampling = sec.get("sampling", choice("dir", "light", "mis"), None)
     v.edge_sort = sec.get("edge_sort", boolean, None)

@@ -116,7 +116,13 @@ def run_summary(folder: Path) -> dict:
     if not rows:
         raise PsdrError(f"{log}: no iterations logged")
     mean = lambda key: float(np.mean([float(r[key]) for r in rows]))  # noqa: E731
-    info = json.loads((folder / "optimize.json").read_text()) if (folder / "optimize.json").exists() else {}
+    try:
+        info = json.loads((folder / "optimize.json").read_text())
+    except (OSError, ValueError):
+        info = {}
+    if info.get("iterations") != len(rows):
+        raise PsdrError(f"{folder}: the run is unfinished ({len(rows)} iterations logged, no final result); "
+                        f"finish it with `psdr optimize --resume`")
     return {"iterations": len(rows), "seconds": float(rows[-1]["seconds_total"]),
             "seconds_guiding": mean("seconds_guiding"), "seconds_rendering": mean("seconds_rendering"),
             "seconds_post": mean("seconds_post"), "vertices": int(rows[-1]["vertices"]),

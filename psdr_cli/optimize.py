@@ -371,13 +371,15 @@ def read_log(path: Path, before: int) -> list:
 def run_fingerprint(exp) -> str:
     """Hash of what a run's result depends on: scene, estimator, seed and the optimize section
     except the keys that only extend or observe it (iterations, seconds, checkpoint_every,
-    preview_views). ``--resume`` continues a run only while this is unchanged (runs saved
-    before fingerprints existed are continued)."""
+    preview_views), with paths relative to the experiment's folder. ``--resume`` continues a
+    run only while this is unchanged (runs saved before fingerprints existed are continued and
+    get one). The contents of mesh and image files are not part of it."""
     from dataclasses import replace
     opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
     h = hashlib.sha256()
     for part in (exp.scene, exp.estimator, opt):
-        h.update(json.dumps(asdict(part), default=str, sort_keys=True).encode())
+        text = json.dumps(asdict(part), default=str, sort_keys=True)
+        h.update(text.replace(str(exp.base_dir), "<experiment folder>").encode())  # the checkout may move
     h.update(str(exp.seed).encode())
     return h.hexdigest()[:16]
 
@@ -449,8 +451,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         reference = None
     else:
         reference = ground_truth(exp)
-        if not files.reference.exists():
-            write_mesh(files.reference, *reference)
+        write_mesh(files.reference, *reference)  # the shape this run's targets come from
         targets = render_targets(exp, files, reference)
     n_views = len(targets)
     bad = [v for v in cfg.preview_views if v >= n_views]
@@ -466,6 +467,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         start, values, seconds_so_far = 0, {}, 0.0
         write_mesh(files.checkpoint(0), V, F)
     else:
+        if saved_fingerprint(files) is None:  # a run saved before fingerprints existed
+            io.write_json(files.run, {"fingerprint": run_fingerprint(exp)})
         V, F, start, values, seconds_so_far = state.V, state.F, state.iteration, state.values, state.seconds
     result = OptimizeResult(files.root, resumed_from=start)
     problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else ()))
@@ -557,6 +560,9 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     finally:
         problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
     result.iterations = total
+    if cfg.seconds is not None and cfg.remesh.at and total < max(cfg.remesh.at) and total < (iterations or cfg.iterations):
+        warn(f"the time budget ({cfg.seconds:g} s) ended the run at iteration {total}, before the remesh at "
+             f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")
     write_mesh(files.final, problem.vertices(), problem.F)
     result.final = files.final
     plot_loss(files, read_log(files.log, total))
