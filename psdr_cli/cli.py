@@ -278,8 +278,6 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
                 missing = [str(t) for t in targets if not (t / "log.csv").exists()]
                 if missing:
                     raise PsdrError(f"evaluate: run {missing[0]} does not exist yet (run `psdr optimize {configs[0]}` first)")
-        if reference is None:
-            reference = next((t / "reference.ply" for t in targets if (t / "reference.ply").exists()), None)
     if reference is None:
         runs = [t for t in targets if (t / "reference.ply").exists()]
         if runs:

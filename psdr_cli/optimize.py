@@ -460,16 +460,14 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     # Shape
     if state is None:
         clear_run(files)  # a fresh run must never be confused with (or resumed as) an older one
-        io.write_json(files.run, {"fingerprint": run_fingerprint(exp)})
         V, F = initial_shape(exp, reference)
         if cfg.remesh.method != "none":
             V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method)
         start, values, seconds_so_far = 0, {}, 0.0
         write_mesh(files.checkpoint(0), V, F)
     else:
-        if saved_fingerprint(files) is None:  # a run saved before fingerprints existed
-            io.write_json(files.run, {"fingerprint": run_fingerprint(exp)})
         V, F, start, values, seconds_so_far = state.V, state.F, state.iteration, state.values, state.seconds
+    io.write_json(files.run, {"fingerprint": run_fingerprint(exp)})  # fresh, unchanged, or saved before fingerprints
     result = OptimizeResult(files.root, resumed_from=start)
     problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else ()))
     if state is not None:
