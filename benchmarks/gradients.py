@@ -41,6 +41,7 @@ import platform
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +49,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
+import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+from psdr_cli.compare import rel_mse  # noqa: E402
+from psdr_cli.config import TERMS, load_experiment  # noqa: E402
+from psdr_cli.fileio import atomic_path  # noqa: E402
+from psdr_cli.gradient import forward_gradient, prepare  # noqa: E402
+from psdr_cli.reference import block_sums, finite_difference, mitsuba_projective  # noqa: E402
 
 SCENES = ("silhouette", "shadow", "bunny", "cornell")
 FD_BATCHES = 8
@@ -63,11 +71,6 @@ def log(msg: str):
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def rel_mse(g, ref) -> float:
-    g, ref = np.asarray(g, np.float64), np.asarray(ref, np.float64)
-    return float(np.mean((g - ref) ** 2) / np.mean(ref ** 2))
-
-
 def mean_se(values):
     """Mean and standard error of the mean of independent values."""
     v = np.asarray(values, np.float64)
@@ -77,7 +80,6 @@ def mean_se(values):
 
 def tile_correlation(a, b, block: int = 4) -> float:
     """Correlation of two images' block×block tile sums (channels summed)."""
-    from psdr_cli.reference import block_sums
     x, y = block_sums([a], block)[0].ravel(), block_sums([b], block)[0].ravel()
     if x.std() == 0 or y.std() == 0:
         return float("nan")
@@ -129,10 +131,8 @@ def wait_for_idle(max_seconds: float, threshold: float = 0.2):
 
 
 def write_atomic(path: Path, text: str):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def git_state() -> dict:
@@ -146,8 +146,6 @@ def git_state() -> dict:
 
 
 def machine_info(variant: str) -> dict:
-    import drjit as dr
-    import mitsuba as mi
     cpu = ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -168,31 +166,22 @@ class Bench:
     """One validation scene with both estimators and the finite-difference reference."""
 
     def __init__(self, config: Path, smooth: bool = False):
-        import mitsuba as mi
-        from psdr_cli.api import setup
-        from psdr_cli.config import load_experiment
-        from psdr_cli.estimators.boundary_sampling import BoundaryEdges
-        from psdr_cli.parameters import Parameter
-        from psdr_cli.scene import build_scene
-
         self.config = config
         self.config_text = Path(config).read_text()
         self.exp = load_experiment(config)
         if smooth:  # shading check: every object whose edges are sampled smooth-shaded
             for o in self.exp.scene.objects:
                 o.smooth = o.smooth or o.edges
-        self.variant = setup(self.exp)
+        self.scene, self.parameter, self.edges, settings = prepare(self.exp)
+        self.variant = mi.variant()
         mi.set_log_level(mi.LogLevel.Error)
-        self.scene = build_scene(self.exp)
-        self.parameter = Parameter(self.scene, self.exp.parameter)
-        self.edges = BoundaryEdges.from_scene(self.scene)
+        # every term at the same spp, unguided MIS over unsorted edges, one pass
+        self.settings = settings.with_estimator(sampling="mis", guiding="none", edge_sort=False, passes=1)
         self.max_depth = self.exp.scene.max_depth
 
     def ours(self, spp: int, seed: int):
         """Total gradient image of our estimator (every term at ``spp``) and its wall time."""
-        from psdr_cli.gradient import TERMS, Settings, forward_gradient
-        settings = Settings(spp=spp, primary_spp=spp, boundary_spp=spp, sampling="mis", passes=1,
-                            max_depth=self.max_depth, seed=seed)
+        settings = replace(self.settings.with_estimator(spp=spp, primary_spp=spp, boundary_spp=spp), seed=seed)
         t0 = time.perf_counter()
         estimates = [forward_gradient(self.scene, self.edges, self.parameter, 0, t, settings) for t in TERMS]
         g = sum(e.gradient for e in estimates)
@@ -201,13 +190,11 @@ class Bench:
 
     def mitsuba(self, spp: int, seed: int):
         """Gradient image of Mitsuba's prb_projective (guiding off) and its wall time."""
-        from psdr_cli.reference import mitsuba_projective
         t0 = time.perf_counter()
         g = mitsuba_projective(self.scene, self.parameter, 0, spp, seed=seed, batches=1)[0]
         return g, time.perf_counter() - t0
 
     def fd(self, h: float, spp: int, seed: int):
-        from psdr_cli.reference import finite_difference
         t0 = time.perf_counter()
         batches = finite_difference(self.scene, self.parameter, 0, h, spp, seed=seed, batches=FD_BATCHES)
         return batches, time.perf_counter() - t0

@@ -38,10 +38,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
+import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
+import matplotlib.pyplot as plt  # noqa: E402
+from psdr_cli import fileio, plots  # noqa: E402
+from psdr_cli.compare import Comparison  # noqa: E402
+from psdr_cli.config import SAMPLINGS, Variant, load_experiment  # noqa: E402
 
 SCENES = ("glossy_bunny_sky", "soft_shadow")
-SAMPLINGS = ("light", "dir", "mis")
 CONFIGS = [("none", s, False) for s in SAMPLINGS] + [(g, s, o) for g in ("grid", "kdtree")
                                                      for o in (False, True) for s in SAMPLINGS]
 
@@ -51,8 +54,6 @@ def label(guiding, sampling, sort):
 
 
 def run_scene(name, args, log):
-    from psdr_cli.compare import Comparison, Variant
-    from psdr_cli.config import load_experiment
     b = Comparison(load_experiment(REPO / "configs" / "benchmarks" / f"{name}.yaml"), ("direct",))
     log(f"[{name}] reference: unguided MIS, {args.ref_passes} passes")
     ref, ref_noise, ref_s = b.reference(args.ref_passes)
@@ -60,7 +61,7 @@ def run_scene(name, args, log):
     rows, images = [], {}
     for guiding, sampling, sort in CONFIGS:
         lab = label(guiding, sampling, sort)
-        r = b.measure(Variant(lab, guiding, sampling, sort), ref, ref_noise, args.budget, args.trials)
+        r = b.measure(Variant(lab, guiding=guiding, sampling=sampling, edge_sort=sort), ref, ref_noise, args.budget, args.trials)
         images[lab] = r.image
         row = {"config": lab, "guiding": guiding, "sampling": sampling, "edge_sort": sort,
                "rel_mse": r.rel_mse, "rel_mse_trials": r.rel_mse_trials, "seconds": r.seconds, "passes": r.passes,
@@ -104,8 +105,6 @@ def markdown(results, args):
 
 
 def image_grid(path, name, images, ref, rows):
-    from psdr_cli import plots
-    import matplotlib.pyplot as plt
     err = {r["config"]: r["rel_mse"] for r in rows}
     cols = [(s, o) for o in (False, True) for s in SAMPLINGS]
     fig, axes = plt.subplots(4, 6, figsize=(13, 9))
@@ -137,9 +136,7 @@ def main():
     args = ap.parse_args()
     if args.quick:
         args.budget, args.trials, args.ref_passes = 1.5, 1, 32
-    from psdr_cli import api, io
-    from psdr_cli.config import load_experiment
-    variant = api.setup(load_experiment(REPO / "configs" / "benchmarks" / f"{SCENES[0]}.yaml"))
+    variant = psdr_cli.setup(load_experiment(REPO / "configs" / "benchmarks" / f"{SCENES[0]}.yaml"))
     results = {"date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
                "variant": variant, "budget_seconds": args.budget, "trials": args.trials, "scenes": []}
     t0 = time.perf_counter()
@@ -147,8 +144,8 @@ def main():
         res, images, ref = run_scene(name, args, lambda m: print(m, flush=True))
         results["scenes"].append(res)
         image_grid(args.out / f"guiding_{name}.png", name, images, ref, res["rows"])
-        io.write_json(args.out / "guiding.json", results)
-        with io.atomic_path(args.out / "guiding.md") as tmp:
+        fileio.write_json(args.out / "guiding.json", results)
+        with fileio.atomic_path(args.out / "guiding.md") as tmp:
             Path(tmp).write_text(markdown(results, args))
     print(f"done in {time.perf_counter() - t0:.0f} s → {args.out}/guiding.md")
 

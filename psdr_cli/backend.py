@@ -12,6 +12,7 @@ import os
 import re
 import subprocess
 
+from .config import VARIANTS
 from .errors import PsdrError
 
 #: Oldest LLVM major version Dr.Jit's LLVM backend works with.
@@ -99,14 +100,13 @@ def _require_llvm() -> None:
 
 def cuda_available() -> bool:
     """True when Dr.Jit can use a CUDA device."""
-    import drjit as dr
+    import drjit as dr  # deferred on purpose: configure_environment() must run before drjit loads
     try:
         return bool(dr.has_backend(dr.JitBackend.CUDA))
     except Exception:  # noqa: BLE001 - any driver failure means "no CUDA"
         return False
 
 
-VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
 
 
 def select_variant(variant: str = "auto") -> str:
@@ -122,10 +122,15 @@ def select_variant(variant: str = "auto") -> str:
         variant = "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
     if variant.startswith("llvm"):
         _require_llvm()
-    import mitsuba as mi
+    import mitsuba as mi  # deferred on purpose: Dr.Jit must be configured (libLLVM path) before it loads
     if mi.variant() != variant:
         try:
             mi.set_variant(variant)
         except Exception as exc:  # noqa: BLE001
             raise PsdrError(f"cannot activate Mitsuba variant '{variant}': {exc}") from exc
     return variant
+
+
+def activate(exp) -> str:
+    """Activate an experiment's Mitsuba variant (``variant: auto``: CUDA when present, else LLVM)."""
+    return select_variant(exp.variant)

@@ -14,22 +14,24 @@ samples). Trials use distinct seeds and their errors are averaged.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
+from . import backend, fileio, gradient, plots
+from .config import Experiment, Variant, with_estimator
+from .errors import PsdrError
+from .estimators.boundary_sampling import edge_list
+from .gradient import Settings, make_guides, prepare
+
+#: The variant of the reference image: unguided MIS over unsorted edges.
+REFERENCE = Variant("reference", guiding="none", sampling="mis", edge_sort=False)
+
 
 def rel_mse(g, ref) -> float:
+    """Σ (g − ref)² / Σ ref²."""
     return float(((g - ref) ** 2).sum() / max((ref ** 2).sum(), 1e-30))
-
-
-@dataclass
-class Variant:
-    label: str
-    guiding: str = "none"
-    sampling: str = "mis"
-    edge_sort: bool = False
-    passes: int | None = None   # fixed passes (equal samples); None: the time budget
 
 
 @dataclass
@@ -46,55 +48,41 @@ class Row:
 
     @property
     def build_over_pass(self) -> float:
-        return self.build_seconds / self.pass_seconds if self.variant.guiding != "none" else 0.0
+        return self.build_seconds / self.pass_seconds if self.variant.guiding not in (None, "none") else 0.0
 
 
 class Comparison:
     """One scene and view: the experiment, its Mitsuba scene and edge lists (unsorted, sorted)."""
 
     def __init__(self, exp, terms=("direct",), view: int = 0):
-        from . import api
         self.exp, self.terms, self.view = exp, tuple(terms), view
-        self.scene, self.parameter, _, _ = api.prepare_gradient(exp)
-        self.edges = {s: api.edge_list(self.scene, exp.estimator, s) for s in (False, True)}
+        self.scene, self.parameter, _, _ = prepare(exp)
+        self.edges = {s: edge_list(self.scene, exp.estimator, s) for s in (False, True)}
 
-    def settings(self, variant: Variant, seed: int):
-        from . import api
-        from .gradient import Settings
-        exp = api.with_estimator(self.exp, guiding=variant.guiding, sampling=variant.sampling,
-                                 edge_sort=variant.edge_sort)
-        st = Settings.from_experiment(exp)
-        st.seed = seed
-        return st
+    def settings(self, variant: Variant, seed: int) -> Settings:
+        exp = with_estimator(self.exp, guiding=variant.guiding, sampling=variant.sampling,
+                             edge_sort=variant.edge_sort)
+        return Settings.from_experiment(exp, seed=seed)
 
     def guides(self, variant: Variant, seed: int):
         """(guides, build seconds) for the variant (empty and 0 without guiding)."""
-        from .gradient import make_guides
         t0 = time.perf_counter()
-        g = make_guides(self.scene, self.edges[variant.edge_sort], [self.view], self.terms,
-                        self.settings(variant, seed))
+        st = self.settings(variant, seed)
+        g = make_guides(self.scene, self.edges[st.edge_sort], [self.view], self.terms, st)
         return g, time.perf_counter() - t0
 
     def pass_settings(self, variant: Variant, seed: int, term: str, n: int):
         """Settings of ``n`` passes of ``term``: its per-pass sample count times ``n``
         (a fresh copy per term, so the terms' counts do not compound)."""
         st = self.settings(variant, seed)
-        st.passes = n
-        if term == "interior":
-            st.spp *= n
-        elif term == "primary":
-            st.primary_spp *= n
-        else:
-            st.boundary_spp *= n
-        return st
+        return st.with_samples(term, st.samples(term) * n).with_estimator(passes=n)
 
     def passes(self, variant: Variant, seed: int, n: int, guides):
         """(mean image over n passes of boundary_spp, per-pass images, seconds)."""
-        from .gradient import forward_gradient
         total, images, seconds = None, [], 0.0
         for term in self.terms:
             st = self.pass_settings(variant, seed, term, n)
-            est = forward_gradient(self.scene, self.edges[variant.edge_sort], self.parameter, self.view, term, st,
+            est = gradient.forward_gradient(self.scene, self.edges[st.edge_sort], self.parameter, self.view, term, st,
                                    n, guides=guides)
             images = est.passes if not images else [a + b for a, b in zip(images, est.passes)]
             total = est.gradient if total is None else total + est.gradient
@@ -103,7 +91,7 @@ class Comparison:
 
     def reference(self, passes: int):
         """(image, its own expected relMSE, seconds): unguided MIS with ``passes`` passes."""
-        ref, images, seconds = self.passes(Variant("reference"), 99, passes, None)
+        ref, images, seconds = self.passes(REFERENCE, 99, passes, None)
         noise = float(np.var(images, axis=0, ddof=1).sum() / passes / max((ref ** 2).sum(), 1e-30))
         return ref, noise, seconds
 
@@ -123,7 +111,7 @@ class Comparison:
 
     def measure(self, variant: Variant, ref, ref_noise: float, budget: float, trials: int) -> Row:
         """Warm up (kernel compilation), time one pass, then run the trials."""
-        self.trial(Variant(variant.label, variant.guiding, variant.sampling, variant.edge_sort, 1), 7, 0.0)
+        self.trial(replace(variant, passes=1), 7, 0.0)
         guides, _ = self.guides(variant, 5)
         _, _, pass_seconds = self.passes(variant, 5, 1, guides)
         errs, used, builds, counts, image = [], [], [], [], None
@@ -137,3 +125,63 @@ class Comparison:
                      "evaluations": g.stats.evaluations} for k, g in guides.all()}
         return Row(variant, float(np.mean(errs)), errs, used, counts, float(np.mean(builds)), pass_seconds,
                    stats, image)
+
+
+@dataclass
+class CompareResult:
+    folder: Path
+    rows: list = field(default_factory=list)     # psdr_cli.compare.Row
+    reference_rel_mse: float = 0.0
+
+
+def run_comparison(exp: Experiment, out: Path | None = None, progress=None) -> CompareResult:
+    """Run the experiment's ``compare:`` section ; writes
+    ``compare.json``, ``compare.md``, ``grid.png`` and one EXR per variant to
+    ``<output>/<name>/compare/``."""
+    cfg = exp.compare
+    if cfg is None:
+        raise PsdrError(f"{exp.file}: compare: missing (expected variants: [{{label: ..., guiding: ...}}, ...])")
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (compare needs the scalar θ of the gradient)")
+    if cfg.view >= len(exp.scene.cameras):
+        raise PsdrError(f"{exp.file}: compare.view: view {cfg.view} does not exist (0..{len(exp.scene.cameras) - 1})")
+    backend.activate(exp)
+    folder = exp.command_dir("compare", out)
+    c = Comparison(exp, cfg.terms, cfg.view)
+    if progress:
+        progress.start(len(cfg.variants) + 1)
+    ref, noise, ref_s = c.reference(cfg.reference_passes)
+    if progress:
+        progress.advance(1)
+    result = CompareResult(folder, reference_rel_mse=noise)
+    for v in cfg.variants:
+        row = c.measure(v, ref, noise, cfg.budget_seconds, cfg.trials)
+        result.rows.append(row)
+        fileio.write_rgb_exr(folder / f"{v.label.replace('/', '_').replace(' ', '_')}.exr", row.image,
+                         {"psdr.variant": v.label, "psdr.rel_mse": f"{row.rel_mse:.6g}"})
+        if progress:
+            progress.advance(1)
+    fileio.write_rgb_exr(folder / "reference.exr", ref, {"psdr.passes": str(cfg.reference_passes)})
+    plots.gradient_grid(folder / "grid.png", ref, [(r.variant.label, r.image, r.rel_mse) for r in result.rows],
+                        f"{exp.name}: {'+'.join(cfg.terms)} gradient, "
+                        + (f"{cfg.budget_seconds:g} s per variant" if any(v.passes is None for v in cfg.variants)
+                           else "equal samples"))
+    table = ["| variant | guiding | sampling | sorted | budget | relMSE | passes | build s | build / pass |",
+             "|---|---|---|---|---|---:|---:|---:|---:|"]
+    for r in result.rows:
+        v = r.variant
+        table.append(f"| {v.label} | {v.guiding} | {v.sampling} | {'yes' if v.edge_sort else 'no'} | "
+                     f"{f'{v.passes} passes' if v.passes else f'{cfg.budget_seconds:g} s'} | {r.rel_mse:.4g} | "
+                     f"{int(np.mean(r.passes))} | {r.build_seconds:.2f} | {r.build_over_pass:.1f} |")
+    with fileio.atomic_path(folder / "compare.md") as tmp:
+        Path(tmp).write_text("\n".join(table) + "\n")
+    fileio.write_json(folder / "compare.json", {
+        "experiment": str(exp.file), "terms": list(cfg.terms), "view": cfg.view, "budget_seconds": cfg.budget_seconds,
+        "trials": cfg.trials, "reference_passes": cfg.reference_passes, "reference_seconds": ref_s,
+        "reference_rel_mse": noise,
+        "variants": [{"label": r.variant.label, "guiding": r.variant.guiding, "sampling": r.variant.sampling,
+                      "edge_sort": r.variant.edge_sort, "fixed_passes": r.variant.passes, "rel_mse": r.rel_mse,
+                      "rel_mse_trials": r.rel_mse_trials, "seconds": r.seconds, "passes": r.passes,
+                      "build_seconds": r.build_seconds, "pass_seconds": r.pass_seconds, "guides": r.guides}
+                     for r in result.rows]})
+    return result

@@ -8,15 +8,29 @@ Unknown keys are errors, so a typo never passes silently. The key reference is `
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
 
-from .errors import ConfigError
+from .errors import ConfigError, PsdrError
 
 REQUIRED = object()
+
+# --------------------------------------------------------------------------------------------
+# Vocabularies: every name a key or command-line option accepts is defined here, once.
+# --------------------------------------------------------------------------------------------
+#: Terms of dI/dθ = interior + primary + direct + indirect (in this order).
+TERMS = ("interior", "primary", "direct", "indirect")
+#: Boundary guides over the primary samples u.
+GUIDINGS = ("none", "grid", "kdtree")
+#: Direction techniques of the boundary terms (``mis``: both, balance heuristic).
+SAMPLINGS = ("dir", "light", "mis")
+#: Remeshers (``none``: keep the mesh; a scheduled remesh then uses ``isotropic``).
+REMESH_METHODS = ("instant", "isotropic", "none")
+#: Mitsuba variants (``auto``: CUDA when present, else LLVM).
+VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
 
 
 # --------------------------------------------------------------------------------------------
@@ -334,24 +348,27 @@ class OptimizeConfig:
     envmap_init_deg: float = 0.0
     envmap_learning_rate: float = 0.01
     seconds: float | None = None           # wall-clock budget of the optimisation (equal-time runs)
-    variants: tuple = ()                   # of RunVariant: one run folder each, <output>/<name>/<label>
+    variants: tuple = ()                   # of Variant: one run folder each, <output>/<name>/<label>
     target_seed: int | None = None         # not a YAML key: a variant's targets use its base experiment's seed
 
 
 @dataclass
-class RunVariant:
-    """One run of an ablation: its folder label and the estimator keys (and seed) it overrides
-    (None: keep). The targets do not depend on the seed of the run."""
+class Variant:
+    """One estimator variant: a run of an ablation (``optimize.variants``) or an entry of a
+    comparison (``compare.variants``). ``None`` keeps the experiment's value. ``seed`` gives a
+    run another seed (replicate runs; the targets do not depend on it); ``passes`` gives a
+    comparison entry a fixed number of passes (equal samples) instead of the time budget."""
     label: str
     guiding: str | None = None
     sampling: str | None = None
     edge_sort: bool | None = None
-    seed: int | None = None                # replicate runs: another seed, same everything else
+    seed: int | None = None
+    passes: int | None = None
 
 
 @dataclass
 class CompareConfig:
-    variants: list                       # of psdr_cli.compare.Variant
+    variants: list                       # of Variant (guiding, sampling, edge_sort always set)
     terms: tuple = ("direct",)
     view: int = 0
     budget_seconds: float = 6.0
@@ -389,6 +406,10 @@ class Experiment:
     def run_dir(self) -> Path:
         return self.output / self.name
 
+    def command_dir(self, command: str, out: Path | None = None) -> Path:
+        """Output folder of a command: ``<output>/<name>/<command>`` (``out`` replaces ``output``)."""
+        return (Path(out).resolve() / self.name if out else self.run_dir) / command
+
 
 # --------------------------------------------------------------------------------------------
 # Sections
@@ -410,9 +431,6 @@ SHAPE_PARAMS = {
               "major_sections": integer(3), "minor_sections": integer(3)},
     "bunny": {"size": number(positive=True), "faces": integer(100)},
 }
-TERMS = ("interior", "primary", "direct", "indirect")
-
-
 def _bsdf_value(value, where):
     if isinstance(value, str):
         return value
@@ -565,6 +583,10 @@ def orbit_cameras(count, radius, elevation_deg, azimuth_deg, target, fov, up=(0.
 
 
 def parse_cameras(value, where) -> list:
+    """A list of cameras and ``orbit:`` rings; a single ``{orbit: {...}}`` mapping is accepted
+    as a one-item list."""
+    if isinstance(value, dict) and set(value) == {"orbit"}:
+        value = [value]
     items = list_of(lambda v, w: (v, w), min_len=1)(value, where)
     cams = []
     for v, w in items:
@@ -640,6 +662,52 @@ def parse_parameter(value, where) -> ParameterConfig:
     return ParameterConfig(kind=kind, object=obj, axis=axis if kind == "scale" else _unit(axis))
 
 
+def parse_views(views, count: int) -> list[int]:
+    """View indices from None (all), a list of ints, or a string like '0,3' or '0-2,5'."""
+    if views is None:
+        return list(range(count))
+    if isinstance(views, str):
+        out = []
+        for part in filter(None, (p.strip() for p in views.split(","))):
+            try:
+                if "-" in part:
+                    a, b = (int(x) for x in part.split("-", 1))
+                    out.extend(range(a, b + 1))
+                else:
+                    out.append(int(part))
+            except ValueError:
+                raise PsdrError(f"--views: cannot read '{part}' (expected indices like 0,3 or 0-2)") from None
+        views = out
+    bad = [v for v in views if not 0 <= v < count]
+    if bad or not views:
+        raise PsdrError(f"--views: view {bad[0] if bad else '(none)'} does not exist "
+                        f"(the experiment has views 0..{count - 1})")
+    return sorted(set(views))
+
+
+def parse_terms(terms) -> tuple | None:
+    """Terms from a comma-separated string or a list, in :data:`TERMS` order (None: None)."""
+    if terms is None:
+        return None
+    names = [t.strip() for t in terms.split(",")] if isinstance(terms, str) else list(terms)
+    bad = [t for t in names if t not in TERMS]
+    if bad or not names:
+        raise PsdrError(f"--terms: unknown term '{bad[0] if bad else ''}' (expected a comma-separated "
+                        f"subset of {','.join(TERMS)})")
+    return tuple(t for t in TERMS if t in names)
+
+
+def with_estimator(exp: "Experiment", **overrides) -> "Experiment":
+    """The experiment with estimator keys replaced (``None`` values are ignored); values are
+    checked like the YAML keys: ``sampling`` in :data:`SAMPLINGS`, ``guiding`` in :data:`GUIDINGS`."""
+    allowed = {"sampling": SAMPLINGS, "guiding": GUIDINGS}
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    for key, value in changes.items():
+        if key in allowed and value not in allowed[key]:
+            raise PsdrError(f"--{key.replace('_', '-')}: expected one of {', '.join(allowed[key])}, got '{value}'")
+    return replace(exp, estimator=replace(exp.estimator, **changes)) if changes else exp
+
+
 def _terms(value, where):
     if isinstance(value, str):
         value = [t.strip() for t in value.split(",") if t.strip()]
@@ -654,8 +722,8 @@ def parse_estimator(value, where) -> EstimatorConfig:
     est.primary_spp = sec.get("primary_spp", integer(1), est.primary_spp)
     est.boundary_spp = sec.get("boundary_spp", integer(1), est.boundary_spp)
     est.terms = sec.get("terms", _terms, est.terms)
-    est.sampling = sec.get("sampling", choice("dir", "light", "mis"), est.sampling)
-    est.guiding = sec.get("guiding", choice("none", "grid", "kdtree"), est.guiding)
+    est.sampling = sec.get("sampling", choice(*SAMPLINGS), est.sampling)
+    est.guiding = sec.get("guiding", choice(*GUIDINGS), est.guiding)
     est.passes = sec.get("passes", integer(1), est.passes)
     est.guide_epsilon = sec.get("guide_epsilon", number(minimum=0, maximum=1), est.guide_epsilon)
     est.edge_sort = sec.get("edge_sort", boolean, est.edge_sort)
@@ -691,7 +759,7 @@ def parse_estimator(value, where) -> EstimatorConfig:
 def parse_remesh(value, where) -> RemeshConfig:
     sec = Section(value, where)
     r = RemeshConfig()
-    r.method = sec.get("method", choice("instant", "isotropic", "none"), r.method)
+    r.method = sec.get("method", choice(*REMESH_METHODS), r.method)
     r.initial = sec.get("initial", integer(50), r.initial)
     r.at = tuple(sec.get("at", list_of(integer(1)), []))
     r.vertices = tuple(sec.get("vertices", list_of(integer(50)), []))
@@ -707,11 +775,17 @@ def parse_remesh(value, where) -> RemeshConfig:
 def parse_optimize(base: Path) -> Parser:
     def parse(value, where) -> OptimizeConfig:
         sec = Section(value, where)
-        o = OptimizeConfig(object=sec.get("object", string))
+        o = OptimizeConfig(object=sec.get("object", string, None))
         if sec.has("target"):
             t = Section(sec.get("target", lambda v, _: v), where.child("target"))
             if t.has("images") and t.has("mesh"):
                 raise where.child("target").fail("give either 'images' or 'mesh', not both")
+            if t.has("object"):  # target: {object: NAME} is an alias of object: NAME
+                name = t.get("object", string)
+                if o.object is not None and o.object != name:
+                    raise where.child("target").child("object").fail(
+                        f"'{name}' contradicts optimize.object '{o.object}' (give one of them)")
+                o.object = name
             o.target_images = t.get("images", string, None)
             if o.target_images is not None and not Path(o.target_images).is_absolute():
                 o.target_images = str(base / o.target_images)
@@ -723,6 +797,8 @@ def parse_optimize(base: Path) -> Parser:
             o.init = i.get("mesh", parse_mesh(base))
             o.init_transform = i.get("transform", parse_transform, TransformConfig())
             i.done()
+        if o.object is None:
+            raise where.child("object").fail("missing (the object to reconstruct; or target: {object: NAME})")
         o.remesh = sec.get("remesh", parse_remesh, RemeshConfig())
         o.iterations = sec.get("iterations", integer(1), o.iterations)
         o.batch_size = sec.get("batch_size", integer(1), o.batch_size)
@@ -747,45 +823,51 @@ def parse_optimize(base: Path) -> Parser:
         o.seconds = sec.get("seconds", number(positive=True), None)
         if sec.has("variants"):
             o.variants = tuple(sec.get("variants", list_of(parse_run_variant, min_len=1)))
-            labels = [v.label for v in o.variants]
-            if len(set(labels)) != len(labels):
-                raise where.child("variants").fail("variant labels must be unique")
+            unique_labels(o.variants, where)
         sec.done()
         return o
     return parse
 
 
-def parse_run_variant(value, where) -> RunVariant:
+def parse_variant(value, where, guiding=None, sampling=None, edge_sort=None) -> Variant:
+    """A variant mapping; the keyword arguments are the defaults of the keys it leaves out."""
     sec = Section(value, where)
-    v = RunVariant(label=sec.get("label", string))
+    v = Variant(label=sec.get("label", string),
+                guiding=sec.get("guiding", choice(*GUIDINGS), guiding),
+                sampling=sec.get("sampling", choice(*SAMPLINGS), sampling),
+                edge_sort=sec.get("edge_sort", boolean, edge_sort))
+    return v, sec
+
+
+def parse_run_variant(value, where) -> Variant:
+    v, sec = parse_variant(value, where)
     if not v.label or "/" in v.label or v.label in (".", "..") or v.label != v.label.strip():
         raise where.child("label").fail(f"expected a plain folder name, got '{v.label}'")
     if v.label == "reference":
         raise where.child("label").fail("'reference' is taken (the report's reference.ply); choose another label")
-    v.guiding = sec.get("guiding", choice("none", "grid", "kdtree"), None)
-    v.sampling = sec.get("sampling", choice("dir", "light", "mis"), None)
-    v.edge_sort = sec.get("edge_sort", boolean, None)
     v.seed = sec.get("seed", integer(0), None)
     sec.done()
     return v
 
 
-def parse_compare(value, where) -> CompareConfig:
-    from .compare import Variant
-    sec = Section(value, where)
-    variants = []
-    for v, w in sec.get("variants", list_of(lambda x, wh: (x, wh), min_len=1)):
-        vs = Section(v, w)
-        variants.append(Variant(label=vs.get("label", string),
-                                guiding=vs.get("guiding", choice("none", "grid", "kdtree"), "none"),
-                                sampling=vs.get("sampling", choice("dir", "light", "mis"), "mis"),
-                                edge_sort=vs.get("edge_sort", boolean, False),
-                                passes=vs.get("passes", integer(1), None)))
-        vs.done()
+def parse_compare_variant(value, where) -> Variant:
+    """A comparison entry: unguided, MIS and unsorted unless it says otherwise."""
+    v, sec = parse_variant(value, where, guiding="none", sampling="mis", edge_sort=False)
+    v.passes = sec.get("passes", integer(1), None)
+    sec.done()
+    return v
+
+
+def unique_labels(variants, where):
     labels = [v.label for v in variants]
     if len(set(labels)) != len(labels):
         raise where.child("variants").fail("variant labels must be unique")
-    c = CompareConfig(variants=variants)
+
+
+def parse_compare(value, where) -> CompareConfig:
+    sec = Section(value, where)
+    c = CompareConfig(variants=sec.get("variants", list_of(parse_compare_variant, min_len=1)))
+    unique_labels(c.variants, where)
     c.terms = sec.get("terms", _terms, c.terms)
     c.view = sec.get("view", integer(0), c.view)
     c.budget_seconds = sec.get("budget_seconds", number(positive=True), c.budget_seconds)
@@ -822,7 +904,7 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
         name=sec.get("name", string, file.stem),
         output=(Path(cwd or Path.cwd()) / out).resolve(),
         seed=sec.get("seed", integer(0), 0),
-        variant=sec.get("variant", choice("auto", "llvm_ad_rgb", "cuda_ad_rgb"), "auto"),
+        variant=sec.get("variant", choice(*VARIANTS), "auto"),
         scene=sec.get("scene", parse_scene(base)),
         parameter=sec.get("parameter", parse_parameter, None),
         estimator=sec.get("estimator", parse_estimator, EstimatorConfig()),

@@ -13,13 +13,20 @@ surface are on average ~0.5/√N·(area)^½ apart; :func:`noise_floor` measures 
 """
 from __future__ import annotations
 
-import csv
-from dataclasses import dataclass
+import shutil
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+from scipy.spatial import cKDTree
 
+from . import backend, fileio, plots
+from .config import load_experiment
 from .errors import PsdrError
+from .meshes import face_areas, read_mesh_file
+from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
+from .scene import look_at, mitsuba_mesh
 
 
 @dataclass
@@ -31,7 +38,6 @@ class Distance:
 
 def load(path: Path):
     """(V, F) of a PLY/OBJ mesh with one-line errors for missing, unreadable or empty files."""
-    from .meshes import read_mesh_file
     path = Path(path)
     if not path.exists():
         raise PsdrError(f"{path}: file not found")
@@ -52,7 +58,6 @@ def normalisation(V):
 
 def surface_points(V, F, n: int, seed: int):
     """n points uniformly distributed by area on the triangles (V, F)."""
-    from .meshes import face_areas
     rng = np.random.default_rng(seed)
     area = face_areas(V, F)
     if not area.sum() > 0:
@@ -67,7 +72,6 @@ def surface_points(V, F, n: int, seed: int):
 def distance(mesh, reference, samples: int = 100_000, seed: int = 0) -> Distance:
     """Chamfer (L1, squared L2) and Hausdorff distance of ``mesh`` to ``reference`` (each (V, F)),
     both normalised with the reference's bounding box."""
-    from scipy.spatial import cKDTree
     centre, scale = normalisation(reference[0])
     P = surface_points((mesh[0] - centre) * scale, mesh[1], samples, seed)
     Q = surface_points((reference[0] - centre) * scale, reference[1], samples, seed + 1)
@@ -82,60 +86,10 @@ def noise_floor(reference, samples: int = 100_000, seed: int = 0) -> Distance:
     return distance(reference, reference, samples, seed + 1000)
 
 
-def run_checkpoints(folder: Path):
-    """[(iteration, path)] of a ``psdr optimize`` run folder (initial shape, checkpoints, final)."""
-    folder = Path(folder)
-    found = sorted((int(p.stem.split("_")[1]), p) for p in (folder / "checkpoints").glob("iter_*.ply"))
-    if not found:
-        raise PsdrError(f"{folder}: no checkpoints (expected checkpoints/iter_NNNN.ply from `psdr optimize`)")
-    return found
-
-
-def run_seconds(folder: Path) -> dict:
-    """{iteration: optimisation seconds so far} from the run's log.csv (iteration i ends at i+1)."""
-    log = Path(folder) / "log.csv"
-    if not log.exists():
-        return {}
-    with open(log, newline="") as f:
-        return {int(r["iteration"]) + 1: float(r["seconds_total"]) for r in csv.DictReader(f)}
-
-
-def run_summary(folder: Path) -> dict:
-    """Per-iteration time split and guide memory of a ``psdr optimize`` run (the columns of the
-    paper's Table 2), from its log.csv and optimize.json:
-
-        guiding / rendering / post-processing seconds = mean over the logged iterations,
-        guide memory = the largest guide set built (bytes)."""
-    import json
-    folder = Path(folder)
-    log = folder / "log.csv"
-    if not log.exists():
-        raise PsdrError(f"{folder}: no log.csv (expected a `psdr optimize` run folder)")
-    with open(log, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise PsdrError(f"{log}: no iterations logged")
-    mean = lambda key: float(np.mean([float(r[key]) for r in rows]))  # noqa: E731
-    try:
-        info = json.loads((folder / "optimize.json").read_text())
-    except (OSError, ValueError):
-        info = {}
-    if info.get("iterations") != len(rows):
-        raise PsdrError(f"{folder}: the run is unfinished ({len(rows)} iterations logged, no final result); "
-                        f"finish it with `psdr optimize --resume`")
-    return {"iterations": len(rows), "seconds": float(rows[-1]["seconds_total"]),
-            "seconds_guiding": mean("seconds_guiding"), "seconds_rendering": mean("seconds_rendering"),
-            "seconds_post": mean("seconds_post"), "vertices": int(rows[-1]["vertices"]),
-            "guide_bytes": max(int(r.get("guide_bytes") or 0) for r in rows), "views": info.get("views")}
-
-
 def mesh_view(V, F, reference_V, size: int = 160, spp: int = 64, direction=(0.55, -1.0, 0.45)) -> np.ndarray:
     """A neutral picture of a mesh for side-by-side comparisons (H, W, 3 in [0, 1] sRGB): grey
     two-sided diffuse under a constant sky and a directional key light, framed on the *reference's*
     bounding sphere so that all meshes of one comparison share the camera."""
-    import mitsuba as mi
-    from .io import srgb
-    from .scene import look_at, mitsuba_mesh
     lo, hi = reference_V.min(0), reference_V.max(0)
     centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
     d = np.asarray(direction, float) / np.linalg.norm(direction)
@@ -148,4 +102,182 @@ def mesh_view(V, F, reference_V, size: int = 160, spp: int = 64, direction=(0.55
         "mesh": mitsuba_mesh("mesh", V, F, {"type": "twosided", "bsdf": {
             "type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}}),
     })
-    return srgb(np.asarray(mi.render(scene, spp=spp), np.float64)[..., :3])
+    return fileio.srgb(np.asarray(mi.render(scene, spp=spp), np.float64)[..., :3])
+
+
+# --------------------------------------------------------------------------------------------
+# psdr evaluate
+# --------------------------------------------------------------------------------------------
+@dataclass
+class EvaluateResult:
+    reference: Path
+    rows: list = field(default_factory=list)       # {mesh, iteration, seconds, chamfer_l1, chamfer_l2, hausdorff}
+    noise_floor: dict = field(default_factory=dict)
+    plots: list = field(default_factory=list)
+    report: Path | None = None
+
+
+def evaluate_meshes(reference: Path, paths, samples: int = 100_000, seed: int = 0, json_out: Path | None = None,
+             progress=None, report: Path | None = None, labels: list | None = None, title: str = "") -> EvaluateResult:
+    """Chamfer/Hausdorff distances of meshes (or of every checkpoint of run folders) to
+    ``reference``; a run folder also gets ``chamfer.png`` (distance against iteration and time)."""
+    if samples < 100:
+        raise PsdrError(f"--samples: expected at least 100 points, got {samples}")
+    ref = load(reference)
+    jobs = []  # (label, path, iteration, seconds, run folder)
+    for p in map(Path, paths):
+        if p.is_dir():
+            secs = run_seconds(p)
+            jobs += [(str(path), path, i, secs.get(i, 0.0 if i == 0 else None), p) for i, path in run_checkpoints(p)]
+        else:
+            jobs.append((str(p), p, None, None, None))
+    if not jobs:
+        raise PsdrError("evaluate: no meshes given (expected mesh files or `psdr optimize` run folders)")
+    result = EvaluateResult(Path(reference), noise_floor=asdict(noise_floor(ref, samples, seed)))
+    if progress:
+        progress.start(len(jobs))
+    for label, path, iteration, seconds, run in jobs:
+        d = distance(load(path), ref, samples, seed)
+        result.rows.append({"mesh": label, "run": str(run) if run else None, "iteration": iteration,
+                            "seconds": seconds, **asdict(d)})
+        if progress:
+            progress.advance(1)
+    for run in sorted({r["run"] for r in result.rows if r["run"]}):
+        rows = [r for r in result.rows if r["run"] == run]
+        png = Path(run) / "chamfer.png"
+        it = [r["iteration"] for r in rows]
+        timed = [r for r in rows if r["seconds"] is not None]
+        plots.chamfer(png, it, [r["chamfer_l1"] for r in rows], [r["seconds"] for r in timed],
+                      [r["chamfer_l1"] for r in timed], result.noise_floor["chamfer_l1"])
+        result.plots.append(png)
+    if json_out:
+        fileio.write_json(Path(json_out), {"reference": str(reference), "samples": samples, "seed": seed,
+                                       "noise_floor": result.noise_floor, "meshes": result.rows})
+    if report:
+        runs = [Path(p) for p in paths if Path(p).is_dir()]
+        result.report = write_run_report(Path(report), ref, runs, labels or [p.name for p in runs], result, title)
+    return result
+
+
+def write_run_report(folder: Path, ref, runs: list, labels: list, result: EvaluateResult, title: str = "") -> Path:
+    """Side-by-side report of several runs in ``folder``: ``chamfer.png`` (Chamfer against
+    iteration and time, one line per run), ``meshes.png`` (reference and final meshes, neutral
+    shading, final Chamfer-L1 under each), ``evaluate.md`` (final distances and the Table 2 time
+    split per run), ``evaluate.json`` and a copy of each final mesh as ``<label>.ply``."""
+    backend.select_variant("auto")  # the mesh pictures render with Mitsuba
+    folder.mkdir(parents=True, exist_ok=True)
+    series, panels, table, summary = {}, [("reference", mesh_view(*ref, ref[0]))], [], []
+    for run, label in zip(runs, labels):
+        rows = [r for r in result.rows if r["run"] == str(run)]
+        series[label] = ([r["iteration"] for r in rows], [r["seconds"] for r in rows], [r["chamfer_l1"] for r in rows])
+        last, s = rows[-1], run_summary(run)
+        panels.append((f"{label}\nChamfer-L1 {last['chamfer_l1']:.4f}", mesh_view(*load(last["mesh"]), ref[0])))
+        with fileio.atomic_path(folder / f"{label}.ply") as tmp:
+            shutil.copyfile(last["mesh"], tmp)
+        summary.append({"label": label, "run": str(run), "final": last, **s})
+        table.append(f"| {label} | {s['iterations']} | {s['vertices']} | {s['seconds']:.0f} | {last['chamfer_l1']:.4f} | "
+                     f"{last['chamfer_l2']:.2e} | {last['hausdorff']:.3f} | {s['guide_bytes'] / 1024:.0f} KiB | "
+                     f"{s['seconds_guiding']:.3f} | {s['seconds_rendering']:.3f} | {s['seconds_post']:.3f} |")
+    floor = result.noise_floor["chamfer_l1"]
+    plots.chamfer_runs(folder / "chamfer.png", series, floor, title)
+    plots.image_grid(folder / "meshes.png", panels, title)
+    header = ["| run | iterations | vertices | optimisation s | Chamfer-L1 | Chamfer-L2² | Hausdorff | guide memory | "
+              "guiding s/it | render s/it | post s/it |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    with fileio.atomic_path(folder / "evaluate.md") as tmp:
+        Path(tmp).write_text("\n".join(header + table) + f"\n\nSampling noise floor (Chamfer-L1): {floor:.5f}\n")
+    fileio.write_json(folder / "evaluate.json", {"noise_floor": result.noise_floor, "runs": summary})
+    with fileio.atomic_path(folder / "reference.ply") as tmp:
+        shutil.copyfile(result.reference, tmp)
+    return folder
+
+
+def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = None, report: Path | None = None):
+    """What ``psdr evaluate PATH…`` compares: (reference, meshes or run folders, samples, seed,
+    report folder, labels, title). An experiment file among ``paths`` names its runs (all its
+    variants, reported side by side) and its ``evaluate:`` defaults; the reference is, in this
+    order, ``reference``, ``evaluate.reference``, or the first run's ``reference.ply``."""
+    paths = [str(p) for p in paths or []]
+    seed, labels, title = 0, None, ""
+    configs = [p for p in paths if p.endswith((".yaml", ".yml"))]
+    targets = [Path(p) for p in paths if not p.endswith((".yaml", ".yml"))]
+    if len(configs) > 1:
+        raise PsdrError("evaluate: give at most one experiment file")
+    if configs:
+        exp = load_experiment(configs[0])
+        if exp.evaluate:
+            reference = reference or exp.evaluate.reference
+            samples = samples or exp.evaluate.samples
+            seed = exp.evaluate.seed
+        if not targets:
+            runs = variant_experiments(exp) if exp.optimize else [(None, exp)]
+            targets = [e.run_dir for _, e in runs]
+            if runs[0][0] is not None:
+                labels, title = [label for label, _ in runs], exp.name
+                report = report or exp.run_dir
+                existing_runs(exp, "evaluate")
+    if reference is None:
+        runs = [t for t in targets if RunFiles(t).reference.exists()]
+        if runs:
+            reference = RunFiles(runs[0]).reference
+    if reference is None:
+        raise PsdrError("evaluate: no reference mesh (give --reference gt.ply, evaluate.reference in the "
+                        "experiment, or a run folder with reference.ply)")
+    if not targets:
+        raise PsdrError("evaluate: nothing to evaluate (give meshes or `psdr optimize` run folders)")
+    return reference, targets, samples or 100_000, seed, report, labels, title
+
+
+# --------------------------------------------------------------------------------------------
+# psdr table2
+# --------------------------------------------------------------------------------------------
+#: The paper's Table 2 (Yan et al. 2022; 32-core Threadripper Pro 3975WX + RTX Titan), for reference:
+#: (scene, figure, target images, parameters, batch size, iterations, guiding memory, guiding s,
+#: render s, post-processing s) per iteration.
+PAPER_TABLE2 = (
+    ("Dodoco", "Fig. 1", 70, "450,000", 2, 3000, "4 MB", 1.34, 2.59, 0.310),
+    ("Jumpy Dumpty", "Fig. 9", 140, "60,000", 2, 520, "2 MB", 0.61, 1.11, 0.016),
+    ("Klee", "Fig. 9", 40, "60,000", 1, 200, "2 MB", 0.33, 0.82, 0.016),
+    ("Kirby", "Fig. 10", 35, "15,000", 1, 400, "80 KB", 0.91, 3.67, 0.017),
+    ("Bunny in glass", "Fig. 10", 50, "30,000", 2, 2000, "128 KB", 1.79, 17.55, 0.022),
+    ("Bunny shadow 2", "Fig. 10", 70, "30,000", 2, 600, "2 MB", 0.47, 0.72, 0.012),
+    ("Duck", "Fig. 11", 35, "3,205,728", 1, 400, "2 MB", 0.34, 0.94, 0.092),
+    ("Mora", "Fig. 11", 70, "150,001", 1, 1600, "4 MB", 0.43, 1.01, 0.109),
+    ("Glass Dodoco", "Fig. 11", 140, "60,000", 1, 700, "400 KB", 0.94, 5.76, 0.093),
+)
+
+
+def table2(experiments: list, out: Path) -> Path:
+    """The paper's Table 2 for our runs: per run of each experiment (all its optimize.variants),
+    the configuration (target images, image size, samples, parameters = 3 × vertices, batch
+    size, iterations) and the measured per-iteration time split (guiding, rendering,
+    post-processing) and guide memory, from the runs' logs; the paper's own rows follow,
+    labelled as such. Written as markdown to ``out``."""
+    rows = ["| experiment | run | target images | image | spp (int/prim/bdry) | # param. | batch | # iter. | "
+            "guide memory | guiding s/it | render s/it | post s/it |",
+            "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for exp in experiments:
+        if exp.optimize is None:
+            raise PsdrError(f"{exp.file}: optimize: missing (table2 reports `psdr optimize` runs)")
+        existing_runs(exp, "table2")
+        for label, run in variant_experiments(exp):
+            s, e = run_summary(run.run_dir), run.estimator
+            memory = f"{s['guide_bytes'] / 1024:.0f} KiB" if s["guide_bytes"] else "—"
+            rows.append(f"| {exp.name} | {label or '—'} | {s['views'] or len(exp.scene.cameras)} | "
+                        f"{exp.scene.width}×{exp.scene.height} | {e.spp}/{e.primary_spp}/{e.boundary_spp} | "
+                        f"{3 * s['vertices']:,} | {exp.optimize.batch_size} | {s['iterations']} | {memory} | "
+                        f"{s['seconds_guiding']:.3f} s | {s['seconds_rendering']:.3f} s | {s['seconds_post']:.3f} s |")
+    paper = ["| scene | figure | target images | # param. | batch | # iter. | guide memory | guiding s/it | "
+             "render s/it | post s/it |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    paper += [f"| {r[0]} | {r[1]} | {r[2]} | {r[3]} | {r[4]} | {r[5]} | {r[6]} | {r[7]:.2f} s | {r[8]:.2f} s | "
+              f"{r[9]:.3f} s |" for r in PAPER_TABLE2]
+    text = ("## Our runs (measured on this machine)\n\n" + "\n".join(rows) +
+            "\n\nGuiding: building the guides (amortised: rebuilt every `guide_every` iterations); render: the "
+            "differentiable rendering of the mini-batch and its backward pass; post: the large-steps update, "
+            "edge extraction and scene update.\n\n"
+            "## The paper's Table 2 (for reference; their hardware: 32-core CPU and an RTX Titan GPU)\n\n"
+            + "\n".join(paper) + "\n")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with fileio.atomic_path(out) as tmp:
+        Path(tmp).write_text(text)
+    return out

@@ -8,60 +8,117 @@ parameters, :func:`ad_image` + ``dr.backward``).
 """
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import backend, fileio
+from .config import TERMS, EstimatorConfig, Experiment, parse_terms, parse_views
+from .errors import PsdrError
 from .estimators import interior
-from .estimators.boundary_sampling import BoundaryEdges
+from .estimators.boundary_sampling import BoundaryEdges, edge_list
+from .estimators.camera import camera_rays
 from .estimators.direct import direct_boundary
 from .estimators.indirect import indirect_boundary
+from .estimators.passes import AD_LANES, make_sampler, pass_seed, passes_for
 from .estimators.primary import primary_boundary
-from .render import camera_rays, make_sampler, pass_seed
-
-TERMS = ("interior", "primary", "direct", "indirect")
-#: Upper bound on the lanes of one differentiable pass (AD graphs are larger than primal ones).
-AD_LANES = 1 << 20
+from .guiding.targets import Guides, build_guides
+from .parameters import Parameter
+from .reference import agreement, finite_difference
+from .render import render_view
+from .scene import build_scene
 
 
 @dataclass
 class Settings:
-    """Sample counts (per pixel) and techniques of one gradient estimate."""
-    spp: int = 64
-    primary_spp: int = 16
-    boundary_spp: int = 16
-    sampling: str = "mis"
-    passes: int = 1
+    """What one gradient estimate uses: the experiment's validated estimator configuration
+    (sample counts, techniques, guide parameters; per-call overrides are copies of it) and the
+    scene's path depth and the seed."""
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     max_depth: int = 3
     seed: int = 0
-    guiding: str = "none"
-    edge_sort: bool = False
-    estimator: object = None  # the experiment's EstimatorConfig (guide parameters)
 
     @staticmethod
-    def from_experiment(exp, spp: int | None = None) -> "Settings":
-        e = exp.estimator
-        return Settings(spp=spp or e.spp, primary_spp=e.primary_spp, boundary_spp=e.boundary_spp,
-                        sampling=e.sampling, passes=e.passes, max_depth=exp.scene.max_depth, seed=exp.seed,
-                        guiding=e.guiding, edge_sort=e.edge_sort, estimator=e)
+    def from_experiment(exp: Experiment, spp: int | None = None, seed: int | None = None) -> "Settings":
+        est = replace(exp.estimator, spp=spp) if spp else exp.estimator
+        return Settings(est, exp.scene.max_depth, exp.seed if seed is None else seed)
+
+    def with_estimator(self, **changes) -> "Settings":
+        """A copy whose estimator keys (spp, guiding, passes, ...) are replaced."""
+        return replace(self, estimator=replace(self.estimator, **changes))
+
+    @property
+    def spp(self) -> int:
+        return self.estimator.spp
+
+    @property
+    def primary_spp(self) -> int:
+        return self.estimator.primary_spp
+
+    @property
+    def boundary_spp(self) -> int:
+        return self.estimator.boundary_spp
+
+    @property
+    def passes(self) -> int:
+        return self.estimator.passes
+
+    @property
+    def sampling(self) -> str:
+        return self.estimator.sampling
+
+    @property
+    def guiding(self) -> str:
+        return self.estimator.guiding
+
+    @property
+    def edge_sort(self) -> bool:
+        return self.estimator.edge_sort
 
     def samples(self, term: str) -> int:
         """Samples per pixel of ``term``."""
-        return {"interior": self.spp, "primary": self.primary_spp}.get(term, self.boundary_spp)
+        e = self.estimator
+        return {"interior": e.spp, "primary": e.primary_spp}.get(term, e.boundary_spp)
+
+    def with_samples(self, term: str, spp: int) -> "Settings":
+        """A copy in which ``term`` has ``spp`` samples per pixel."""
+        key = {"interior": "spp", "primary": "primary_spp"}.get(term, "boundary_spp")
+        return self.with_estimator(**{key: spp})
+
+
+@dataclass
+class GradientSetup:
+    """Everything a gradient of an experiment needs: its scene, θ, boundary edges and settings."""
+    scene: object
+    parameter: Parameter
+    edges: BoundaryEdges
+    settings: Settings
+
+    def __iter__(self):  # scene, parameter, edges, settings = prepare(exp)
+        return iter((self.scene, self.parameter, self.edges, self.settings))
+
+
+def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetup:
+    """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
+    if spp is not None and spp < 1:
+        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    backend.activate(exp)
+    scene = scene or build_scene(exp)
+    settings = Settings.from_experiment(exp, spp)
+    edges = edge_list(scene, exp.estimator, settings.edge_sort)
+    return GradientSetup(scene, Parameter(scene, exp.parameter), edges, settings)
 
 
 def term_passes(term: str, settings: Settings, pixels: int, min_passes: int = 1) -> list[int]:
-    """Samples per pixel of each pass: at least ``max(passes, min_passes)`` passes, each of at
-    most ``AD_LANES`` lanes."""
-    spp = settings.samples(term)
-    n = max(settings.passes, min_passes, math.ceil(spp * pixels / AD_LANES))
-    n = min(n, spp)
-    base, extra = divmod(spp, n)
-    return [base + (1 if i < extra else 0) for i in range(n)]
+    """Samples per pixel of each pass of ``term``: at least ``max(passes, min_passes)`` passes,
+    each of at most ``AD_LANES`` lanes."""
+    return passes_for(settings.samples(term), pixels, AD_LANES, max(settings.estimator.passes, min_passes))
 
 
 def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
@@ -73,17 +130,12 @@ def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
 
 
-def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings):
+def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings) -> Guides:
     """Guides of the direct and indirect terms for ``views`` (empty when guiding is off)."""
-    from .guiding.targets import Guides, build_guides
-    if settings.guiding == "none" or settings.estimator is None:
+    if settings.guiding == "none":
         return Guides()
-    est = settings.estimator
-    if est.guiding != settings.guiding:
-        from dataclasses import replace
-        est = replace(est, guiding=settings.guiding)
-    return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth, est,
-                        settings.seed)
+    return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth,
+                        settings.estimator, settings.seed)
 
 
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
@@ -126,11 +178,6 @@ class TermEstimate:
     seconds: float = 0.0
     primal: np.ndarray | None = None
 
-    def standard_error(self) -> np.ndarray | None:
-        """Per-pixel standard error of the mean from the spread of the passes (≥ 2 passes)."""
-        from .reference import mean_and_error
-        return mean_and_error(self.passes, self.weights)[1] if len(self.passes) > 1 else None
-
 
 def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Settings,
                      min_passes: int = 1, progress=None, guides=None) -> TermEstimate:
@@ -171,3 +218,110 @@ def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int
         img = img + term_image(scene, edges, view, term, spp,
                                pass_seed(settings.seed, view, pass_index, stream(term)), settings, guides)
     return img * scale
+
+
+# --------------------------------------------------------------------------------------------
+# psdr grad
+# --------------------------------------------------------------------------------------------
+def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
+                    scene=None, progress=None) -> dict:
+    """Forward-mode gradient images dI/dθ of one view, without writing anything.
+
+    Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
+    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
+    scene, parameter, edges, settings = prepare(exp, spp, scene)
+    terms = parse_terms(terms) or exp.estimator.terms
+    guides = make_guides(scene, edges, [view], terms, settings)
+    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress, guides)
+            for t in terms}
+
+
+@dataclass
+class GradResult:
+    folder: Path
+    views: list
+    parameter: str = ""
+    files: list = field(default_factory=list)
+    seconds: list = field(default_factory=list)      # per view: {term: seconds}
+    sums: list = field(default_factory=list)         # per view: {term: image sum}
+    agreement: list = field(default_factory=list)    # per view: FD agreement (with --fd)
+    variant: str = ""
+
+
+#: Independent batches of the estimate and of the finite differences behind the --fd statistics.
+FD_BATCHES = 8
+
+
+def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
+         fd: float | None = None, fd_spp: int | None = None, progress=None) -> GradResult:
+    """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
+
+    Channels: the render (R, G, B), one group per term (``interior.R`` …) and ``total.*``; with
+    ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
+    ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
+    statistics. PNG previews use a diverging colour map shared by all terms."""
+    if fd is not None and not fd > 0:
+        raise PsdrError(f"--fd: expected a positive step size, got {fd}")
+    if fd_spp is not None and fd_spp < FD_BATCHES:
+        raise PsdrError(f"--fd-spp: expected at least {FD_BATCHES} samples per pixel ({FD_BATCHES} batches), got {fd_spp}")
+    terms = parse_terms(terms) or exp.estimator.terms
+    views = parse_views(views, len(exp.scene.cameras))
+    scene, parameter, edges, settings = prepare(exp, spp)
+    variant = mi.variant()
+    fd_spp = fd_spp or 4 * settings.spp
+    min_passes = FD_BATCHES if fd else 1
+    folder = exp.command_dir("grad", out)
+    result = GradResult(folder, views, parameter.name, variant=variant)
+    if progress:
+        per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)
+        progress.start(len(views) * per_view)
+    for v in views:
+        t0 = time.perf_counter()
+        guides = make_guides(scene, edges, [v], terms, settings)
+        guide_seconds = time.perf_counter() - t0
+        estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes,
+                                         progress.advance if progress else None, guides) for t in terms}
+        image = estimates["interior"].primal if "interior" in estimates else \
+            render_view(scene, v, settings.spp, seed=exp.seed)
+        total = sum(e.gradient for e in estimates.values())
+        channels = {"R": image[..., 0], "G": image[..., 1], "B": image[..., 2]}
+        for name, g in [(t, e.gradient) for t, e in estimates.items()] + [("total", total)]:
+            for c, ch in enumerate("RGB"):
+                channels[f"{name}.{ch}"] = g[..., c]
+        header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.parameter": parameter.name,
+                  "psdr.terms": ",".join(terms), "psdr.sampling": settings.sampling,
+                  "psdr.guiding": settings.guiding, "psdr.edge_sort": str(settings.edge_sort),
+                  "psdr.guide_seconds": f"{guide_seconds:.3f}",
+                  "psdr.spp": {t: str(settings.samples(t)) for t in terms},
+                  "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}
+        stats = None
+        if fd:
+            batches = finite_difference(scene, parameter, v, fd, fd_spp, seed=exp.seed, batches=FD_BATCHES,
+                                        progress=progress.advance if progress else None)
+            fd_image = np.mean(batches, axis=0)
+            for c, ch in enumerate("RGB"):
+                channels[f"fd.{ch}"] = fd_image[..., c]
+            stats = agreement([(e.passes, e.weights) for e in estimates.values()], batches)
+            header["psdr.fd_h"] = str(fd)
+            header["psdr.fd_spp"] = str(fd_spp)
+        exr = folder / f"view_{v:03d}.exr"
+        fileio.write_exr(exr, {k: np.asarray(x, np.float32) for k, x in channels.items()}, header)
+        scale = float(np.percentile(np.abs(total.mean(-1)), 99.5)) or 1.0
+        fileio.write_preview(folder / f"view_{v:03d}.png", image)
+        previews = [(t, e.gradient) for t, e in estimates.items()] + [("total", total)]
+        if fd:
+            previews.append(("fd", fd_image))
+        for name, g in previews:
+            fileio.write_gradient_preview(folder / f"view_{v:03d}_{name}.png", g, scale)
+        result.files.append(exr)
+        result.seconds.append({**({"guiding": guide_seconds} if guides.all() else {}),
+                               **{t: e.seconds for t, e in estimates.items()}})
+        result.sums.append({**{t: float(e.gradient.sum()) for t, e in estimates.items()}, "total": float(total.sum())})
+        result.agreement.append(stats)
+    fileio.write_json(folder / "summary.json", {
+        "experiment": str(exp.file), "parameter": result.parameter, "variant": variant, "terms": list(terms),
+        "spp": {t: settings.samples(t) for t in terms}, "sampling": settings.sampling, "fd_h": fd,
+        "guiding": settings.guiding, "edge_sort": settings.edge_sort,
+        "views": [{"view": v, "file": str(f), "seconds": s, "sums": m, "fd_agreement": a}
+                  for v, f, s, m, a in zip(views, result.files, result.seconds, result.sums, result.agreement)]})
+    return result

@@ -18,7 +18,8 @@ import mitsuba as mi
 import numpy as np
 
 from .estimators.boundary_sampling import TRANSMISSIVE, BoundaryEdges
-from .gradient import TERMS, Settings, ad_image, term_passes
+from .config import TERMS, EstimatorConfig
+from .gradient import Settings, ad_image, term_passes
 from .render import render_view
 from .scene import ObjectMesh
 
@@ -78,8 +79,10 @@ def integrator_class():
                 raise ValueError(f"psdr integrator: unknown term '{unknown[0]}' (expected some of {', '.join(TERMS)})")
 
         def settings(self, spp: int, seed: int) -> Settings:
-            return Settings(spp=spp, primary_spp=self.primary_spp or spp, boundary_spp=self.boundary_spp or spp,
-                            sampling=self.sampling, passes=self.passes, max_depth=self.max_depth, seed=int(seed))
+            estimator = EstimatorConfig(spp=spp, primary_spp=self.primary_spp or spp,
+                                        boundary_spp=self.boundary_spp or spp, sampling=self.sampling,
+                                        passes=self.passes)
+            return Settings(estimator, max_depth=self.max_depth, seed=int(seed))
 
         def view(self, scene, params, sensor) -> tuple:
             size = tuple(int(s) for s in sensor.film().size())

@@ -9,6 +9,8 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pymeshlab
+import trimesh
 
 from .config import MeshSpec, TransformConfig, Where
 from .errors import ConfigError
@@ -17,7 +19,6 @@ from .errors import ConfigError
 def sphere(radius: float = 1.0, subdivisions: int = 3, resolution: int | None = None):
     """Sphere of the given radius centred at the origin: an icosphere (subdivided icosahedron), or
     with ``resolution`` a UV sphere of ``resolution`` rings × 2·``resolution`` segments."""
-    import trimesh
     if resolution is not None:
         m = trimesh.creation.uv_sphere(radius=radius, count=[resolution, 2 * resolution])
     else:
@@ -35,7 +36,6 @@ def plane(size=(2.0, 2.0)):
 
 def cube(size=(1.0, 1.0, 1.0)):
     """Axis-aligned box with edge lengths ``size``, centred at the origin."""
-    import trimesh
     m = trimesh.creation.box(extents=size)
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
@@ -43,7 +43,6 @@ def cube(size=(1.0, 1.0, 1.0)):
 def torus(major_radius: float = 1.0, minor_radius: float = 0.3, major_sections: int = 48,
           minor_sections: int = 24):
     """Torus around the z axis."""
-    import trimesh
     m = trimesh.creation.torus(major_radius=major_radius, minor_radius=minor_radius,
                                major_sections=major_sections, minor_sections=minor_sections)
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
@@ -51,7 +50,6 @@ def torus(major_radius: float = 1.0, minor_radius: float = 0.3, major_sections: 
 
 def bunny_path() -> Path:
     """The Stanford-bunny sample shipped inside the installed pymeshlab wheel."""
-    import pymeshlab
     path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / "bunny.obj"
     if not path.exists():
         raise FileNotFoundError(f"the pymeshlab package has no bunny sample at {path}")
@@ -61,7 +59,6 @@ def bunny_path() -> Path:
 def bunny(size: float = 1.0, faces: int = 5000):
     """Stanford bunny, decimated to about ``faces`` triangles with pymeshlab's quadric edge collapse,
     turned z-up, centred on the origin in x/y, resting on z = 0, longest side ``size``."""
-    import pymeshlab
     ms = pymeshlab.MeshSet()
     ms.load_new_mesh(str(bunny_path()))
     if ms.current_mesh().face_number() > faces:
@@ -93,7 +90,6 @@ def procedural(shape: str, params: dict):
 
 def read_mesh_file(path: Path):
     """Vertices and triangles of a PLY or OBJ file, unprocessed (no merging, no reordering)."""
-    import trimesh
     mesh = trimesh.load(str(path), force="mesh", process=False)
     return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
 
@@ -132,10 +128,24 @@ def load_mesh(spec: MeshSpec, file: str):
     return validate_mesh(V, F, where, spec.repair)
 
 
+def weld(V, rel_tol: float = 1e-7):
+    """Map vertices at the same position (within rel_tol·extent) to one id.
+
+    Returns (welded_id per vertex, representative vertex per welded id). Welded ids follow the
+    order of first appearance, so a mesh without duplicates keeps its numbering."""
+    V = np.asarray(V, float)
+    extent = float(np.abs(V).max()) or 1.0
+    key = np.round(V / (extent * rel_tol)).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[inverse.reshape(-1)], first[order]
+
+
 def weld_vertices(V, F):
     """Merge vertices at the same position (files split them at UV/normal seams), so that every
     edge has both its faces and each surface point has one set of parameters to optimise."""
-    from .topology import weld
     wid, rep = weld(V)
     return V[rep], wid[F]
 
@@ -190,5 +200,4 @@ def apply_transform(V, M):
 
 def write_ply(path, V, F):
     """Binary PLY without normals or colours (opens in MeshLab and Blender)."""
-    import trimesh
     trimesh.Trimesh(V, F, process=False).export(str(path), file_type="ply")

@@ -17,75 +17,34 @@ atomically after every iteration, checkpoints and previews at ``checkpoint_every
 
 An optional wall-clock budget (``optimize.seconds``, optimisation time only) ends a run early,
 for equal-time comparisons; ``optimize.variants`` turns one experiment into an ablation whose
-runs (estimator overrides) live in ``<output>/<name>/<label>/`` (:func:`variant_experiments`).
+runs (estimator overrides) live in ``<output>/<name>/<label>/``
+(:func:`psdr_cli.runs.variant_experiments`; the run-folder layout is :mod:`psdr_cli.runs`).
 """
 from __future__ import annotations
 
-import csv
+import glob
 import hashlib
-import io as _io
 import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
-from . import io
+from . import backend, fileio, gradient, meshes, plots
+from .config import CameraConfig, Experiment, ParameterConfig
 from .errors import PsdrError
-
-LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
-              "seconds_total", "skipped", "guide_bytes")
-
-
-# --------------------------------------------------------------------------------------------
-# Run folder
-# --------------------------------------------------------------------------------------------
-def variant_experiments(exp, labels=None) -> list:
-    """[(label, experiment)] of the runs of ``exp``: itself (label None) without
-    ``optimize.variants``, else one experiment per variant (all, or those in ``labels``) with
-    the variant's estimator keys and the run folder ``<output>/<name>/<label>``."""
-    from dataclasses import replace
-    from .api import with_estimator
-    variants = exp.optimize.variants if exp.optimize else ()
-    if not variants:
-        if labels:
-            raise PsdrError(f"{exp.file}: optimize.variants: missing (--variant needs the experiment's variants)")
-        return [(None, exp)]
-    known = [v.label for v in variants]
-    unknown = [l for l in labels or () if l not in known]
-    if unknown:
-        raise PsdrError(f"--variant: unknown variant '{unknown[0]}' (variants of {exp.file.name}: {', '.join(known)})")
-    return [(v.label, replace(with_estimator(exp, guiding=v.guiding, sampling=v.sampling, edge_sort=v.edge_sort),
-                              output=exp.run_dir, name=v.label, seed=exp.seed if v.seed is None else v.seed,
-                              optimize=replace(exp.optimize, target_seed=exp.seed)))
-            for v in variants if not labels or v.label in labels]
-
-
-class RunFiles:
-    """Paths inside a run folder ``<output>/<name>/``."""
-
-    def __init__(self, root: Path):
-        self.root = Path(root)
-        self.checkpoints = self.root / "checkpoints"
-        self.previews = self.root / "previews"
-        self.targets = self.root / "targets"
-        self.state = self.root / "state.npz"
-        self.log = self.root / "log.csv"
-        self.reference = self.root / "reference.ply"
-        self.final = self.root / "final.ply"
-        self.run = self.root / "run.json"          # fingerprint of the experiment the run belongs to
-
-    def checkpoint(self, iteration: int) -> Path:
-        return self.checkpoints / f"iter_{iteration:04d}.ply"
-
-
-def write_mesh(path: Path, V, F):
-    """PLY written atomically (opens in MeshLab and Blender)."""
-    from .meshes import write_ply
-    with io.atomic_path(path) as tmp:
-        write_ply(tmp, V, F)
+from .estimators.boundary_sampling import edge_list
+from .gradient import Settings, make_guides
+from .parameters import Parameter
+from .remesh import remesh
+from .render import render_view
+from .runs import (RunFiles, append_log, clear_run, read_log, run_fingerprint, saved_fingerprint,
+                   variant_experiments, write_log, write_mesh)
+from .scene import build_scene, object_mesh
 
 
 # --------------------------------------------------------------------------------------------
@@ -94,8 +53,6 @@ def write_mesh(path: Path, V, F):
 def ground_truth(exp):
     """World-space (V, F) of the target shape: ``target.mesh`` (placed with the object's
     transform) or the object's own mesh in the scene."""
-    from . import meshes
-    from .scene import object_mesh
     cfg = exp.optimize
     obj = next(o for o in exp.scene.objects if o.name == cfg.object)
     if cfg.target_mesh is None:
@@ -106,7 +63,6 @@ def ground_truth(exp):
 
 def initial_shape(exp, reference):
     """(V, F) of ``init`` (with its transform), or a sphere around the reference's bounding box."""
-    from . import meshes
     cfg = exp.optimize
     if cfg.init is not None:
         V, F = meshes.load_mesh(cfg.init, str(exp.file))
@@ -139,24 +95,22 @@ def target_key(exp, reference, spp: int) -> str:
 def render_targets(exp, files: RunFiles, reference, progress=None):
     """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
     in ``targets/`` (reused while the scene, the ground truth and spp are unchanged)."""
-    from .render import render_view
-    from .scene import build_scene
     cfg = exp.optimize
     key = target_key(exp, reference, cfg.target_spp)
     paths = [files.targets / f"view_{v:03d}.exr" for v in range(len(exp.scene.cameras))]
     cached = all(p.exists() for p in paths) and all(
-        io.read_exr(p)["__header__"].get("psdr.target_key") == key for p in paths)
+        fileio.read_exr(p)["__header__"].get("psdr.target_key") == key for p in paths)
     if cached:
-        return [io.read_rgb_exr(p).astype(np.float64) for p in paths]
+        return [fileio.read_rgb_exr(p).astype(np.float64) for p in paths]
     scene = build_scene(exp, objects={cfg.object: reference})
     images = []
     for v, p in enumerate(paths):
         image = render_view(scene, v, cfg.target_spp, seed=target_seed(exp) + 7919)
         cam = exp.scene.cameras[v]
-        io.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
+        fileio.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
                                     "psdr.camera": {"origin": cam.origin, "target": cam.target, "up": cam.up,
                                                     "fov": cam.fov}})
-        io.write_preview(p.with_suffix(".png"), image)
+        fileio.write_preview(p.with_suffix(".png"), image)
         images.append(image)
         if progress:
             progress(v)
@@ -165,8 +119,6 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
 
 def image_targets(exp):
     """(images, cameras) from ``target.images`` (EXR files written by ``psdr render``)."""
-    import glob
-    from .config import CameraConfig
     pattern = exp.optimize.target_images
     paths = sorted(glob.glob(pattern))
     if not paths:
@@ -174,7 +126,7 @@ def image_targets(exp):
     images, cameras = [], []
     for p in paths:
         try:
-            exr = io.read_exr(p)
+            exr = fileio.read_exr(p)
             cam = json.loads(exr["__header__"]["psdr.camera"])
         except KeyError:
             raise PsdrError(f"{p}: no 'psdr.camera' header (target images must come from `psdr render`)") from None
@@ -213,7 +165,7 @@ class State:
             arrays[f"value_{k}"] = v
         meta = {"iteration": self.iteration, "seconds": self.seconds,
                 "adam_t": {k: int(t) for k, (t, _, _) in self.adam.items()}}
-        with io.atomic_path(path) as tmp:
+        with fileio.atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
 
@@ -239,8 +191,6 @@ def adam_export(opt, key):
 
 def adam_import(opt, key, saved):
     """Restore (t, m, v) into an Adam entry that was just assigned."""
-    import mitsuba as mi
-    import drjit as dr
     value, flag, lr, (t0, m0, v0, extra) = opt.state[key]
     t, m, v = saved
     if np.size(m) != np.size(np.asarray(m0)):
@@ -268,10 +218,6 @@ class Problem:
     """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
 
     def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None):
-        import mitsuba as mi
-        from .config import ParameterConfig
-        from .parameters import Parameter
-        from .scene import build_scene
         self.exp, self.cfg = exp, exp.optimize
         self.scene = build_scene(exp, objects={self.cfg.object: (V, F)}, cameras=cameras)
         self.params = mi.traverse(self.scene.mi_scene)
@@ -312,7 +258,6 @@ class Problem:
 
     def apply(self):
         """Write the optimiser's variables into the scene (AD-attached)."""
-        import drjit as dr
         self.params[self.key] = self.steps.from_differential(self.opt["u"])
         if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
             self.params[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
@@ -324,8 +269,6 @@ class Problem:
     def release(self):
         """Detach the scene from the optimiser's AD graph (nothing may linger in Dr.Jit's global
         AD state after a run, e.g. for later forward-mode work in the same process)."""
-        import drjit as dr
-        import mitsuba as mi
         with dr.suspend_grad():
             self.params[self.key] = dr.detach(self.params[self.key])
             if self.albedo_key:
@@ -337,7 +280,6 @@ class Problem:
             dr.disable_grad(self.opt[k])
 
     def vertices(self) -> np.ndarray:
-        import drjit as dr
         return np.asarray(dr.detach(self.params[self.key]), np.float64).reshape(-1, 3)
 
     def values(self) -> dict:
@@ -360,57 +302,6 @@ def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
     return sorted(rng.choice(count, size=min(size, count), replace=False).tolist())
 
 
-def read_log(path: Path, before: int) -> list:
-    """Rows of ``log.csv`` for iterations < ``before`` (later rows belong to unsaved work)."""
-    if not path.exists():
-        return []
-    with open(path, newline="") as f:
-        return [r for r in csv.DictReader(f) if int(r["iteration"]) < before]
-
-
-def run_fingerprint(exp) -> str:
-    """Hash of what a run's result depends on: scene, estimator, seed and the optimize section
-    except the keys that only extend or observe it (iterations, seconds, checkpoint_every,
-    preview_views), with paths relative to the experiment's folder. ``--resume`` continues a
-    run only while this is unchanged (runs saved before fingerprints existed are continued and
-    get one). The contents of mesh and image files are not part of it."""
-    from dataclasses import replace
-    opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
-    h = hashlib.sha256()
-    for part in (exp.scene, exp.estimator, opt):
-        text = json.dumps(asdict(part), default=str, sort_keys=True)
-        h.update(text.replace(str(exp.base_dir), "<experiment folder>").encode())  # the checkout may move
-    h.update(str(exp.seed).encode())
-    return h.hexdigest()[:16]
-
-
-def saved_fingerprint(files: RunFiles) -> str | None:
-    try:
-        return json.loads(files.run.read_text())["fingerprint"]
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-def clear_run(files: RunFiles):
-    """Remove a previous run's state, checkpoints and previews (targets stay: they are cached by
-    content hash)."""
-    import shutil
-    files.state.unlink(missing_ok=True)
-    for folder in (files.checkpoints, files.previews):
-        shutil.rmtree(folder, ignore_errors=True)
-    for name in ("final.ply", "optimize.json", "loss.png", "chamfer.png"):
-        (files.root / name).unlink(missing_ok=True)
-
-
-def write_log(path: Path, rows: list):
-    buf = _io.StringIO()
-    w = csv.DictWriter(buf, LOG_FIELDS)
-    w.writeheader()
-    w.writerows(rows)
-    with io.atomic_path(path) as tmp:
-        Path(tmp).write_text(buf.getvalue())
-
-
 def strip(target, current, zoom: int = 3):
     """target | current | |difference| side by side, pixels enlarged ``zoom`` times, linear RGB."""
     gap = np.ones((target.shape[0], 2, 3))
@@ -423,20 +314,13 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
 
     ``progress``: optional object with ``start(total)``, ``advance(n, loss)``; ``warn``: one-line
     messages (NaN gradients, interruption)."""
-    import drjit as dr
-    import mitsuba as mi
-    from .api import setup
-    from .estimators.boundary_sampling import BoundaryEdges
-    from .gradient import Settings, ad_image, make_guides
-    from .remesh import remesh
-
     cfg = exp.optimize
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     total = iterations or cfg.iterations
     if total < 1:
         raise PsdrError(f"--iterations: expected a positive number, got {total}")
-    setup(exp)
+    backend.activate(exp)
     files = RunFiles(exp.run_dir)
     state = State.load(files.state) if resume and files.state.exists() else None
     if resume and state is None:
@@ -467,7 +351,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         write_mesh(files.checkpoint(0), V, F)
     else:
         V, F, start, values, seconds_so_far = state.V, state.F, state.iteration, state.values, state.seconds
-    io.write_json(files.run, {"fingerprint": run_fingerprint(exp)})  # fresh, unchanged, or saved before fingerprints
+    fileio.write_json(files.run, {"fingerprint": run_fingerprint(exp)})  # fresh, unchanged, or saved before fingerprints
     result = OptimizeResult(files.root, resumed_from=start)
     problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else ()))
     if state is not None:
@@ -499,8 +383,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             problem.apply()
             problem.scene.objects[cfg.object].vertices = problem.vertices()
             problem.scene.objects[cfg.object].faces = problem.F
-            edges = BoundaryEdges.from_scene(problem.scene, settings.edge_sort,
-                                             exp.estimator.chains.max_turn, exp.estimator.chains.max_length)
+            edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
             t_guide = time.perf_counter()
             anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
             if settings.guiding != "none" and (guides is None or (it - anchor) % cfg.guide_every == 0):
@@ -510,8 +393,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             views = batch_views(exp.seed, it, n_views, cfg.batch_size)
             loss = mi.Float(0.0)
             for v in views:
-                settings.seed = exp.seed
-                img = ad_image(problem.scene, edges, v, terms, settings, pass_index=it, guides=guides)
+                img = gradient.ad_image(problem.scene, edges, v, terms, settings, pass_index=it, guides=guides)
                 loss += dr.mean(dr.abs(img - target_arrays[v])) / len(views)
             dr.backward(loss)
             loss_value = float(loss[0])
@@ -537,8 +419,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             # Persist: the log row, the checkpoint when due, then the state after this iteration
             # (a kill before the state is saved repeats this iteration on --resume: its log row is
             # dropped and its checkpoint rewritten, so nothing saved is ever missing)
-            with open(files.log, "a", newline="") as f:
-                csv.DictWriter(f, LOG_FIELDS).writerow(row)
+            append_log(files.log, row)
             problem.apply()
             if cfg.seconds is not None and seconds_so_far >= cfg.seconds:
                 total = it + 1  # time budget spent: this is the last iteration
@@ -564,7 +445,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     write_mesh(files.final, problem.vertices(), problem.F)
     result.final = files.final
     plot_loss(files, read_log(files.log, total))
-    io.write_json(files.root / "optimize.json", {
+    fileio.write_json(files.summary, {
         "experiment": str(exp.file), "iterations": total, "resumed_from": start, "views": n_views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),
         "values": {k: v.tolist() for k, v in problem.values().items()}, "skipped_updates": result.skipped,
@@ -572,21 +453,35 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     return result
 
 
+def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
+                      progress=None, warn=print):
+    """Run every run of ``exp`` (its ``optimize.variants``, or those in ``labels``; the experiment
+    itself without variants) one after another; yields (label, OptimizeResult) as each ends.
+
+    ``progress(label)``: optional context manager factory giving each run's progress object."""
+    if exp.optimize is None:
+        raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
+    for label, run in variant_experiments(exp, labels):
+        if progress is None:
+            yield label, optimize(run, iterations=iterations, resume=resume, warn=warn)
+            continue
+        with progress(label) as bar:
+            result = optimize(run, iterations=iterations, resume=resume, progress=bar, warn=warn)
+        yield label, result
+
+
 def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> Path:
     """iter_NNNN.ply and a target | current | |difference| strip per preview view."""
-    import drjit as dr
-    from .render import render_view
     path = files.checkpoint(iteration)
     write_mesh(path, problem.vertices(), problem.F)
     with dr.suspend_grad():
         for v in exp.optimize.preview_views:
             current = render_view(problem.scene, v, 16, seed=exp.seed)
-            io.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(targets[v], current))
+            fileio.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(targets[v], current))
     return path
 
 
 def plot_loss(files: RunFiles, rows: list):
-    from . import plots
     if not rows:
         return
     it = np.array([int(r["iteration"]) for r in rows])

@@ -9,7 +9,7 @@ from matplotlib.collections import PatchCollection  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .io import atomic_path  # noqa: E402
+from .fileio import atomic_path  # noqa: E402
 
 
 def save(fig, path):

@@ -91,7 +91,7 @@ def agreement(estimates, fd_batches, block: int = 4) -> dict:
     z = (e - f) / np.sqrt(e_var + f_se ** 2 + 1e-30)
     signal = np.abs(f) > 3 * f_se
     corr = float(np.corrcoef(e.ravel(), f.ravel())[0, 1]) if f.size > 1 and f.std() > 0 and np.std(e) > 0 else float("nan")
-    return {
+    stats = {
         "sum": {"estimate": float(est_sum), "estimate_se": float(np.sqrt(est_var)), "fd": float(fd_sum),
                 "fd_se": float(fd_se), "z": float((est_sum - fd_sum) / np.sqrt(est_var + fd_se ** 2 + 1e-30))},
         "blocks": {"size": block, "count": int(z.size), "signal": int(signal.sum()),
@@ -99,3 +99,11 @@ def agreement(estimates, fd_batches, block: int = 4) -> dict:
                    "within_3se": float((np.abs(z) < 3).mean()), "mean_z2": float((z ** 2).mean()),
                    "correlation": corr},
     }
+    stats["agrees"] = agrees(stats)
+    return stats
+
+
+def agrees(stats: dict) -> bool:
+    """The verdict of :func:`agreement`: |z| of the sum below 3 and more than 95 % of the tiles
+    within 3 standard errors."""
+    return abs(stats["sum"]["z"]) < 3 and stats["blocks"]["within_3se"] > 0.95

@@ -13,8 +13,11 @@ import os
 import sys
 
 import numpy as np
+import pyinstantmeshes
+import pymeshlab
 
-METHODS = ("instant", "isotropic")
+from .meshes import face_areas
+from .topology import build_topology
 
 
 @contextlib.contextmanager
@@ -44,13 +47,11 @@ def normalise(V):
 
 
 def open_edges(V, F) -> int:
-    from .topology import build_topology
     t = build_topology(V, F)
     return int(t.open.sum()) + t.nonmanifold
 
 
 def _meshlab(V, F):
-    import pymeshlab
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(np.asarray(V, np.float64), np.asarray(F, np.int32)))
     return ms
@@ -69,7 +70,6 @@ def _closed(ms):
 
 def instant_meshes(V, F, vertices: int):
     """Field-aligned triangle mesh with about ``vertices`` vertices."""
-    import pyinstantmeshes
     Vn, centre, scale = normalise(np.asarray(V, float))
     with quiet():
         V2, F2 = pyinstantmeshes.remesh(Vn.astype(np.float32), np.asarray(F, np.int32), int(vertices),
@@ -81,11 +81,9 @@ def instant_meshes(V, F, vertices: int):
 def isotropic(V, F, vertices: int, iterations: int = 6):
     """Isotropic remeshing (MeshLab) with the edge length that gives about ``vertices`` vertices
     on the current surface area (a closed triangle mesh has A ≈ (√3/4)·ℓ²·2·n)."""
-    from .meshes import face_areas
     Vn, centre, scale = normalise(np.asarray(V, float))
     area = float(face_areas(Vn, np.asarray(F)).sum())
     length = float(np.sqrt(area / (vertices * np.sqrt(3) / 2)))
-    import pymeshlab
     ms = _meshlab(Vn, F)
     with quiet():
         ms.meshing_isotropic_explicit_remeshing(iterations=iterations, targetlen=pymeshlab.PureValue(length))

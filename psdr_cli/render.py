@@ -1,4 +1,4 @@
-"""Forward rendering of camera views with the interior estimator.
+"""Forward rendering of camera views with the interior estimator (``psdr render``).
 
 Pixels use a box filter: sample j of pixel (x, y) is the film point ((x, y) + ξ_j) / (W, H) with ξ_j
 uniform in [0,1)², and the pixel value is the mean of its ``spp`` radiance samples. Large sample
@@ -7,51 +7,21 @@ per pixel with ``dr.block_sum`` (deterministic, unlike atomic scatter-adds).
 """
 from __future__ import annotations
 
-import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import backend, fileio
+from .config import Experiment, parse_views
+from .errors import PsdrError
 from .estimators import interior
-
-#: Upper bound on the number of paths traced in one pass.
-MAX_LANES = 1 << 21
-
-
-def pass_seed(seed: int, view: int, pass_index: int, stream: int = 0) -> int:
-    """A 32-bit seed per (experiment seed, view, pass, stream), decorrelated by a hash."""
-    h = (seed * 0x9E3779B1 + view * 0x85EBCA77 + pass_index * 0xC2B2AE3D + stream * 0x27D4EB2F) & 0xFFFFFFFF
-    h ^= h >> 16
-    h = (h * 0x7FEB352D) & 0xFFFFFFFF
-    h ^= h >> 15
-    return h
-
-
-def make_sampler(seed: int, lanes: int) -> mi.Sampler:
-    """Independent sampler for ``lanes`` parallel paths; the seed is opaque so kernels are reused."""
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(dr.opaque(mi.UInt32, seed), lanes)
-    return sampler
-
-
-def passes_for(spp: int, pixels: int, max_lanes: int = MAX_LANES) -> list[int]:
-    """Split ``spp`` samples per pixel into passes of at most ``max_lanes`` paths each."""
-    per_pass = max(1, min(spp, max_lanes // max(pixels, 1)))
-    n = math.ceil(spp / per_pass)
-    base, extra = divmod(spp, n)
-    return [base + (1 if i < extra else 0) for i in range(n)]
-
-
-def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int, spp: int):
-    """One ray per (pixel, sample), pixel-major: lane i belongs to pixel i // spp."""
-    idx = dr.arange(mi.UInt32, width * height * spp)
-    pixel = idx // dr.opaque(mi.UInt32, spp)
-    pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
-    film_uv = pos / mi.ScalarVector2f(width, height)
-    ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), film_uv, mi.Point2f(0.5))
-    return ray, weight
-
+from .estimators.camera import camera_rays
+from .estimators.passes import make_sampler, pass_seed, passes_for
+from .scene import build_scene
 
 def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
                 max_depth: int, seed: int) -> np.ndarray:
@@ -81,3 +51,48 @@ def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None
             if progress:
                 progress(n)
     return (total / spp).astype(np.float32)
+
+
+@dataclass
+class RenderResult:
+    folder: Path
+    views: list
+    files: list = field(default_factory=list)
+    seconds: list = field(default_factory=list)
+    spp: int = 0
+    resolution: tuple = (0, 0)
+    variant: str = ""
+
+
+def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: Path | None = None,
+                      progress=None) -> RenderResult:
+    """Render the experiment's views to ``<output>/<name>/render/view_XXX.exr`` (+ PNG previews).
+
+    ``out`` replaces the experiment's ``output`` folder.
+
+    ``progress`` is an optional object with ``start(total_samples)`` and ``advance(n)``.
+    """
+    spp = exp.estimator.spp if spp is None else spp
+    if spp < 1:
+        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    variant = backend.activate(exp)
+    scene = build_scene(exp)
+    views = parse_views(views, len(exp.scene.cameras))
+    folder = exp.command_dir("render", out)
+    W, H = scene.resolution
+    result = RenderResult(folder, views, spp=spp, resolution=(W, H), variant=variant)
+    if progress:
+        progress.start(len(views) * spp)
+    for v in views:
+        t0 = time.perf_counter()
+        image = render_view(scene, v, spp, seed=exp.seed, progress=progress.advance if progress else None)
+        result.seconds.append(time.perf_counter() - t0)
+        cam = exp.scene.cameras[v]
+        header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.spp": str(spp),
+                  "psdr.seed": str(exp.seed), "psdr.camera": {"origin": cam.origin, "target": cam.target,
+                                                              "up": cam.up, "fov": cam.fov}}
+        exr = folder / f"view_{v:03d}.exr"
+        fileio.write_rgb_exr(exr, image, header)
+        fileio.write_preview(exr.with_suffix(".png"), image)
+        result.files.append(exr)
+    return result

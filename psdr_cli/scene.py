@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import mitsuba as mi
 import numpy as np
 
 from . import meshes
@@ -62,7 +63,6 @@ def object_mesh(obj: ObjectConfig, file: str):
 
 def mitsuba_mesh(name: str, V, F, bsdf: dict, smooth: bool = False):
     """``mi.Mesh`` with the given triangles; flat-shaded unless ``smooth``."""
-    import mitsuba as mi
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
     mesh = mi.Mesh(name, len(V), len(F), props, smooth)
@@ -74,7 +74,6 @@ def mitsuba_mesh(name: str, V, F, bsdf: dict, smooth: bool = False):
 
 
 def look_at(origin, target, up):
-    import mitsuba as mi
     return mi.ScalarTransform4f().look_at(origin=list(origin), target=list(target), up=list(up))
 
 
@@ -110,12 +109,10 @@ def rectangle_frame(center, normal, size) -> np.ndarray:
 
 def environment_to_world(rotate_deg: float):
     """Lat-long maps are y-up in Mitsuba: turn +y to +z, then rotate about z by ``rotate_deg``."""
-    import mitsuba as mi
     return mi.ScalarTransform4f().rotate([0, 0, 1], rotate_deg).rotate([1, 0, 0], 90)
 
 
 def emitter_dict(em: EmitterConfig, file: str) -> dict:
-    import mitsuba as mi
     if em.type == "area":
         return {"type": "rectangle", "to_world": mi.ScalarTransform4f(rectangle_frame(em.center, em.normal, em.size)),
                 "emitter": {"type": "area", "radiance": _rgb(em.radiance)},
@@ -150,7 +147,6 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
     ``objects`` may override meshes by name (``{name: (V, F)}``, e.g. the current shape of an
     optimisation); ``cameras`` may replace the camera list.
     """
-    import mitsuba as mi
     cfg = exp.scene
     built = build_objects(exp)
     for name, (V, F) in (objects or {}).items():

@@ -19,20 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def weld(V, rel_tol: float = 1e-7):
-    """Map vertices at the same position (within rel_tol·extent) to one id.
-
-    Returns (welded_id per vertex, representative vertex per welded id). Welded ids follow the
-    order of first appearance, so a mesh without duplicates keeps its numbering."""
-    V = np.asarray(V, float)
-    extent = float(np.abs(V).max()) or 1.0
-    key = np.round(V / (extent * rel_tol)).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return rank[inverse.reshape(-1)], first[order]
+from .meshes import weld
 
 
 def face_normals(V, F):

@@ -46,6 +46,32 @@ def test_mesh_file_is_relative_to_the_yaml_file(tmp_path):
     assert exp.scene.objects[0].mesh.file == (tmp_path / "sub" / "meshes" / "a.ply").resolve()
 
 
+def test_cameras_may_be_a_single_orbit_mapping(tmp_path):
+    """``cameras: {orbit: {...}}`` (no list) is the same ring as ``cameras: [{orbit: {...}}]``."""
+    ring = {"count": 3, "radius": 2, "elevation_deg": 20, "target": [0, 0, 0]}
+    a, b = experiment(), experiment()
+    a["scene"]["cameras"] = {"orbit": dict(ring)}
+    b["scene"]["cameras"] = [{"orbit": dict(ring)}]
+    assert parse(a, tmp_path).scene.cameras == parse(b, tmp_path).scene.cameras
+    a["scene"]["cameras"] = {"orbit": dict(ring), "origin": [0, 1, 0]}
+    with pytest.raises(ConfigError, match=r"scene\.cameras: expected a list"):
+        parse(a, tmp_path)
+
+
+def test_optimize_target_object_is_an_alias_of_optimize_object(tmp_path):
+    d = experiment()
+    d["optimize"] = {"target": {"object": "ball"}}
+    assert parse(d, tmp_path).optimize.object == "ball"
+    d["optimize"] = {"object": "ball", "target": {"object": "ball", "spp": 8}}
+    assert parse(d, tmp_path).optimize.object == "ball"
+    d["optimize"] = {"object": "ball", "target": {"object": "floor"}}
+    with pytest.raises(ConfigError, match=r"optimize\.target\.object: 'floor' contradicts"):
+        parse(d, tmp_path)
+    d["optimize"] = {"target": {"spp": 8}}
+    with pytest.raises(ConfigError, match=r"optimize\.object: missing"):
+        parse(d, tmp_path)
+
+
 def test_orbit_expands_to_a_ring_of_cameras(tmp_path):
     d = experiment()
     d["scene"]["cameras"] = [{"orbit": {"count": 6, "radius": 2, "elevation_deg": 30, "azimuth_deg": 10,

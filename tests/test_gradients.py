@@ -1,6 +1,6 @@
 """Gradient validation through the real CLI: ``psdr grad configs/validation/*.yaml --fd H``.
 
-Each scene isolates terms (DESIGN §7): a silhouette against a constant background (primary
+Each scene isolates terms (docs/theory.md §7): a silhouette against a constant background (primary
 only), an occluder under an area light (shadow: direct + primary), a glossy bunny under a sky
 with a sun rotated about z (primary + direct), a sphere in a Cornell box (all four terms,
 indirect included). Agreement with central finite differences (common random numbers, 8
@@ -93,7 +93,7 @@ def test_indirect_term_is_needed_in_the_cornell_box(runs, tmp_path):
 
 def test_outputs_of_grad(runs):
     """EXR with render, term and total channels plus metadata; previews; summary."""
-    from psdr_cli import io
+    from psdr_cli import fileio as io
     _, view = runs["cornell"]
     exr = io.read_exr(view["file"])
     for ch in ["R", "G", "B"] + [f"{t}.{c}" for t in ("interior", "primary", "direct", "indirect", "total", "fd")
@@ -125,13 +125,12 @@ def test_indirect_term_carries_light_that_arrives_by_way_of_a_wall():
     (no silhouette, no direct light: the primary and direct terms are exactly zero there) the
     indirect term alone must match finite differences. (A bug that kept detector subpaths only
     where x^D itself was camera-visible made this region ≈ 0 instead of ≈ −80.)"""
-    from psdr_cli import api
     from psdr_cli.config import load_experiment
-    from psdr_cli.gradient import forward_gradient
+    from psdr_cli.gradient import forward_gradient, prepare
     from psdr_cli.reference import finite_difference, mean_and_error
     exp = load_experiment(VALIDATION / "indirect.yaml")
-    scene, parameter, edges, settings = api.prepare_gradient(exp)
-    settings.spp = settings.primary_spp = settings.boundary_spp = 256
+    scene, parameter, edges, settings = prepare(exp)
+    settings = settings.with_estimator(spp=256, primary_spp=256, boundary_spp=256)
     est = {t: forward_gradient(scene, edges, parameter, 0, t, settings, min_passes=8)
            for t in ("primary", "direct", "indirect")}
     lower = np.s_[12:, :]  # pixel rows 12..31

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from psdr_cli import api
-from psdr_cli.config import parse_experiment
-from psdr_cli.gradient import forward_gradient, make_guides
+from psdr_cli.config import parse_experiment, with_estimator
+from psdr_cli.gradient import forward_gradient, make_guides, prepare
 from psdr_cli.guiding import build_grid, build_kdtree
 from psdr_cli.guiding.kdtree import KdTreeGuide
 from psdr_cli.guiding.guide import GuideStats, trilinear_weights
@@ -120,8 +120,8 @@ def block_sums(image):
 def direct_sums(tmp_path, data, passes, term="direct", **overrides):
     """Block sums of ``term`` per pass, shape (passes, BLOCKS²)."""
     exp = parse_experiment(copy.deepcopy(data), tmp_path / f"{data['name']}.yaml", cwd=tmp_path)
-    exp = api.with_estimator(exp, **overrides)
-    scene, parameter, edges, settings = api.prepare_gradient(exp)
+    exp = with_estimator(exp, **overrides)
+    scene, parameter, edges, settings = prepare(exp)
     guides = make_guides(scene, edges, [0], (term,), settings)
     est = forward_gradient(scene, edges, parameter, 0, term, settings, passes, guides=guides)
     scale = len(est.passes) * np.array(est.weights)[:, None]
@@ -199,8 +199,8 @@ def test_check_detects_a_biased_guide(tmp_path):
     """The agreement check can fail: a guide without the uniform share (ε = 0) that is zero on
     half of the edges misses their contribution, and the z-test sees it."""
     exp = parse_experiment(copy.deepcopy(SHADOW), tmp_path / "s.yaml", cwd=tmp_path)
-    exp = api.with_estimator(exp, sampling="light")
-    scene, parameter, edges, settings = api.prepare_gradient(exp)
+    exp = with_estimator(exp, sampling="light")
+    scene, parameter, edges, settings = prepare(exp)
     half = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]), np.array([[0.5, 1.0, 1.0], [1.0, 1.0, 1.0]])
     corners = np.array([np.zeros(8), np.ones(8)])
     biased = KdTreeGuide(*half, corners, 0.0, GuideStats("kdtree"), np.array([0, -1, -1]),

@@ -147,7 +147,7 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch):
 
 
 def test_atomic_path_keeps_the_old_file_on_failure(tmp_path):
-    from psdr_cli.io import atomic_path
+    from psdr_cli.fileio import atomic_path
     target = tmp_path / "mesh.ply"
     target.write_text("old")
     with pytest.raises(RuntimeError):

@@ -3,7 +3,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import io
+from psdr_cli import fileio as io
 from psdr_cli.api import setup
 from psdr_cli.config import parse_experiment
 from psdr_cli.render import passes_for, render_view

@@ -7,7 +7,7 @@ import pytest
 
 from conftest import REPO
 from psdr_cli.api import setup
-from psdr_cli.config import load_experiment
+from psdr_cli.config import EstimatorConfig, load_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
 from psdr_cli.gradient import TERMS, Settings, ad_image, forward_gradient
 from psdr_cli.parameters import Parameter
@@ -30,7 +30,7 @@ def test_total_gradient_matches_mitsuba_prb_projective(silhouette):
     independent projective estimator within Monte Carlo error."""
     exp, scene, parameter, edges = silhouette
     mi.set_log_level(mi.LogLevel.Error)
-    settings = Settings(spp=16, primary_spp=512, boundary_spp=16, max_depth=exp.scene.max_depth, seed=7)
+    settings = Settings(EstimatorConfig(spp=16, primary_spp=512, boundary_spp=16), max_depth=exp.scene.max_depth, seed=7)
     ours = forward_gradient(scene, edges, parameter, 0, "primary", settings, min_passes=8)
     e, e_se = mean_and_error(block_sums(ours.passes, 8), ours.weights)
     theirs = mitsuba_projective(scene, parameter, 0, 256, seed=3, batches=8)
@@ -75,11 +75,11 @@ def test_reverse_mode_vertex_optimisation_lowers_the_loss(silhouette):
     key = "ball.vertex_positions"
     params = parameter.params
     V0 = mi.Float(params[key])
-    settings = Settings(spp=4, primary_spp=16, boundary_spp=4, max_depth=exp.scene.max_depth)
+    settings = Settings(EstimatorConfig(spp=4, primary_spp=16, boundary_spp=4), max_depth=exp.scene.max_depth)
     params[key] = dr.ravel(dr.unravel(mi.Point3f, V0) + mi.Vector3f(0.12, 0, 0))
     params.update()
     with dr.suspend_grad():
-        target = ad_image(scene, edges, 0, ("interior",), Settings(spp=256, max_depth=1), pass_index=99)
+        target = ad_image(scene, edges, 0, ("interior",), Settings(EstimatorConfig(spp=256), max_depth=1), pass_index=99)
     params[key] = mi.Float(V0)
     params.update()
     opt = mi.ad.Adam(lr=0.01)
@@ -103,13 +103,12 @@ def test_direct_lighting_in_the_cornell_box_matches_mitsuba_prb_projective():
     moving smooth sphere casts a shadow; primary + direct + interior terms). Tiles agree with
     Mitsuba's prb_projective (|z| < 4 on signal tiles, mean z² < 2) and so do the sums."""
     import dataclasses
-    from psdr_cli import api
+    from psdr_cli.gradient import prepare
     exp = load_experiment(REPO / "configs" / "validation" / "cornell.yaml")
     exp = dataclasses.replace(exp, scene=dataclasses.replace(exp.scene, max_depth=2))
-    scene, parameter, edges, settings = api.prepare_gradient(exp)
+    scene, parameter, edges, settings = prepare(exp)
     mi.set_log_level(mi.LogLevel.Error)
-    settings.spp = settings.primary_spp = settings.boundary_spp = 512
-    settings.seed = 11
+    settings = dataclasses.replace(settings.with_estimator(spp=512, primary_spp=512, boundary_spp=512), seed=11)
     passes = None
     for term in TERMS:
         est = forward_gradient(scene, edges, parameter, 0, term, settings, min_passes=8)

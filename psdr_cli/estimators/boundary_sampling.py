@@ -9,7 +9,7 @@
   p(ω) in solid angle.
 
 A guide (:mod:`psdr_cli.guiding`) supplies u instead of independent uniforms and the sample is
-divided by the guide's density g(u). With edge sorting (:mod:`psdr_cli.guiding.edge_sort`) the
+divided by the guide's density g(u). With edge sorting (:mod:`psdr_cli.edge_sort`) the
 edge list is ordered into chains and some edges are traversed backwards, so that x^B(u1) is
 continuous along each chain.
 """
@@ -21,6 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..edge_sort import Chains, sort_edges
 from ..topology import build_topology, weld
 
 #: BSDFs through which a ray grazing a concave edge can continue (concave edges kept).
@@ -55,7 +56,6 @@ class BoundaryEdges:
     def from_scene(scene, sort: bool = False, max_turn: float = 60.0, max_length: int = 1024) -> "BoundaryEdges":
         """Secondary edges of the scene's edge objects, ordered into chains when ``sort`` (chains
         stop at turns sharper than ``max_turn`` degrees and at ``max_length`` edges)."""
-        from ..guiding.edge_sort import Chains, sort_edges
         cols = [[] for _ in range(6)]
         opens, names, meshes, verts, offset = [], [], [], [], 0
         for name, om in scene.objects.items():
@@ -100,6 +100,12 @@ class BoundaryEdges:
         """Flat (AD) buffer of the vertex positions of all edge objects."""
         bufs = [params[f"{n}.vertex_positions"] for n in self.names]
         return bufs[0] if len(bufs) == 1 else dr.concat(bufs)
+
+
+def edge_list(scene, estimator, sort: bool) -> BoundaryEdges:
+    """The scene's boundary edges, ordered into chains when ``sort`` with the estimator
+    configuration's chain parameters (``estimator.chains``)."""
+    return BoundaryEdges.from_scene(scene, sort, estimator.chains.max_turn, estimator.chains.max_length)
 
 
 @dataclass

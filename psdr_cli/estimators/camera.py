@@ -15,6 +15,17 @@ import mitsuba as mi
 from .interior import bend_shading_normal
 
 
+def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int, spp: int):
+    """One ray per (pixel, sample), pixel-major: lane i belongs to pixel i // spp, at the film
+    point ((x, y) + ξ) / (W, H) with ξ uniform in [0,1)² (box filter)."""
+    idx = dr.arange(mi.UInt32, width * height * spp)
+    pixel = idx // dr.opaque(mi.UInt32, spp)
+    pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
+    film_uv = pos / mi.ScalarVector2f(width, height)
+    ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), film_uv, mi.Point2f(0.5))
+    return ray, weight
+
+
 class Projection:
     """World → film (pixels) projection of one perspective sensor, differentiable in the point."""
 

@@ -34,7 +34,6 @@ from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in
 from .camera import camera_ray, connect_camera
 from .interior import environment_motion, turn
 
-TECHNIQUES = ("light", "dir", "mis")
 
 
 def emitter_pdf(scene: mi.Scene, xB, siS, active):

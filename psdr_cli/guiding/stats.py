@@ -1,11 +1,18 @@
-"""What ``psdr guide-stats`` measures: guide sizes and costs, edge chains, target along u1."""
+"""``psdr guide-stats``: guide sizes and costs, edge chains, the target along u1 (paper Fig. 5)."""
 from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..estimators.boundary_sampling import edge_distribution, sample_edge_point
+from .. import backend, fileio, plots
+from ..config import Experiment, parse_views
+from ..errors import PsdrError
+from ..estimators.boundary_sampling import edge_distribution, edge_list, sample_edge_point
+from ..scene import build_scene
 from .targets import build_guide, target_function
 
 
@@ -54,3 +61,75 @@ def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimat
                             "u1_intervals": s.intervals}
             guides[label] = g
     return stats, guides
+
+
+@dataclass
+class GuideStatsResult:
+    folder: Path
+    guides: dict = field(default_factory=dict)     # {"sorted|unsorted": {label: stats}}
+    chains: dict = field(default_factory=dict)     # {"sorted|unsorted": chain stats}
+    plots: list = field(default_factory=list)
+
+
+def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None) -> GuideStatsResult:
+    """Build the boundary guides of an experiment with and without edge sorting and report them.
+
+    ``kinds``: guides to build (default: ``estimator.guiding``, or both grid and kdtree when it is
+    ``none``). Writes ``guide_stats.json``, ``target_u1.png`` per technique (x^B and the target
+    along u1, unsorted vs sorted: the paper's Fig. 5) and ``leaves_<kind>_<technique>.png``
+    (leaf boundaries in the plane u2.y = ½) to ``<output>/<name>/guide_stats/``."""
+    variant = backend.activate(exp)
+    kinds = kinds or ([exp.estimator.guiding] if exp.estimator.guiding != "none" else ["grid", "kdtree"])
+    if isinstance(kinds, str):
+        kinds = [k.strip() for k in kinds.split(",") if k.strip()]
+    bad = [k for k in kinds if k not in ("grid", "kdtree")]
+    if bad:
+        raise PsdrError(f"--guides: unknown guide '{bad[0]}' (expected grid and/or kdtree)")
+    scene = build_scene(exp)
+    views = parse_views(views, len(exp.scene.cameras))
+    terms = exp.estimator.terms
+    max_depth = exp.scene.max_depth
+    techniques = [t for t in ("light", "dir") if "direct" in terms and (exp.estimator.sampling in (t, "mis"))]
+    if "indirect" in terms and max_depth >= 3:
+        techniques.append("indirect")
+    if not techniques:
+        raise PsdrError(f"{exp.file}: estimator.terms: guides serve the direct and indirect terms; "
+                        f"none of them is requested")
+    folder = exp.command_dir("guide_stats", out)
+    result = GuideStatsResult(folder)
+    curves = {t: {} for t in techniques}
+    if progress:
+        progress.start(2 * (len(kinds) * len(techniques) + len(techniques)))
+    for sort in (False, True):
+        key = "sorted" if sort else "unsorted"
+        edges = edge_list(scene, exp.estimator, sort)
+        if edges.count == 0:
+            raise PsdrError(f"{exp.file}: scene.objects: no object has boundary edges (edges: true)")
+        result.chains[key] = chain_stats(edges)
+        stats, guides = guide_report(scene, edges, views, kinds, techniques, max_depth, exp.estimator, exp.seed)
+        result.guides[key] = stats
+        if progress:
+            progress.advance(len(kinds) * len(techniques))
+        for t in techniques:
+            curves[t][f"{key} edges"] = target_curve(scene, edges, views, t, max_depth, seed=exp.seed)
+            if progress:
+                progress.advance(1)
+        for label, g in guides.items():
+            kind, t = label.split("/")
+            png = folder / f"leaves_{kind}_{t}_{key}.png"
+            centre = 0.5 * (g.lo + g.hi)
+            c = float(centre[np.argmax(g.mass), 0]) if g.total > 0 else 0.5
+            window = (max(0.0, c - 0.025), min(1.0, c + 0.025))  # around the heaviest leaf
+            plots.leaf_slice(png, g.lo, g.hi, g.pdf_np(centre), u1_range=window,
+                             title=f"{kind} guide, {t} ({key} edges): {g.stats.leaves} leaves; slice u2.y = ½, "
+                                   f"u1 ∈ [{window[0]:.3f}, {window[1]:.3f}]")
+            result.plots.append(png)
+    for t in techniques:
+        png = folder / f"target_u1_{t}.png"
+        plots.target_along_u1(png, curves[t], title=f"{exp.name}: {t} target along u1")
+        result.plots.append(png)
+    fileio.write_json(folder / "guide_stats.json", {
+        "experiment": str(exp.file), "variant": variant, "views": views, "sampling": exp.estimator.sampling,
+        "epsilon": exp.estimator.guide_epsilon, "chains": result.chains, "guides": result.guides,
+        "plots": [str(p) for p in result.plots]})
+    return result

@@ -1,7 +1,7 @@
 """Guide targets and the set of guides one gradient estimate uses.
 
 The target of a guide is the boundary term's integrand in primary-sample space without the
-velocity factor, F̃(u) = Σ_views max_RGB |F(u)| (DESIGN §6), evaluated by the estimator's own
+velocity factor, F̃(u) = Σ_views max_RGB |F(u)| (docs/theory.md §5), evaluated by the estimator's own
 code path (:func:`direct.direct_target`, :func:`indirect.indirect_target`) for the views the
 guide serves. For the indirect term F̃ contains one random source and detector subpath per
 evaluation, a noisy but unbiased stand-in for the photon-map estimate of the paper's Eq. 11.
@@ -16,7 +16,7 @@ import numpy as np
 
 from ..estimators.direct import direct_target
 from ..estimators.indirect import indirect_target
-from ..render import make_sampler
+from ..estimators.passes import make_sampler
 from .grid import build_grid
 from .kdtree import build_kdtree
 

@@ -1,4 +1,4 @@
-"""Files psdr writes: EXR images, PNG previews, JSON — always atomically (write, then rename)."""
+"""Files psdr reads and writes: EXR images, PNG previews, JSON — always atomically (write, then rename)."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,9 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+import OpenEXR
 
 
 @contextmanager
@@ -34,7 +36,6 @@ def atomic_path(path):
 def write_exr(path, channels: dict, header: dict | None = None):
     """Multi-channel float32 EXR. ``channels`` maps names ('R', 'direct.G', ...) to (H, W) arrays;
     ``header`` entries are stored as string attributes (tev and OpenEXR tools show them)."""
-    import OpenEXR
     chans = {name: np.ascontiguousarray(a, np.float32) for name, a in channels.items()}
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for key, value in (header or {}).items():
@@ -51,7 +52,6 @@ def write_rgb_exr(path, image: np.ndarray, header: dict | None = None):
 
 def read_exr(path) -> dict:
     """All channels of an EXR file as {name: (H, W) float32}, and the header under '__header__'."""
-    import OpenEXR
     with OpenEXR.File(str(path), separate_channels=True) as f:
         out = {name: np.asarray(ch.pixels, np.float32) for name, ch in f.channels().items()}
         out["__header__"] = dict(f.header())
@@ -71,7 +71,6 @@ def srgb(linear: np.ndarray) -> np.ndarray:
 
 def write_png(path, rgb8: np.ndarray):
     """(H, W, 3) uint8 image as PNG."""
-    import mitsuba as mi
     with atomic_path(path) as tmp:
         mi.Bitmap(np.ascontiguousarray(rgb8, np.uint8), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(tmp))
 

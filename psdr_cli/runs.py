@@ -1,0 +1,194 @@
+"""The run-folder contract of ``psdr optimize``: what a run folder holds and how it is read.
+
+A run of an experiment lives in ``<output>/<name>/`` (with ``optimize.variants``: one folder per
+variant, ``<output>/<name>/<label>/``) and holds
+
+    run.json            fingerprint of the experiment the run belongs to (:func:`run_fingerprint`)
+    state.npz           everything needed to continue (written atomically after every iteration)
+    log.csv             one row per completed iteration (:data:`LOG_FIELDS`)
+    checkpoints/        iter_NNNN.ply every ``checkpoint_every`` iterations (iter_0000: the start)
+    previews/           target | current | |difference| strips of the preview views
+    targets/            the target images (cached by a content hash)
+    reference.ply       the ground truth the targets were rendered from (mesh targets only)
+    final.ply, optimize.json, loss.png, chamfer.png   once the run has finished
+
+Every file is written atomically (:func:`psdr_cli.fileio.atomic_path`) except ``log.csv``, which
+is appended to and rewritten (atomically) up to the last saved iteration on resume.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import shutil
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from . import fileio
+from .config import Experiment, with_estimator
+from .errors import PsdrError
+from .meshes import write_ply
+
+LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
+              "seconds_total", "skipped", "guide_bytes")
+
+
+class RunFiles:
+    """Paths inside a run folder ``<output>/<name>/``."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.checkpoints = self.root / "checkpoints"
+        self.previews = self.root / "previews"
+        self.targets = self.root / "targets"
+        self.state = self.root / "state.npz"
+        self.log = self.root / "log.csv"
+        self.reference = self.root / "reference.ply"
+        self.final = self.root / "final.ply"
+        self.summary = self.root / "optimize.json"
+        self.run = self.root / "run.json"          # fingerprint of the experiment the run belongs to
+
+    def checkpoint(self, iteration: int) -> Path:
+        return self.checkpoints / f"iter_{iteration:04d}.ply"
+
+
+def variant_experiments(exp: Experiment, labels=None) -> list:
+    """[(label, experiment)] of the runs of ``exp``: itself (label None) without
+    ``optimize.variants``, else one experiment per variant (all, or those in ``labels``) with
+    the variant's estimator keys and the run folder ``<output>/<name>/<label>``."""
+    variants = exp.optimize.variants if exp.optimize else ()
+    if not variants:
+        if labels:
+            raise PsdrError(f"{exp.file}: optimize.variants: missing (--variant needs the experiment's variants)")
+        return [(None, exp)]
+    known = [v.label for v in variants]
+    unknown = [l for l in labels or () if l not in known]
+    if unknown:
+        raise PsdrError(f"--variant: unknown variant '{unknown[0]}' (variants of {exp.file.name}: {', '.join(known)})")
+    return [(v.label, replace(with_estimator(exp, guiding=v.guiding, sampling=v.sampling, edge_sort=v.edge_sort),
+                              output=exp.run_dir, name=v.label, seed=exp.seed if v.seed is None else v.seed,
+                              optimize=replace(exp.optimize, target_seed=exp.seed)))
+            for v in variants if not labels or v.label in labels]
+
+
+def existing_runs(exp: Experiment, command: str) -> list:
+    """[(label, run folder)] of every run of ``exp``; refuses runs that were never started."""
+    runs = [(label, run.run_dir) for label, run in variant_experiments(exp)]
+    missing = [str(folder) for _, folder in runs if not (folder / "log.csv").exists()]
+    if missing:
+        raise PsdrError(f"{command}: run {missing[0]} does not exist yet (run `psdr optimize {exp.file}` first)")
+    return runs
+
+
+def write_mesh(path: Path, V, F):
+    """PLY written atomically (opens in MeshLab and Blender)."""
+    with fileio.atomic_path(path) as tmp:
+        write_ply(tmp, V, F)
+
+
+# --------------------------------------------------------------------------------------------
+# Fingerprint
+# --------------------------------------------------------------------------------------------
+def run_fingerprint(exp: Experiment) -> str:
+    """Hash of what a run's result depends on: scene, estimator, seed and the optimize section
+    except the keys that only extend or observe it (iterations, seconds, checkpoint_every,
+    preview_views), with paths relative to the experiment's folder. ``--resume`` continues a
+    run only while this is unchanged (runs saved before fingerprints existed are continued and
+    get one). The contents of mesh and image files are not part of it."""
+    opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
+    h = hashlib.sha256()
+    for part in (exp.scene, exp.estimator, opt):
+        text = json.dumps(asdict(part), default=str, sort_keys=True)
+        h.update(text.replace(str(exp.base_dir), "<experiment folder>").encode())  # the checkout may move
+    h.update(str(exp.seed).encode())
+    return h.hexdigest()[:16]
+
+
+def saved_fingerprint(files: RunFiles) -> str | None:
+    try:
+        return json.loads(files.run.read_text())["fingerprint"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def clear_run(files: RunFiles):
+    """Remove a previous run's state, checkpoints and previews (targets stay: they are cached by
+    content hash)."""
+    files.state.unlink(missing_ok=True)
+    for folder in (files.checkpoints, files.previews):
+        shutil.rmtree(folder, ignore_errors=True)
+    for path in (files.final, files.summary, files.root / "loss.png", files.root / "chamfer.png"):
+        path.unlink(missing_ok=True)
+
+
+# --------------------------------------------------------------------------------------------
+# log.csv
+# --------------------------------------------------------------------------------------------
+def read_log(path: Path, before: int | None = None) -> list:
+    """Rows of ``log.csv`` (for iterations < ``before``: later rows belong to unsaved work)."""
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return [r for r in csv.DictReader(f) if before is None or int(r["iteration"]) < before]
+
+
+def write_log(path: Path, rows: list):
+    """The whole log, atomically."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, LOG_FIELDS)
+    w.writeheader()
+    w.writerows(rows)
+    with fileio.atomic_path(path) as tmp:
+        Path(tmp).write_text(buf.getvalue())
+
+
+def append_log(path: Path, row: dict):
+    """One more row at the end of the log."""
+    with open(path, "a", newline="") as f:
+        csv.DictWriter(f, LOG_FIELDS).writerow(row)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading finished runs
+# --------------------------------------------------------------------------------------------
+def run_checkpoints(folder: Path):
+    """[(iteration, path)] of a run folder (initial shape, checkpoints, final)."""
+    folder = Path(folder)
+    found = sorted((int(p.stem.split("_")[1]), p) for p in RunFiles(folder).checkpoints.glob("iter_*.ply"))
+    if not found:
+        raise PsdrError(f"{folder}: no checkpoints (expected checkpoints/iter_NNNN.ply from `psdr optimize`)")
+    return found
+
+
+def run_seconds(folder: Path) -> dict:
+    """{iteration: optimisation seconds so far} from the run's log.csv (iteration i ends at i+1)."""
+    return {int(r["iteration"]) + 1: float(r["seconds_total"]) for r in read_log(RunFiles(folder).log)}
+
+
+def run_summary(folder: Path) -> dict:
+    """Per-iteration time split and guide memory of a finished run (the columns of the paper's
+    Table 2), from its log.csv and optimize.json:
+
+        guiding / rendering / post-processing seconds = mean over the logged iterations,
+        guide memory = the largest guide set built (bytes)."""
+    files = RunFiles(folder)
+    if not files.log.exists():
+        raise PsdrError(f"{folder}: no log.csv (expected a `psdr optimize` run folder)")
+    rows = read_log(files.log)
+    if not rows:
+        raise PsdrError(f"{files.log}: no iterations logged")
+    mean = lambda key: float(np.mean([float(r[key]) for r in rows]))  # noqa: E731
+    try:
+        info = json.loads(files.summary.read_text())
+    except (OSError, ValueError):
+        info = {}
+    if info.get("iterations") != len(rows):
+        raise PsdrError(f"{folder}: the run is unfinished ({len(rows)} iterations logged, no final result); "
+                        f"finish it with `psdr optimize --resume`")
+    return {"iterations": len(rows), "seconds": float(rows[-1]["seconds_total"]),
+            "seconds_guiding": mean("seconds_guiding"), "seconds_rendering": mean("seconds_rendering"),
+            "seconds_post": mean("seconds_post"), "vertices": int(rows[-1]["vertices"]),
+            "guide_bytes": max(int(r.get("guide_bytes") or 0) for r in rows), "views": info.get("views")}
