@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -201,20 +202,35 @@ def compare(config: Path = ConfigArg,
 
 
 class LossBar(Bar):
-    """Progress over iterations with the current loss."""
+    """Progress over iterations with the current loss: a live bar on a terminal; otherwise (output
+    redirected to a file or a pipe) one plain line every ``every`` iterations and at the end,
+    with iteration, loss, elapsed time and ETA."""
 
-    def __init__(self, label: str):
+    def __init__(self, label: str, every: int = 10):
         super().__init__(label)
+        self.every, self.lines = every, not console.is_terminal
         self.progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                                  TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn(),
                                  console=console, transient=False)
 
     def start(self, total: int, done: int = 0):
+        self.total, self.done, self.first, self.t0 = total, done, done, time.monotonic()
+        if self.lines:
+            console.print(f"{self.label}: {total - done} iterations to run ({done} done before)", highlight=False)
+            return
         self.progress.__enter__()
         self.task = self.progress.add_task(self.label, total=total, completed=done, loss="—")
 
     def advance(self, n: int, loss: float | None = None):
-        self.progress.update(self.task, advance=n, **({"loss": f"{loss:.5g}"} if loss is not None else {}))
+        self.done += n
+        if not self.lines:
+            self.progress.update(self.task, advance=n, **({"loss": f"{loss:.5g}"} if loss is not None else {}))
+            return
+        if self.done % self.every == 0 or self.done >= self.total:
+            elapsed = time.monotonic() - self.t0
+            eta = elapsed / max(self.done - self.first, 1) * (self.total - self.done)
+            console.print(f"{self.label}: iteration {self.done}/{self.total}, loss {loss:.5g}, "
+                          f"elapsed {elapsed:.0f} s, ETA {eta:.0f} s", highlight=False)
 
 
 @app.command()
@@ -222,11 +238,12 @@ class LossBar(Bar):
 def optimize(config: Path = ConfigArg,
              resume: bool = typer.Option(False, "--resume", help="Continue from the run's saved state."),
              iterations: Optional[int] = typer.Option(None, "--iterations", help="Total iterations (default: optimize.iterations)."),
-             variant: Optional[list[str]] = typer.Option(None, "--variant", help="Run only this variant of optimize.variants (repeatable; default: all).")):
+             variant: Optional[list[str]] = typer.Option(None, "--variant", help="Run only this variant of optimize.variants (repeatable; default: all)."),
+             log_every: int = typer.Option(10, "--log-every", min=1, help="When the output is not a terminal: a progress line every N iterations.")):
     """Reconstruct an object's shape from images (mini-batches, L1 loss, large steps, checkpoints)."""
     exp = load_experiment(config)
     runs = api.optimize_variants(exp, variant, iterations, resume,
-                                 progress=lambda label: LossBar(f"optimize {label}" if label else "optimize"),
+                                 progress=lambda label: LossBar(f"optimize {label}" if label else "optimize", log_every),
                                  warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
     for label, res in runs:
         if res.interrupted:
@@ -235,6 +252,9 @@ def optimize(config: Path = ConfigArg,
         last = f"{res.losses[-1]:.5g}" if res.losses else "—"
         out.print(f"{label + ': ' if label else ''}{res.iterations} iterations (this run: {len(res.losses)}, "
                   f"resumed from {res.resumed_from}); loss {first} → {last}; final mesh {res.final}")
+        if res.budget_stop:
+            out.print(f"{label + ': ' if label else ''}the time budget (optimize.seconds) ended the run after "
+                      f"{res.iterations} iterations ({res.seconds:.1f} s of optimisation)")
     where = f"{exp.run_dir}/<variant>/" if exp.optimize.variants else f"{exp.run_dir}/"
     out.print(f"outputs in {where} (checkpoints/, previews/, log.csv, loss.png); "
               f"evaluate with: psdr evaluate {config}")

@@ -212,6 +212,8 @@ class OptimizeResult:
     checkpoints: list = field(default_factory=list)
     interrupted: bool = False
     skipped: int = 0
+    budget_stop: bool = False        # the time budget (optimize.seconds) ended the run early
+    seconds: float = 0.0             # optimisation seconds of the whole run
 
 
 class Problem:
@@ -346,7 +348,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         clear_run(files)  # a fresh run must never be confused with (or resumed as) an older one
         V, F = initial_shape(exp, reference)
         if cfg.remesh.method != "none":
-            V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method)
+            V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
         start, values, seconds_so_far = 0, {}, 0.0
         write_mesh(files.checkpoint(0), V, F)
     else:
@@ -376,7 +378,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             if it in cfg.remesh.at and it > 0:
                 k = cfg.remesh.at.index(it)
                 V2, F2 = remesh(problem.vertices(), problem.F, cfg.remesh.vertices[k], cfg.remesh.method
-                                if cfg.remesh.method != "none" else "isotropic")
+                                if cfg.remesh.method != "none" else "isotropic",
+                                warn=lambda m: warn(f"iteration {it}: {m}"))
                 problem.release()
                 problem = Problem(exp, V2, F2, cameras, problem.values())
                 guides = None
@@ -438,7 +441,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
         return result
     finally:
         problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
-    result.iterations = total
+    result.iterations, result.seconds = total, seconds_so_far
+    result.budget_stop = cfg.seconds is not None and total < (iterations or cfg.iterations)
     if cfg.seconds is not None and cfg.remesh.at and total < max(cfg.remesh.at) and total < (iterations or cfg.iterations):
         warn(f"the time budget ({cfg.seconds:g} s) ended the run at iteration {total}, before the remesh at "
              f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")

@@ -3,8 +3,14 @@
 Field-aligned remeshing (Jakob et al. 2015, ``pyinstantmeshes``) gives regular, mostly
 edge-aligned triangulations, which edge sorting turns into long chains (paper §4.3). The mesh is
 normalised to a unit box before remeshing (Instant Meshes' parameters assume it) and mapped back
-afterwards. Instant Meshes leaves small holes now and then; they are closed with MeshLab, and if
-the result is still not closed the isotropic remesher (``pymeshlab``) is used instead.
+afterwards. Instant Meshes leaves small holes and non-manifold bits now and then; MeshLab
+repairs them. A remesh must never end an optimisation: every result is checked
+(:func:`defects`: finite, closed, 2-manifold, consistently oriented, no degenerate faces), and a
+method that raises or returns a defective mesh falls back to the next one,
+
+    instant → isotropic → the input mesh unchanged,
+
+each fallback reported through ``warn``.
 """
 from __future__ import annotations
 
@@ -16,8 +22,11 @@ import numpy as np
 import pyinstantmeshes
 import pymeshlab
 
-from .meshes import face_areas
+from .meshes import degenerate_faces, face_areas
 from .topology import build_topology
+
+#: Fallback order after each method (the input mesh is the last resort).
+FALLBACK = {"instant": ("instant", "isotropic"), "isotropic": ("isotropic",)}
 
 
 @contextlib.contextmanager
@@ -51,6 +60,39 @@ def open_edges(V, F) -> int:
     return int(t.open.sum()) + t.nonmanifold
 
 
+def defects(V, F) -> list[str]:
+    """What makes (V, F) unusable as an optimised surface (empty when nothing): non-finite
+    vertices, too few faces, degenerate faces, open or non-manifold edges, and interior edges
+    whose two faces traverse them in the same direction (inconsistent orientation)."""
+    V, F = np.asarray(V, float), np.asarray(F, np.int64)
+    if len(F) < 4 or len(V) < 4:
+        return [f"only {len(V)} vertices and {len(F)} faces"]
+    if not np.isfinite(V).all():
+        return ["non-finite vertices"]
+    if F.min() < 0 or F.max() >= len(V):
+        return ["face indices out of range"]
+    out = []
+    bad = int(degenerate_faces(V, F).sum())
+    if bad:
+        out.append(f"{bad} degenerate faces")
+    t = build_topology(V, F)
+    if t.open.any():
+        out.append(f"{int(t.open.sum())} open edges")
+    if t.nonmanifold:
+        out.append(f"{t.nonmanifold} non-manifold edges")
+    inner = ~t.open
+    if inner.any():
+        # face1 must traverse the edge (v0, v1) of face0 as (v1, v0)
+        f1 = F[t.face1[inner]]
+        a, b = t.v0[inner], t.v1[inner]
+        same = np.zeros(int(inner.sum()), bool)
+        for k in range(3):
+            same |= (f1[:, k] == a) & (f1[:, (k + 1) % 3] == b)
+        if same.any():
+            out.append(f"{int(same.sum())} edges with inconsistent face orientation")
+    return out
+
+
 def _meshlab(V, F):
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(np.asarray(V, np.float64), np.asarray(F, np.int32)))
@@ -58,12 +100,20 @@ def _meshlab(V, F):
 
 
 def _closed(ms):
-    """Merge duplicates, drop non-manifold bits, close holes, orient faces coherently."""
+    """Merge duplicates, drop non-manifold bits, close holes, orient faces coherently (MeshLab
+    refuses to orient a mesh that is still not 2-manifold: the repairs run twice, and the
+    orientation is left to :func:`outward` and the caller's check if it still fails)."""
     ms.meshing_remove_duplicate_vertices()
     ms.meshing_remove_unreferenced_vertices()
-    ms.meshing_repair_non_manifold_edges()
-    ms.meshing_close_holes(maxholesize=60)
-    ms.meshing_re_orient_faces_coherently()
+    for _ in range(2):
+        ms.meshing_repair_non_manifold_edges()
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_close_holes(maxholesize=60)
+        ms.meshing_remove_unreferenced_vertices()
+    try:
+        ms.meshing_re_orient_faces_coherently()
+    except pymeshlab.PyMeshLabException:
+        pass  # still not 2-manifold: defects() reports it and remesh() falls back
     m = ms.current_mesh()
     return np.asarray(m.vertex_matrix(), float), np.asarray(m.face_matrix(), np.int64)
 
@@ -98,12 +148,21 @@ def outward(V, F):
     return F if volume >= 0 else F[:, ::-1].copy()
 
 
-def remesh(V, F, vertices: int, method: str = "instant"):
-    """Remesh (V, F) to about ``vertices`` vertices; returns a closed, outward-oriented mesh
-    (falls back to the isotropic method when the field-aligned one leaves holes)."""
-    if method == "instant":
-        V2, F2 = instant_meshes(V, F, vertices)
-        if len(F2) > 0 and open_edges(V2, F2) == 0:
+def remesh(V, F, vertices: int, method: str = "instant", warn=None):
+    """Remesh (V, F) to about ``vertices`` vertices; returns a closed, 2-manifold,
+    outward-oriented mesh. Never raises for a bad intermediate result: a method that fails or
+    leaves :func:`defects` falls back to the next (instant → isotropic), and when every method
+    fails the input mesh is returned unchanged. ``warn(message)`` hears of each fallback."""
+    methods = {"instant": instant_meshes, "isotropic": isotropic}
+    for name in FALLBACK[method]:
+        try:
+            V2, F2 = methods[name](V, F, vertices)
+            problems = defects(V2, F2)
+        except Exception as exc:  # noqa: BLE001 - any failure of the external remeshers
+            problems = [f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"]
+        if not problems:
             return V2, outward(V2, F2)
-    V2, F2 = isotropic(V, F, vertices)
-    return V2, outward(V2, F2)
+        if warn:
+            warn(f"remesh ({name}, {vertices} vertices) failed: {'; '.join(problems)}; "
+                 f"{'trying the next method' if name != FALLBACK[method][-1] else 'keeping the current mesh'}")
+    return np.asarray(V, float), np.asarray(F, np.int64)

@@ -397,3 +397,39 @@ def test_resume_restarts_when_the_experiment_changed(tmp_path):
     r = run_cli("optimize", write(tmp_path, data), "--resume")
     assert r.returncode == 0 and "changed since" in (r.stdout + r.stderr).replace("\n", " ")
     assert len(log_rows(run)) == 5 and "resumed from 0" in r.stdout.replace("\n", " ")
+
+
+def test_a_failing_remesher_never_ends_a_run(tmp_path, monkeypatch):
+    """Instant Meshes raising (as MeshLab's orientation filter did on a non-manifold result) at
+    the initial and the scheduled remesh: the run falls back to the isotropic remesher, says so
+    and finishes."""
+    import pymeshlab
+    from psdr_cli import api, remesh
+    from psdr_cli.config import load_experiment
+
+    def broken(*args, **kwargs):
+        raise pymeshlab.PyMeshLabException("Failed to apply filter: meshing_re_orient_faces_coherently")
+
+    monkeypatch.setattr(remesh, "instant_meshes", broken)
+    data = copy.deepcopy(TINY)
+    data["optimize"]["iterations"] = 7
+    exp = load_experiment(write(tmp_path, data))
+    warnings = []
+    res = api.optimize(exp, warn=warnings.append)
+    assert res.iterations == 7 and res.final.exists()
+    fallbacks = [w for w in warnings if "remesh (instant" in w]
+    assert len(fallbacks) == 2 and fallbacks[1].startswith("iteration 6:")
+    assert {int(r["vertices"]) for r in log_rows(exp.run_dir)[6:]} != {int(r["vertices"]) for r in log_rows(exp.run_dir)[:6]}
+
+
+def test_redirected_output_gets_progress_lines_and_the_budget_stop_is_announced(tmp_path):
+    """Not on a terminal: one plain progress line every --log-every iterations (iteration, loss,
+    elapsed, ETA); a run ended by optimize.seconds says so."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=400, seconds=2.0, remesh={"method": "none"}, checkpoint_every=100)
+    r = run_cli("optimize", write(tmp_path, data), "--log-every", "3")
+    assert r.returncode == 0, r.stderr
+    lines = [l for l in r.stderr.splitlines() if ": iteration " in l]
+    assert lines and all("/400, loss " in l and "elapsed" in l and "ETA" in l for l in lines)
+    assert lines[0].startswith("optimize: iteration 3/400")
+    assert "the time budget (optimize.seconds) ended the run after" in r.stdout
