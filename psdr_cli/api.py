@@ -130,6 +130,10 @@ def prepare_gradient(exp: Experiment, spp: int | None = None, scene=None):
         raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
     setup(exp)
     scene = scene or build_scene(exp)
+    if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
+        from .camera_motion import check_camera_motion, with_all_edges
+        with_all_edges(scene)
+        check_camera_motion(scene, exp.parameter.camera)
     settings = Settings.from_experiment(exp, spp)
     edges = edge_list(scene, exp.estimator, settings.edge_sort)
     return scene, Parameter(scene, exp.parameter), edges, settings
