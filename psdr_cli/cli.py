@@ -20,6 +20,7 @@ from rich.table import Table
 from . import __version__
 from .config import load_experiment
 from .errors import PsdrError
+from .verdict import agrees, describe
 
 app = typer.Typer(
     name="psdr",
@@ -128,7 +129,8 @@ def render(config: Path = ConfigArg,
 @app.command()
 @guarded
 def grad(config: Path = ConfigArg,
-         spp: Optional[int] = typer.Option(None, "--spp", help="Interior samples per pixel (default: estimator.spp)."),
+         spp: Optional[int] = typer.Option(None, "--spp", help="Samples per pixel of every term (sets estimator.spp, primary_spp and boundary_spp)."),
+         interior_spp: Optional[int] = typer.Option(None, "--interior-spp", help="Samples per pixel of the interior term only (default: estimator.spp)."),
          terms: Optional[str] = typer.Option(None, "--terms", help="Terms, e.g. interior,primary,direct,indirect (default: estimator.terms)."),
          views: Optional[str] = typer.Option(None, "--views", help="Views, e.g. 0,3 or 0-2 (default: all)."),
          fd: Optional[float] = typer.Option(None, "--fd", help="Also compute central finite differences with step H and report the agreement."),
@@ -139,9 +141,13 @@ def grad(config: Path = ConfigArg,
          out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")):
     """Gradient image dI/dθ per term (interior, primary, direct, indirect) and their total."""
     from . import api
-    exp = api.with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort)
+    if spp is not None and spp < 1:
+        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    exp = api.with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort,
+                             spp=spp, primary_spp=spp, boundary_spp=spp)
     with Bar("grad") as bar:
-        res = api.grad(exp, spp=spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar)
+        res = api.grad(exp, spp=interior_spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar,
+                       warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
     table = Table(title=f"psdr grad: {exp.name} — d/dθ, θ = {res.parameter}")
     for col in ("view", "term", "image sum", "seconds"):
         table.add_column(col, justify="right" if col != "term" else "left")
@@ -153,11 +159,12 @@ def grad(config: Path = ConfigArg,
     for v, a in zip(res.views, res.agreement):
         if a:
             s, b = a["sum"], a["blocks"]
-            verdict = "agrees" if abs(s["z"]) < 3 and b["within_3se"] > 0.95 else "DISAGREES"
+            verdict = "agrees" if agrees(a) else "DISAGREES"
             out.print(f"view {v}: estimate {s['estimate']:.5g} ± {s['estimate_se']:.2g}, finite differences "
                       f"{s['fd']:.5g} ± {s['fd_se']:.2g} (z = {s['z']:+.2f}); {b['size']}×{b['size']} tiles: "
                       f"{100 * b['within_3se']:.0f}% within 3 SE, max |z| {b['max_abs_z_signal']:.2f} over "
                       f"{b['signal']} signal tiles, correlation {b['correlation']:.3f} — {verdict}")
+            out.print(describe(a), markup=False)
     out.print(f"{len(res.views)} view(s), {res.variant}; outputs in {res.folder}")
 
 
