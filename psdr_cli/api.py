@@ -171,7 +171,7 @@ FD_BATCHES = 8
 
 
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
-         fd: float | None = None, fd_spp: int | None = None, progress=None) -> GradResult:
+         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
 
     Channels: the render (R, G, B), one group per term (``interior.R`` …) and ``total.*``; with
@@ -190,6 +190,9 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
     views = parse_views(views, len(exp.scene.cameras))
     scene, parameter, edges, settings = prepare_gradient(exp, spp)
     variant = setup(exp)
+    from .shading import smooth_warning
+    if smooth_warning(scene) and warn:
+        warn(smooth_warning(scene))
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
     folder = (Path(out).resolve() / exp.name if out else exp.run_dir) / "grad"

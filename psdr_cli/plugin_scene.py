@@ -76,5 +76,11 @@ def differentiable_meshes(scene: mi.Scene, sensor) -> dict:
                       "parameter the plugin cannot differentiate (only mesh vertex positions and sensor "
                       "to_world are); their boundary terms are missing", stacklevel=3)
     every = sensor_moves(sensor)
-    return {s.id(): object_mesh(s) for s in scene.shapes()
-            if isinstance(s, mi.Mesh) and "vertex_positions" in mi.traverse(s) and (every or mesh_moves(s))}
+    out = {s.id(): object_mesh(s) for s in scene.shapes()
+           if isinstance(s, mi.Mesh) and "vertex_positions" in mi.traverse(s) and (every or mesh_moves(s))}
+    smooth = [n for n, om in out.items() if om.config.smooth]
+    if smooth:
+        warnings.warn(f"psdr integrator: mesh(es) {', '.join(repr(n) for n in smooth)} have vertex normals; the "
+                      "shadow-terminator discontinuity of smooth shading is not differentiated (psdr_cli.shading)",
+                      stacklevel=3)
+    return out
