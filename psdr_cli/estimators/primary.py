@@ -37,16 +37,16 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin):
     Smooth-shaded meshes: silhouette and open edges; flat-shaded meshes: every non-flat edge with
     at least one face towards the camera (an edge between two back faces of a closed mesh is never
     seen, and near a silhouette it projects just behind a grazing front face)."""
-    cols = [[] for _ in range(5)]
+    cols = [[] for _ in range(6)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
         sel = topo.primary(Vo, camera_origin) if smooth else topo.creases(Vo, camera_origin)
         f1 = np.where(topo.open, topo.face0, topo.face1)
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
-                                 np.full(len(sel), m))):
+                                 np.full(len(sel), m), np.full(len(sel), not smooth))):
             c.append(arr)
     if not cols[0]:
-        return [np.zeros(0, np.int64)] * 5
+        return [np.zeros(0, np.int64)] * 6
     return [np.concatenate(c).astype(np.int64) for c in cols]
 
 
@@ -60,6 +60,7 @@ class Curves:
     face0: np.ndarray
     shape1: np.ndarray
     face1: np.ndarray
+    strict: np.ndarray  # visibility needs both sides (flat creases, intersections), else one side
 
     def __len__(self):
         return len(self.face0)
@@ -81,11 +82,11 @@ def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
 def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
     V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
-    v0, v1, f0, f1, m = primary_edge_ids(edges, V, camera_origin)
+    v0, v1, f0, f1, m, strict = primary_edge_ids(edges, V, camera_origin)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
     gather = lambda i: dr.gather(mi.Point3f, P, mi.UInt32(i.astype(np.uint32)))  # noqa: E731
-    return Curves(gather(v0), gather(v1), ids, f0, ids, f1)
+    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool))
 
 
 def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
@@ -113,12 +114,13 @@ def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
     keep = (seg.mesh < n_moving).any(1)
     empty = np.zeros(0, np.int64)
     if not keep.any():
-        return Curves(mi.Point3f(), mi.Point3f(), empty, empty, empty, empty)
+        return Curves(mi.Point3f(), mi.Point3f(), empty, empty, empty, empty, empty.astype(bool))
     seg = Segments(seg.ends[keep], seg.mesh[keep], seg.face[keep])
     _, buf, _ = scene_meshes(scene, edges, P)
     p0, p1 = segment_points(buf, seg)
     ids = np.array([shape_id(s) for s, _, _ in meshes], np.int64)
-    return Curves(p0, p1, ids[seg.mesh[:, 0]], seg.face[:, 0], ids[seg.mesh[:, 1]], seg.face[:, 1])
+    return Curves(p0, p1, ids[seg.mesh[:, 0]], seg.face[:, 0], ids[seg.mesh[:, 1]], seg.face[:, 1],
+                  np.ones(len(seg), bool))
 
 
 def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
@@ -128,7 +130,7 @@ def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> C
     if len(b) == 0:
         return a
     return Curves(concat_points(a.p0, b.p0), concat_points(a.p1, b.p1),
-                  *(np.concatenate([getattr(a, k), getattr(b, k)]) for k in ("shape0", "face0", "shape1", "face1")))
+                  *(np.concatenate([getattr(a, k), getattr(b, k)]) for k in ("shape0", "face0", "shape1", "face1", "strict")))
 
 
 def edge_depth(ray, p0, p1):
@@ -141,22 +143,25 @@ def edge_depth(ray, p0, p1):
     return (b * dr.dot(w, e) - c * dr.dot(ray.d, w)) / dr.select(denom > 0, denom, 1.0)
 
 
-def edge_visible(scene, rays, p0, p1, own, active):
-    """Whether the camera sees the curve point under q: on *both* sides of it the first hit is one
-    of the curve's own faces, or lies behind the curve (or is a miss).
+def edge_visible(scene, rays, p0, p1, own, strict, active):
+    """Whether the camera sees the curve point under q: on *both* sides of it (``strict``: flat
+    creases and intersection curves; otherwise — smooth silhouettes — on at least one side) the
+    first hit is one of the curve's own faces, or lies behind the curve (or is a miss).
 
     A point counts as hidden as soon as one side hits a foreign surface in front of it. (The
     former rule, "one side suffices", let through hidden edges next to a silhouette, just behind
     a grazing front face, and over-counted silhouette pixels of dense flat meshes by up to 2×.) ``own`` = (shape0, face0, shape1,
     face1) as UInt32 arrays."""
     t_edge = edge_depth(rays[0], p0, p1)
-    seen = mi.Bool(active)
+    every, some = mi.Bool(True), mi.Bool(False)
     for ray in rays:
         si = scene.ray_intersect(ray, active)
         sid = dr.reinterpret_array(mi.UInt32, si.shape)
         mine = ((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3]))
-        seen &= ~si.is_valid() | mine | (si.t > t_edge * (1.0 - DEPTH_TOL))
-    return active & seen
+        side = ~si.is_valid() | mine | (si.t > t_edge * (1.0 - DEPTH_TOL))
+        every &= side
+        some |= side
+    return active & dr.select(strict, every, some)
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
@@ -191,8 +196,9 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         rays = [camera_ray(sensor, qd + sign * SIDE_EPS * n_s, width, height, ok) for sign in (-1.0, 1.0)]
         own = [dr.gather(mi.UInt32, mi.UInt32(getattr(curves, a).astype(np.uint32)), k)
                for a in ("shape0", "face0", "shape1", "face1")]
+        strict = dr.gather(mi.Bool, mi.Bool(curves.strict), k)
         ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
-                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, ok)
+                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, ok)
         sides = [interior.radiance(scene, sampler, ray, max_depth, ok) for ray in rays]
         # opaque: the edge length sum changes with the geometry and must not be baked into the kernel
         delta = dr.select(ok, (sides[0] - sides[1]) * dr.opaque(mi.Float, total / n_samples), 0.0)
