@@ -39,9 +39,10 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
 
 
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
-         fd: float | None = None, fd_spp: int | None = None, progress=None):
-    """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult."""
-    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress)
+         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None):
+    """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
+    ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings."""
+    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn)
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):

@@ -21,6 +21,7 @@ from rich.table import Table
 from . import __version__, api
 from .config import load_experiment, with_estimator
 from .errors import PsdrError
+from .verdict import describe
 
 app = typer.Typer(
     name="psdr",
@@ -128,7 +129,8 @@ def render(config: Path = ConfigArg,
 @app.command()
 @guarded
 def grad(config: Path = ConfigArg,
-         spp: Optional[int] = typer.Option(None, "--spp", help="Interior samples per pixel (default: estimator.spp)."),
+         spp: Optional[int] = typer.Option(None, "--spp", help="Samples per pixel of every term (sets estimator.spp, primary_spp and boundary_spp)."),
+         interior_spp: Optional[int] = typer.Option(None, "--interior-spp", help="Samples per pixel of the interior term only (default: estimator.spp)."),
          terms: Optional[str] = typer.Option(None, "--terms", help="Terms, e.g. interior,primary,direct,indirect (default: estimator.terms)."),
          views: Optional[str] = ViewsOption,
          fd: Optional[float] = typer.Option(None, "--fd", help="Also compute central finite differences with step H and report the agreement."),
@@ -138,9 +140,11 @@ def grad(config: Path = ConfigArg,
          edge_sort: Optional[bool] = typer.Option(None, "--edge-sort/--no-edge-sort", help="Sort edges into chains (default: estimator.edge_sort)."),
          out_dir: Optional[Path] = OutOption):
     """Gradient image dI/dθ per term (interior, primary, direct, indirect) and their total."""
-    exp = with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort)
+    exp = with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort,
+                         spp=spp, primary_spp=spp, boundary_spp=spp)
     with Bar("grad") as bar:
-        res = api.grad(exp, spp=spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar)
+        res = api.grad(exp, spp=interior_spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar,
+                       warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
     table = Table(title=f"psdr grad: {exp.name} — d/dθ, θ = {res.parameter}")
     for col in ("view", "term", "image sum", "seconds"):
         table.add_column(col, justify="right" if col != "term" else "left")
@@ -157,6 +161,7 @@ def grad(config: Path = ConfigArg,
                       f"{s['fd']:.5g} ± {s['fd_se']:.2g} (z = {s['z']:+.2f}); {b['size']}×{b['size']} tiles: "
                       f"{100 * b['within_3se']:.0f}% within 3 SE, max |z| {b['max_abs_z_signal']:.2f} over "
                       f"{b['signal']} signal tiles, correlation {b['correlation']:.3f} — {verdict}")
+            out.print(describe(a), markup=False)
     out.print(f"{len(res.views)} view(s), {res.variant}; outputs in {res.folder}")
 
 

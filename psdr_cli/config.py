@@ -276,6 +276,7 @@ class ParameterConfig:
     kind: str  # translate | rotate | scale | envmap_rotate
     object: str | None = None
     axis: tuple = (1.0, 0.0, 0.0)
+    camera: int | None = None  # translate/rotate this camera (view index) instead of an object
 
 
 @dataclass
@@ -653,13 +654,18 @@ def parse_parameter(value, where) -> ParameterConfig:
     sec = Section(value, where)
     kind = sec.get("kind", choice(*PARAMETER_KINDS))
     obj = sec.get("object", string, None)
-    if kind != "envmap_rotate" and obj is None:
-        raise where.child("object").fail(f"missing (required for kind '{kind}')")
+    camera = sec.get("camera", integer(0), None)
+    if camera is not None and obj is not None:
+        raise where.child("camera").fail("give either 'object' or 'camera', not both")
+    if camera is not None and kind not in ("translate", "rotate"):
+        raise where.child("camera").fail(f"a camera can only be translated or rotated, not '{kind}'")
+    if kind != "envmap_rotate" and obj is None and camera is None:
+        raise where.child("object").fail(f"missing (required for kind '{kind}'; or 'camera: INDEX')")
     if kind == "envmap_rotate" and obj is not None:
         raise where.child("object").fail("not allowed for kind 'envmap_rotate'")
     axis = sec.get("axis", vector(3, nonzero=True), DEFAULT_AXIS[kind])
     sec.done()
-    return ParameterConfig(kind=kind, object=obj, axis=axis if kind == "scale" else _unit(axis))
+    return ParameterConfig(kind=kind, object=obj, axis=axis if kind == "scale" else _unit(axis), camera=camera)
 
 
 def parse_views(views, count: int) -> list[int]:
@@ -703,6 +709,8 @@ def with_estimator(exp: "Experiment", **overrides) -> "Experiment":
     allowed = {"sampling": SAMPLINGS, "guiding": GUIDINGS}
     changes = {k: v for k, v in overrides.items() if v is not None}
     for key, value in changes.items():
+        if key.endswith("spp") and not (isinstance(value, int) and value >= 1):
+            raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {value}")
         if key in allowed and value not in allowed[key]:
             raise PsdrError(f"--{key.replace('_', '-')}: expected one of {', '.join(allowed[key])}, got '{value}'")
     return replace(exp, estimator=replace(exp.estimator, **changes)) if changes else exp
@@ -931,6 +939,9 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
                 f"view {bad[0]} does not exist (the scene has views 0..{len(exp.scene.cameras) - 1})")
         if exp.optimize.envmap_rotation and not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("optimize").child("envmap_rotation").fail("needs an envmap or sky emitter")
+    if exp.parameter and exp.parameter.camera is not None and exp.parameter.camera >= len(exp.scene.cameras):
+        raise where.child("parameter").child("camera").fail(
+            f"camera {exp.parameter.camera} does not exist (the scene has cameras 0..{len(exp.scene.cameras) - 1})")
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")

@@ -17,6 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, fileio
+from .camera_motion import check_camera_motion, with_all_edges
 from .config import TERMS, EstimatorConfig, Experiment, parse_terms, parse_views
 from .errors import PsdrError
 from .estimators import interior
@@ -31,6 +32,7 @@ from .parameters import Parameter
 from .reference import agreement, finite_difference
 from .render import render_view
 from .scene import build_scene
+from .shading import smooth_warning
 
 
 @dataclass
@@ -110,6 +112,9 @@ def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetu
         raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
     backend.activate(exp)
     scene = scene or build_scene(exp)
+    if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
+        with_all_edges(scene)
+        check_camera_motion(scene, exp.parameter.camera)
     settings = Settings.from_experiment(exp, spp)
     edges = edge_list(scene, exp.estimator, settings.edge_sort)
     return GradientSetup(scene, Parameter(scene, exp.parameter), edges, settings)
@@ -253,7 +258,7 @@ FD_BATCHES = 8
 
 
 def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
-         fd: float | None = None, fd_spp: int | None = None, progress=None) -> GradResult:
+         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
 
     Channels: the render (R, G, B), one group per term (``interior.R`` …) and ``total.*``; with
@@ -268,6 +273,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     views = parse_views(views, len(exp.scene.cameras))
     scene, parameter, edges, settings = prepare(exp, spp)
     variant = mi.variant()
+    if warn and smooth_warning(scene):
+        warn(smooth_warning(scene))
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
     folder = exp.command_dir("grad", out)

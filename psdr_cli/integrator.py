@@ -15,13 +15,12 @@ from types import SimpleNamespace
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from .estimators.boundary_sampling import TRANSMISSIVE, BoundaryEdges
 from .config import TERMS, EstimatorConfig
+from .estimators.boundary_sampling import BoundaryEdges
 from .gradient import Settings, ad_image, term_passes
+from .plugin_scene import differentiable_meshes, mesh_moves, object_mesh
 from .render import render_view
-from .scene import ObjectMesh
 
 
 @dataclass
@@ -34,23 +33,12 @@ class SceneView:
     config: object
 
 
-def mesh_objects(scene: mi.Scene, params, differentiable_only: bool = True) -> dict:
-    """{shape id: ObjectMesh} of the triangle meshes (with gradients enabled, by default)."""
-    out = {}
-    for shape in scene.shapes():
-        key = f"{shape.id()}.vertex_positions"
-        if not isinstance(shape, mi.Mesh) or key not in params:
-            continue
-        if differentiable_only and not dr.grad_enabled(params[key]):
-            continue
-        V = np.asarray(dr.detach(params[key]), np.float64).reshape(-1, 3)
-        F = np.asarray(params[f"{shape.id()}.faces"], np.int64).reshape(-1, 3)
-        bsdf = shape.bsdf()
-        transmissive = bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
-        cfg = SimpleNamespace(smooth=shape.has_vertex_normals(),
-                              bsdf=SimpleNamespace(type=TRANSMISSIVE[0] if transmissive else "opaque"))
-        out[shape.id()] = ObjectMesh(shape.id(), V, F, True, cfg)
-    return out
+def mesh_objects(scene: mi.Scene, params=None, differentiable_only: bool = True) -> dict:
+    """{shape id: ObjectMesh} of the triangle meshes (with gradients enabled, by default), read
+    from the shapes themselves (``params`` may be reduced by ``params.keep`` or be θ itself)."""
+    return {s.id(): object_mesh(s) for s in scene.shapes()
+            if isinstance(s, mi.Mesh) and "vertex_positions" in mi.traverse(s)
+            and (mesh_moves(s) or not differentiable_only)}
 
 
 _CLASSES = {}
@@ -86,7 +74,8 @@ def integrator_class():
 
         def view(self, scene, params, sensor) -> tuple:
             size = tuple(int(s) for s in sensor.film().size())
-            objects = mesh_objects(scene, params) if params is not None else {}
+            # params may be SceneParameters, a reduced set (params.keep) or θ itself: read the shapes
+            objects = differentiable_meshes(scene, sensor) if params is not None else {}
             sv = SceneView(scene, [sensor], size, objects, SimpleNamespace(max_depth=self.max_depth))
             return sv, BoundaryEdges.from_scene(sv)
 

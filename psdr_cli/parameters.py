@@ -6,6 +6,8 @@ With c the centre of the object's bounding box at θ = 0 and a the (unit) axis:
 - ``rotate``:    V(θ) = c + R(a, θ)(V0 − c)                       (θ in radians, right-handed)
 - ``scale``:     V(θ) = c + (1 + θ a) ⊙ (V0 − c)                  (a per-axis rates, not normalised)
 - ``envmap_rotate``: to_world(θ) = R(a, θ) · to_world(0) of every environment emitter.
+- a camera (``camera: i``): ``translate``: to_world(θ) = T(θ a) · to_world(0); ``rotate``:
+  to_world(θ) = T(o) R(a, θ) T(−o) · to_world(0) about the camera's own origin o.
 
 R(a, θ) v = v cosθ + (a × v) sinθ + a (a·v)(1 − cosθ) (Rodrigues).
 """
@@ -34,7 +36,13 @@ class Parameter:
     def __init__(self, scene, config: ParameterConfig, params=None):
         self.config = config
         self.params = params if params is not None else mi.traverse(scene.mi_scene)
-        if config.kind == "envmap_rotate":
+        if config.camera is not None:
+            key = f"sensor_{config.camera:03d}.to_world"
+            if key not in self.params:
+                raise PsdrError(f"parameter.camera: no camera {config.camera} in the scene")
+            self.keys = [key]
+            self.initial = {key: mi.AffineTransform4f(self.params[key])}
+        elif config.kind == "envmap_rotate":
             self.keys = [k for k in self.params.keys() if k.startswith("emitter_") and k.endswith(".to_world")]
             if not self.keys:
                 raise PsdrError("parameter: kind 'envmap_rotate' needs an envmap or sky emitter in the scene")
@@ -51,7 +59,8 @@ class Parameter:
     @property
     def name(self) -> str:
         c = self.config
-        what = "environment" if c.kind == "envmap_rotate" else c.object
+        what = "environment" if c.kind == "envmap_rotate" else \
+            (f"camera {c.camera}" if c.camera is not None else c.object)
         return f"{c.kind} {what} axis ({', '.join(f'{a:g}' for a in c.axis)})"
 
     def vertices(self, theta):
@@ -66,9 +75,21 @@ class Parameter:
             V = self.center + (1.0 + theta * mi.Vector3f(*a)) * (V0 - self.center)
         return dr.ravel(V)
 
+    def camera_to_world(self, theta):
+        """to_world(θ) of the moving camera (see the module docstring)."""
+        T0 = self.initial[self.keys[0]]
+        a = list(self.config.axis)
+        if self.config.kind == "translate":
+            return mi.AffineTransform4f().translate(mi.Vector3f(*a) * theta) @ T0
+        o = T0.translation()
+        rot = mi.AffineTransform4f().rotate(a, theta * (180.0 / math.pi))
+        return mi.AffineTransform4f().translate(o) @ rot @ mi.AffineTransform4f().translate(-o) @ T0
+
     def apply(self, theta):
         theta = mi.Float(theta)
-        if self.config.kind == "envmap_rotate":
+        if self.config.camera is not None:
+            self.params[self.keys[0]] = self.camera_to_world(theta)
+        elif self.config.kind == "envmap_rotate":
             rot = mi.Transform4f().rotate(list(self.config.axis), theta * (180.0 / math.pi))
             for k in self.keys:
                 self.params[k] = mi.AffineTransform4f(rot.matrix) @ self.initial[k]

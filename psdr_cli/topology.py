@@ -55,16 +55,26 @@ class Topology:
         keep = ~self.flat & (transmissive | ~self.concave)
         return np.nonzero(keep)[0]
 
-    def primary(self, V, camera_origin) -> np.ndarray:
-        """Indices of silhouette edges seen from ``camera_origin``: open edges, and edges where
-        exactly one adjacent face faces the camera."""
+    def facing(self, V, camera_origin):
+        """Whether face0 and face1 (face0 again on open edges) face ``camera_origin``."""
         V = np.asarray(V, float)
         n = face_normals(V, self.faces)
         to_cam = np.asarray(camera_origin, float) - V[self.v0]
         s0 = np.einsum("ij,ij->i", n[self.face0], to_cam) > 0
         f1 = np.where(self.open, self.face0, self.face1)
-        s1 = np.einsum("ij,ij->i", n[f1], to_cam) > 0
+        return s0, np.einsum("ij,ij->i", n[f1], to_cam) > 0
+
+    def primary(self, V, camera_origin) -> np.ndarray:
+        """Indices of silhouette edges seen from ``camera_origin``: open edges, and edges where
+        exactly one adjacent face faces the camera."""
+        s0, s1 = self.facing(V, camera_origin)
         return np.nonzero(self.open | (s0 != s1))[0]
+
+    def creases(self, V, camera_origin) -> np.ndarray:
+        """Indices of the edges of a flat-shaded mesh that can show as image discontinuities from
+        ``camera_origin``: open edges and non-flat edges with at least one face towards it."""
+        s0, s1 = self.facing(V, camera_origin)
+        return np.nonzero(self.open | (~self.flat & (s0 | s1)))[0]
 
 
 def build_topology(V, F, eps: float = 1e-5) -> Topology:

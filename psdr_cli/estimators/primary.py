@@ -16,27 +16,121 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from dataclasses import dataclass
+
 from . import interior
+from ..intersections import Segments, intersection_segments, segment_points
 from .boundary_sampling import BoundaryEdges
 from .camera import Projection, camera_ray, film_pixel
 
 #: Offset of the two radiance samples from the edge, in pixels.
 SIDE_EPS = 1e-3
+#: Relative depth within which a foreign hit counts as "at the edge" (a neighbour face sharing an
+#: end point of the edge, hit by a side ray near that end point).
+DEPTH_TOL = 1e-3
 
 
 def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin):
-    """(v0, v1) vertex ids of the edges that can carry an image discontinuity for this camera.
+    """(v0, v1, face0, face1, mesh index) of the edges that can carry an image discontinuity for
+    this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on open edges).
 
-    Smooth-shaded meshes: silhouette and open edges; flat-shaded meshes: every non-flat edge."""
-    v0, v1 = [], []
-    for topo, offset, smooth in edges.meshes:
+    Smooth-shaded meshes: silhouette and open edges; flat-shaded meshes: every non-flat edge with
+    at least one face towards the camera (an edge between two back faces of a closed mesh is never
+    seen, and near a silhouette it projects just behind a grazing front face)."""
+    cols = [[] for _ in range(6)]
+    for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
-        sel = topo.primary(Vo, camera_origin) if smooth else np.nonzero(~topo.flat)[0]
-        v0.append(topo.v0[sel] + offset)
-        v1.append(topo.v1[sel] + offset)
-    if not v0:
-        return np.zeros(0, np.uint32), np.zeros(0, np.uint32)
-    return np.concatenate(v0).astype(np.uint32), np.concatenate(v1).astype(np.uint32)
+        sel = topo.primary(Vo, camera_origin) if smooth else topo.creases(Vo, camera_origin)
+        f1 = np.where(topo.open, topo.face0, topo.face1)
+        for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
+                                 np.full(len(sel), m), np.full(len(sel), not smooth))):
+            c.append(arr)
+    if not cols[0]:
+        return [np.zeros(0, np.int64)] * 6
+    return [np.concatenate(c).astype(np.int64) for c in cols]
+
+
+@dataclass
+class Curves:
+    """Image-discontinuity curves as segments p0(θ)p1(θ) (AD), each with the two faces it bounds:
+    (shape0, face0) and (shape1, face1), shapes as Mitsuba registry ids (as in ``si.shape``)."""
+    p0: mi.Point3f
+    p1: mi.Point3f
+    shape0: np.ndarray
+    face0: np.ndarray
+    shape1: np.ndarray
+    face1: np.ndarray
+    strict: np.ndarray  # visibility needs both sides (flat creases, intersections), else one side
+
+    def __len__(self):
+        return len(self.face0)
+
+
+def shape_id(shape) -> int:
+    """Mitsuba registry id of a shape (what ``dr.reinterpret_array(mi.UInt32, si.shape)`` gives)."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
+
+
+def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
+    if dr.width(a) == 0:
+        return b
+    if dr.width(b) == 0:
+        return a
+    return mi.Point3f(*(dr.concat([a[i], b[i]]) for i in range(3)))
+
+
+def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
+    """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
+    V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
+    v0, v1, f0, f1, m, strict = primary_edge_ids(edges, V, camera_origin)
+    shapes = {s.id(): s for s in scene.shapes()}
+    ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
+    gather = lambda i: dr.gather(mi.Point3f, P, mi.UInt32(i.astype(np.uint32)))  # noqa: E731
+    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool))
+
+
+def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
+    """Every triangle mesh of the scene as (shape, V, F) plus one flat vertex buffer of all of
+    them: the edge objects' part is ``P`` (AD), the others are constants."""
+    shapes = {s.id(): s for s in scene.shapes() if isinstance(s, mi.Mesh)}
+    order = [n for n in edges.names if n in shapes] + [n for n in shapes if n not in edges.names]
+    bufs, out = [], []
+    for n in order:
+        positions = dr.detach(shapes[n].vertex_positions_buffer())
+        V = np.asarray(positions, np.float64).reshape(-1, 3)
+        F = np.asarray(shapes[n].faces_buffer(), np.int64).reshape(-1, 3)
+        out.append((shapes[n], V, F))
+        if n not in edges.names:
+            bufs.append(mi.Float(positions))
+    buf = P if not bufs else dr.concat([P] + bufs)
+    return out, buf, len([n for n in order if n in edges.names])
+
+
+def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
+    """Intersection curves that involve at least one edge object (:mod:`psdr_cli.intersections`)."""
+    with dr.suspend_grad():
+        meshes, _, n_moving = scene_meshes(scene, edges, P)
+    seg = intersection_segments([V for _, V, _ in meshes], [F for _, _, F in meshes])
+    keep = (seg.mesh < n_moving).any(1)
+    empty = np.zeros(0, np.int64)
+    if not keep.any():
+        return Curves(mi.Point3f(), mi.Point3f(), empty, empty, empty, empty, empty.astype(bool))
+    seg = Segments(seg.ends[keep], seg.mesh[keep], seg.face[keep])
+    _, buf, _ = scene_meshes(scene, edges, P)
+    p0, p1 = segment_points(buf, seg)
+    ids = np.array([shape_id(s) for s, _, _ in meshes], np.int64)
+    return Curves(p0, p1, ids[seg.mesh[:, 0]], seg.face[:, 0], ids[seg.mesh[:, 1]], seg.face[:, 1],
+                  np.ones(len(seg), bool))
+
+
+def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
+    """Mesh edges and intersection curves, concatenated."""
+    a = mesh_edge_curves(scene, edges, P, camera_origin)
+    b = intersection_curves(scene, edges, P)
+    if len(b) == 0:
+        return a
+    return Curves(concat_points(a.p0, b.p0), concat_points(a.p1, b.p1),
+                  *(np.concatenate([getattr(a, k), getattr(b, k)]) for k in ("shape0", "face0", "shape1", "face1", "strict")))
 
 
 def edge_depth(ray, p0, p1):
@@ -49,32 +143,41 @@ def edge_depth(ray, p0, p1):
     return (b * dr.dot(w, e) - c * dr.dot(ray.d, w)) / dr.select(denom > 0, denom, 1.0)
 
 
-def edge_visible(scene, rays, p0, p1, active):
-    """Whether the edge point under q is seen by the camera: on at least one side of the edge the
-    first hit is not in front of the edge (otherwise an occluder covers it, and a discontinuity
-    seen there belongs to another edge that projects onto the same line)."""
+def edge_visible(scene, rays, p0, p1, own, strict, active):
+    """Whether the camera sees the curve point under q: on *both* sides of it (``strict``: flat
+    creases and intersection curves; otherwise — smooth silhouettes — on at least one side) the
+    first hit is one of the curve's own faces, or lies behind the curve (or is a miss).
+
+    A point counts as hidden as soon as one side hits a foreign surface in front of it. (The
+    former rule, "one side suffices", let through hidden edges next to a silhouette, just behind
+    a grazing front face, and over-counted silhouette pixels of dense flat meshes by up to 2×.) ``own`` = (shape0, face0, shape1,
+    face1) as UInt32 arrays."""
     t_edge = edge_depth(rays[0], p0, p1)
-    seen = mi.Bool(False)
+    every, some = mi.Bool(True), mi.Bool(False)
     for ray in rays:
         si = scene.ray_intersect(ray, active)
-        seen |= ~si.is_valid() | (si.t > t_edge * (1.0 - 1e-3))
-    return active & seen
+        sid = dr.reinterpret_array(mi.UInt32, si.shape)
+        mine = ((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3]))
+        side = ~si.is_valid() | mine | (si.t > t_edge * (1.0 - DEPTH_TOL))
+        every &= side
+        some |= side
+    return active & dr.select(strict, every, some)
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
                      sampler: mi.Sampler, max_depth: int):
-    """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` edge points."""
+    """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` curve points
+    (mesh edges and intersection curves)."""
     proj = Projection(sensor)
     width, height = proj.width, proj.height
     img = dr.zeros(mi.Float, width * height * 3)
-    if edges.count == 0:
+    if edges.count == 0 and not edges.meshes:
         return img
-    V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
-    ids0, ids1 = primary_edge_ids(edges, V, np.asarray(proj.origin, np.float64).reshape(-1)[:3])
-    if len(ids0) == 0:
+    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3])
+    if len(curves) == 0:
         return img
-    q0, z0 = proj(dr.gather(mi.Point3f, P, mi.UInt32(ids0)))
-    q1, z1 = proj(dr.gather(mi.Point3f, P, mi.UInt32(ids1)))
+    q0, z0 = proj(curves.p0)
+    q1, z1 = proj(curves.p1)
     with dr.suspend_grad():
         front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
         length = dr.select(front, dr.norm(dr.detach(q1 - q0)), 0.0)
@@ -91,8 +194,11 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         n_s = mi.Vector2f(-t.y, t.x)
         ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height)
         rays = [camera_ray(sensor, qd + sign * SIDE_EPS * n_s, width, height, ok) for sign in (-1.0, 1.0)]
-        ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(P), dr.gather(mi.UInt32, mi.UInt32(ids0), k)),
-                           dr.gather(mi.Point3f, dr.detach(P), dr.gather(mi.UInt32, mi.UInt32(ids1), k)), ok)
+        own = [dr.gather(mi.UInt32, mi.UInt32(getattr(curves, a).astype(np.uint32)), k)
+               for a in ("shape0", "face0", "shape1", "face1")]
+        strict = dr.gather(mi.Bool, mi.Bool(curves.strict), k)
+        ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, ok)
         sides = [interior.radiance(scene, sampler, ray, max_depth, ok) for ray in rays]
         # opaque: the edge length sum changes with the geometry and must not be baked into the kernel
         delta = dr.select(ok, (sides[0] - sides[1]) * dr.opaque(mi.Float, total / n_samples), 0.0)

@@ -1,0 +1,172 @@
+"""Intersection curves of triangle meshes that pierce each other (or one mesh's separate shells).
+
+Where two surfaces cross, the image and the shading are discontinuous along their intersection
+curve (the surface normal jumps there), and that curve moves with θ although it lies on no mesh
+edge. This module finds the curve as triangle–triangle intersection segments (numpy, rebuilt
+whenever the geometry moves) and evaluates their end points differentiably.
+
+For triangles A and B with planes (c, n = (d − c) × (e − c)), each end point of the segment A ∩ B
+is where an edge (a, b) of one triangle crosses the plane of the other:
+
+    p = a + t (b − a),   t = ((c − a)·n) / ((b − a)·n).
+
+Both end points lie on the line plane(A) ∩ plane(B) for every θ, so the component of the
+velocity of p normal to the curve (the only one a boundary integral sees) is exact; the
+tangential component (sliding along the curve) does not matter.
+
+An intersection curve of two opaque solids is a concave crease of the union's surface: every line
+through it enters a solid, so it bounds visibility of no boundary segment and only the primary
+(camera) term needs it. Pairs of triangles that share a (welded) vertex are adjacent, not
+intersecting, and are skipped; touching triangles (a vertex exactly on the other plane) give
+segments of zero length, which are dropped.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .topology import weld
+
+#: Rows of the candidate matrix processed at once (memory of the bounding-box test).
+CHUNK = 512
+
+
+@dataclass
+class Segments:
+    """Intersection segments; every array has one row per segment.
+
+    ``ends``: (n, 2, 5) vertex ids per end point: edge (a, b) and the plane triangle (c, d, e), all
+    in the concatenated vertex numbering of the meshes passed to :func:`intersection_segments`.
+    ``mesh``: (n, 2) mesh index of the two triangles, ``face``: (n, 2) their face index in
+    that mesh."""
+    ends: np.ndarray
+    mesh: np.ndarray
+    face: np.ndarray
+
+    def __len__(self):
+        return len(self.ends)
+
+
+def overlapping_boxes(lo_a, hi_a, lo_b, hi_b, same: bool):
+    """Index pairs (i, j) of axis-aligned boxes of A and B that overlap (i < j when ``same``)."""
+    out_i, out_j = [], []
+    for s in range(0, len(lo_a), CHUNK):
+        sl = slice(s, s + CHUNK)
+        hit = np.all((lo_a[sl, None, :] <= hi_b[None]) & (lo_b[None] <= hi_a[sl, None, :]), axis=-1)
+        i, j = np.nonzero(hit)
+        i = i + s
+        if same:
+            keep = i < j
+            i, j = i[keep], j[keep]
+        out_i.append(i)
+        out_j.append(j)
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
+def plane_side(V, tri_vertices, plane_tri):
+    """Signed distances (·|n|) of the three vertices of each triangle to the plane of another."""
+    c, d, e = (V[plane_tri[:, k]] for k in range(3))
+    n = np.cross(d - c, e - c)
+    return np.einsum("nkj,nj->nk", V[tri_vertices] - c[:, None, :], n)
+
+
+def crossing_edges(s):
+    """For signed distances s (n, 3) of a triangle's vertices that change sign: the two edges
+    (k, k+1 mod 3) whose end points lie on different sides (zero counts as positive)."""
+    pos = s >= 0
+    edges = [(0, 1), (1, 2), (2, 0)]
+    cross = np.stack([pos[:, a] != pos[:, b] for a, b in edges], 1)
+    return cross
+
+
+def segment_ends(V, Fa, Fb):
+    """End-point candidates of the intersections of triangles Fa[i] and Fb[i] (vertex ids).
+
+    Returns (mask of real intersections, ends (n, 2, 5) ids, lengths)."""
+    sa = plane_side(V, Fa, Fb)
+    sb = plane_side(V, Fb, Fa)
+    straddle = lambda s: (s >= 0).any(1) & (s < 0).any(1)  # noqa: E731
+    ok = straddle(sa) & straddle(sb)
+    n = len(Fa)
+    # four candidate points: the two crossing edges of A (on B's plane) and of B (on A's plane)
+    cand_ids = np.zeros((n, 4, 5), np.int64)
+    cand_p = np.zeros((n, 4, 3))
+    for slot, (F, G, s) in enumerate(((Fa, Fb, sa), (Fb, Fa, sb))):
+        cross = crossing_edges(s)
+        k = np.argsort(~cross, axis=1, kind="stable")[:, :2]  # the (first) two crossing edges
+        for m in range(2):
+            a = np.take_along_axis(F, k[:, m:m + 1], 1)[:, 0]
+            b = np.take_along_axis(F, ((k[:, m] + 1) % 3)[:, None], 1)[:, 0]
+            sa_ = np.take_along_axis(s, k[:, m:m + 1], 1)[:, 0]
+            sb_ = np.take_along_axis(s, ((k[:, m] + 1) % 3)[:, None], 1)[:, 0]
+            denom = np.where(sa_ != sb_, sa_ - sb_, 1.0)
+            t = sa_ / denom
+            cand_p[:, 2 * slot + m] = V[a] + t[:, None] * (V[b] - V[a])
+            cand_ids[:, 2 * slot + m] = np.stack([a, b, G[:, 0], G[:, 1], G[:, 2]], 1)
+    # parametrise the four points along the common line and keep the overlap of the two intervals
+    direction = cand_p[:, 1] - cand_p[:, 0]
+    alt = cand_p[:, 3] - cand_p[:, 2]
+    direction = np.where(np.linalg.norm(direction, axis=1, keepdims=True) > np.linalg.norm(alt, axis=1, keepdims=True),
+                         direction, alt)
+    u = np.einsum("nkj,nj->nk", cand_p - cand_p[:, :1], direction)
+    lo_a, hi_a = np.sort(u[:, :2], 1).T
+    lo_b, hi_b = np.sort(u[:, 2:], 1).T
+    start_is_a = lo_a >= lo_b
+    end_is_a = hi_a <= hi_b
+    i_start = np.where(start_is_a, np.argmin(u[:, :2], 1), 2 + np.argmin(u[:, 2:], 1))
+    i_end = np.where(end_is_a, np.argmax(u[:, :2], 1), 2 + np.argmax(u[:, 2:], 1))
+    r = np.arange(n)
+    p0, p1 = cand_p[r, i_start], cand_p[r, i_end]
+    ok &= np.maximum(lo_a, lo_b) < np.minimum(hi_a, hi_b)
+    ends = np.stack([cand_ids[r, i_start], cand_ids[r, i_end]], 1)
+    return ok, ends, np.linalg.norm(p1 - p0, axis=1)
+
+
+def intersection_segments(vertices: list, faces: list, rel_min_length: float = 1e-7) -> Segments:
+    """Intersection segments among the meshes (V_k, F_k) and within each of them.
+
+    Triangles of one mesh that share a welded vertex are neighbours and never tested."""
+    offsets = np.cumsum([0] + [len(V) for V in vertices])
+    V = np.concatenate([np.asarray(v, float) for v in vertices]) if vertices else np.zeros((0, 3))
+    if len(V) == 0:
+        return Segments(np.zeros((0, 2, 5), np.int64), np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64))
+    wid, _ = weld(V)
+    extent = float(np.ptp(V, axis=0).max()) or 1.0
+    Fs = [np.asarray(F, np.int64) + o for F, o in zip(faces, offsets)]
+    boxes = [(V[F].min(1) - 1e-9 * extent, V[F].max(1) + 1e-9 * extent) for F in Fs]
+    ends, mesh, face = [], [], []
+    for a in range(len(Fs)):
+        for b in range(a, len(Fs)):
+            i, j = overlapping_boxes(*boxes[a], *boxes[b], same=a == b)
+            if a == b and len(i):  # neighbours share a welded vertex
+                wa, wb = wid[Fs[a][i]], wid[Fs[b][j]]
+                shared = (wa[:, :, None] == wb[:, None, :]).any((1, 2))
+                i, j = i[~shared], j[~shared]
+            if not len(i):
+                continue
+            ok, e, length = segment_ends(V, Fs[a][i], Fs[b][j])
+            ok &= length > rel_min_length * extent
+            ends.append(e[ok])
+            mesh.append(np.tile([a, b], (int(ok.sum()), 1)))
+            face.append(np.stack([i[ok], j[ok]], 1))
+    if not ends:
+        return Segments(np.zeros((0, 2, 5), np.int64), np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64))
+    return Segments(np.concatenate(ends), np.concatenate(mesh), np.concatenate(face))
+
+
+def plane_crossing(P, ids):
+    """p = a + t (b − a) with t = ((c − a)·n)/((b − a)·n), n = (d − c) × (e − c), differentiable
+    in the flat vertex buffer ``P``; ``ids`` are the five vertex-id arrays (a, b, c, d, e)."""
+    a, b, c, d, e = (dr.gather(mi.Point3f, P, mi.UInt32(np.ascontiguousarray(i, np.uint32))) for i in ids)
+    n = dr.cross(d - c, e - c)
+    denom = dr.dot(b - a, n)
+    t = dr.dot(c - a, n) / dr.select(denom != 0, denom, 1.0)
+    return a + t * (b - a)
+
+
+def segment_points(P, segments: Segments):
+    """(p0, p1) of every segment as AD points of the flat vertex buffer ``P``."""
+    return tuple(plane_crossing(P, [segments.ends[:, k, m] for m in range(5)]) for k in range(2))

@@ -1,0 +1,280 @@
+"""Issue 13: gradients that were wrong without warning on published meshes, by class, each with a
+procedural stand-in checked against central finite differences (sum and 4×4 tiles):
+
+- a dense flat bumpy blob (silhouette pixels were over-counted by the primary term: hidden edges
+  next to a silhouette passed the visibility test),
+- one mesh with two intersecting shells (a head with an eye: the intersection curve is a crease
+  on no mesh edge),
+- a moving camera (was not a parameter at all),
+- the Mitsuba plugin called as Mitsuba users call it (``params.keep``, ``params=θ``),
+- smooth shading (the shadow terminator is still not differentiated: a strict xfail and a warning).
+"""
+import copy
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+import yaml
+
+from psdr_cli import api, meshes
+from psdr_cli.gradient import prepare
+from psdr_cli.config import load_experiment
+from psdr_cli.errors import PsdrError
+from psdr_cli.intersections import intersection_segments
+from psdr_cli.reference import agreement, block_sums, finite_difference, mean_and_error
+from psdr_cli.verdict import agrees, describe
+
+LIGHT_SIDE = {"type": "area", "center": [1.6, 0.3, 1.2], "normal": [-0.8, -0.1, -0.3], "size": [0.5, 0.5],
+              "radiance": 20}
+FLOOR = {"name": "floor", "mesh": {"shape": "plane", "size": 4}, "edges": False}
+
+
+def bumpy_blob(subdivisions=3, radius=0.45, amplitude=0.08):
+    """An icosphere with smooth radial bumps (642 vertices at 3 subdivisions): concave and convex
+    edges, a fine silhouette."""
+    V, F = meshes.sphere(radius, subdivisions)
+    u = V / np.linalg.norm(V, axis=1, keepdims=True)
+    bump = amplitude * (np.sin(3 * u[:, 0] + 1) * np.cos(2 * u[:, 1]) + 0.5 * np.sin(4 * u[:, 2]))
+    return V + u * bump[:, None], F
+
+
+def head_with_eye():
+    """One mesh, two shells: a sphere and a smaller one piercing it towards the camera."""
+    V1, F1 = meshes.sphere(0.45, 2)
+    V2, F2 = meshes.sphere(0.2, 2)
+    V2 = V2 + np.array([0.12, -0.38, 0.12])
+    return np.vstack([V1, V2]), np.vstack([F1, F2 + len(V1)])
+
+
+def scene_cfg(name, objects, emitters, camera, parameter, spp=(64, 256, 256), max_depth=2):
+    return {"name": name, "output": "runs", "seed": 3,
+            "scene": {"film": {"width": 32, "height": 32}, "max_depth": max_depth, "cameras": [camera],
+                      "emitters": emitters, "objects": objects},
+            "parameter": parameter,
+            "estimator": {"spp": spp[0], "primary_spp": spp[1], "boundary_spp": spp[2]}}
+
+
+def blob_cfg(smooth):
+    return scene_cfg("blob", [{"name": "blob", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.6]},
+                               "smooth": smooth, "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}},
+                              copy.deepcopy(FLOOR)],
+                     [LIGHT_SIDE], {"origin": [0, -2.4, 1.2], "target": [0, 0, 0.45], "fov": 40},
+                     {"object": "blob", "kind": "translate", "axis": [1, 0, 0]})
+
+
+def eye_cfg():
+    return scene_cfg("eyes", [{"name": "head", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.5]},
+                               "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}}, copy.deepcopy(FLOOR)],
+                     [{"type": "area", "center": [-0.8, -1.2, 2.0], "normal": [0.3, 0.5, -0.8], "size": [0.8, 0.8],
+                       "radiance": 12}, {"type": "constant", "radiance": 0.3}],
+                     {"origin": [0, -2.4, 1.0], "target": [0, 0, 0.45], "fov": 40},
+                     {"object": "head", "kind": "translate", "axis": [1, 0, 0]}, spp=(1024, 256, 256))
+
+
+def camera_cfg(kind="translate"):
+    return scene_cfg("camera", [
+        {"name": "box", "mesh": {"shape": "cube", "size": [0.5, 0.5, 0.5]},
+         "transform": {"translate": [-0.3, 0.1, 0.25], "rotate": {"axis": [0, 0, 1], "angle_deg": 30}},
+         "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
+        {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.25, "subdivisions": 2},
+         "transform": {"translate": [0.4, -0.2, 0.25]}, "bsdf": {"type": "diffuse", "reflectance": [0.3, 0.5, 0.7]}},
+        {"name": "floor", "mesh": {"shape": "plane", "size": 2.4}, "edges": False,
+         "bsdf": {"type": "diffuse", "reflectance": 0.6}}],
+        [{"type": "area", "center": [-0.6, 0.4, 2.2], "normal": [0.3, 0, -1], "size": [0.6, 0.6], "radiance": 15},
+         {"type": "constant", "radiance": 0.2}],
+        {"origin": [0.2, -2.4, 1.3], "target": [0, 0, 0.3], "fov": 40},
+        {"camera": 0, "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]}, spp=(256, 256, 256))
+
+
+def load(cfg, tmp_path, mesh_arrays=None):
+    """Experiment from ``cfg`` with procedural meshes written next to it as PLY files."""
+    for name, (V, F) in (mesh_arrays or {}).items():
+        path = tmp_path / f"{name}.ply"
+        meshes.write_ply(path, V, F)
+        next(o for o in cfg["scene"]["objects"] if o["name"] == name)["mesh"] = {"file": str(path)}
+    path = tmp_path / f"{cfg['name']}.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return load_experiment(path)
+
+
+def fd_agreement(exp, h, fd_spp):
+    """Agreement statistics (psdr_cli.reference.agreement) of all terms against FD, 8 batches each."""
+    est = api.gradient_images(exp, min_passes=8)
+    scene, parameter, _, _ = prepare(exp)
+    fd = finite_difference(scene, parameter, 0, h, fd_spp, seed=exp.seed, batches=8)
+    return agreement([(e.passes, e.weights) for e in est.values()], fd), est, fd
+
+
+@pytest.mark.slow
+def test_dense_flat_blob_silhouette_pixels(tmp_path):
+    """Flat bumpy blob lit from the side: the primary term over-counted its lit silhouette pixels
+    (before: sum −32.1 ± 3.1 vs FD −92.8 ± 0.6, z = +19; silhouette tiles 23 vs 11). The sum and
+    every tile carrying at least 5 % of the largest tile's |FD| must agree."""
+    exp = load(blob_cfg(False), tmp_path, {"blob": bumpy_blob()})
+    assert_sum_and_large_tiles(*fd_agreement(exp, 0.005, 16384))
+
+
+def assert_sum_and_large_tiles(stats, est, fd, share=0.05, min_tiles=15):
+    """Image sum |z| < 3 and |z| < 4 on every 4×4 tile whose |FD| is at least ``share`` of the
+    largest tile's (weaker than the verdict, which also counts tiny tiles: see the xfails)."""
+    assert abs(stats["sum"]["z"]) < 3, stats["sum"]
+    passes = [sum(p) for p in zip(*(e.passes for e in est.values()))]
+    e, e_se = mean_and_error(block_sums(passes, 4))
+    f, f_se = mean_and_error(block_sums(fd, 4))
+    z = (e - f) / np.sqrt(e_se ** 2 + f_se ** 2 + 1e-30)
+    big = np.abs(f) > share * np.abs(f).max()
+    assert big.sum() >= min_tiles and np.all(np.abs(z[big]) < 4), z[big]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open: a tile next to the upper silhouette of the flat blob where FD "
+                                        "is ≈ −0.1 (0.3 % of the largest tile; unchanged at h = 0.001) and every "
+                                        "term is exactly 0 (z ≈ 19)")
+def test_dense_flat_blob_full_verdict(tmp_path):
+    exp = load(blob_cfg(False), tmp_path, {"blob": bumpy_blob()})
+    stats, _, _ = fd_agreement(exp, 0.005, 16384)
+    assert agrees(stats), describe(stats)
+
+
+@pytest.mark.slow
+def test_intersecting_shells_match_finite_differences(tmp_path):
+    """Head and eye as two intersecting shells of one mesh, translated: the intersection curve is a
+    crease on no edge (before: −66 ± 11 vs FD −0.5 ± 2.9, z = −5.8). Open: one small tile on the
+    left silhouette (−3.4 vs −1.7, z = −7) fails the full verdict."""
+    exp = load(eye_cfg(), tmp_path, {"head": head_with_eye()})
+    assert_sum_and_large_tiles(*fd_agreement(exp, 0.005, 32768))
+
+
+@pytest.mark.slow
+def test_camera_translation_matches_finite_differences(tmp_path):
+    """A camera translated sideways over a box, a ball and a floor under an area light: silhouettes,
+    creases and shadows all move in the image (before: not a parameter)."""
+    exp = load(camera_cfg(), tmp_path)
+    stats, _, _ = fd_agreement(exp, 0.003, 16384)
+    assert agrees(stats), describe(stats)
+
+
+def test_camera_motion_refuses_a_visible_area_light(tmp_path):
+    cfg = camera_cfg()
+    cfg["scene"]["emitters"][0].update(center=[0.0, 0.0, 0.9], normal=[0, -1, 0])
+    exp = load(cfg, tmp_path)
+    with pytest.raises(PsdrError, match="is in view"):
+        prepare(exp)
+
+
+def test_camera_scale_is_refused(tmp_path):
+    cfg = camera_cfg()
+    cfg["parameter"]["kind"] = "scale"
+    with pytest.raises(Exception, match="camera can only be translated or rotated"):
+        load(cfg, tmp_path)
+
+
+def test_intersection_curve_of_two_spheres():
+    """Segments of two piercing icospheres: end points on both surfaces, total length ≈ the circle."""
+    V, F = head_with_eye()
+    seg = intersection_segments([V], [F])
+    ends = V[seg.ends]  # (n, 2, 5, 3)
+    a, b, c, d, e = (ends[:, :, k] for k in range(5))
+    n = np.cross(d - c, e - c)
+    t = np.einsum("nkj,nkj->nk", c - a, n) / np.einsum("nkj,nkj->nk", b - a, n)
+    p = a + t[..., None] * (b - a)
+    length = np.linalg.norm(p[:, 1] - p[:, 0], axis=1).sum()
+    centre = np.array([0.12, -0.38, 0.12])
+    dist = np.linalg.norm(centre)
+    x = (dist ** 2 - 0.2 ** 2 + 0.45 ** 2) / (2 * dist)
+    circle = 2 * np.pi * np.sqrt(0.45 ** 2 - x ** 2)
+    assert len(seg) > 20 and abs(length - circle) < 0.05 * circle
+    assert np.all(np.abs(np.linalg.norm(p, axis=-1) - 0.45) < 0.02)
+
+
+# ---- the Mitsuba plugin as Mitsuba users call it ---------------------------------------------
+
+@pytest.fixture
+def shadow_scene():
+    from conftest import REPO
+    from psdr_cli.integrator import register
+    from psdr_cli.scene import build_scene
+    exp = load_experiment(REPO / "configs" / "validation" / "shadow.yaml")
+    api.setup(exp)
+    register()
+    return build_scene(exp).mi_scene
+
+
+def translated(params, key, V0, theta):
+    params[key] = dr.ravel(dr.unravel(mi.Point3f, V0) + mi.Vector3f(theta, 0, 0))
+    params.update()
+
+
+def test_plugin_render_forward_with_theta_as_params(shadow_scene):
+    """Mitsuba's AD-test form: θ pushed into the scene with dr.forward(θ, ClearEdges), then
+    render_forward(scene, params=θ). Equals the same call with the SceneParameters (before: only
+    the interior term, −5.6 instead of −57.5)."""
+    integrator = mi.load_dict({"type": "psdr", "max_depth": 2})
+    params = mi.traverse(shadow_scene)
+    key = "occ.vertex_positions"
+    V0 = mi.Float(params[key])
+    sums = []
+    for as_theta in (True, False):
+        theta = mi.Float(0.0)
+        dr.enable_grad(theta)
+        translated(params, key, V0, theta)
+        dr.forward(theta, dr.ADFlag.ClearEdges)
+        g = integrator.render_forward(shadow_scene, params=theta if as_theta else params, spp=16, seed=1)
+        sums.append(float(np.asarray(g).sum()))
+        translated(params, key, V0, 0.0)
+    assert abs(sums[0]) > 10 and sums[0] == pytest.approx(sums[1], rel=1e-4)
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    translated(params, key, V0, theta)
+    integrator.render_backward(shadow_scene, params=theta, grad_in=mi.TensorXf(dr.ones(mi.Float, 32 * 32 * 3),
+                                                                               (32, 32, 3)), spp=16, seed=1)
+    assert float(dr.grad(theta)[0]) == pytest.approx(sums[0], rel=1e-3)
+
+
+def test_plugin_with_kept_parameters(shadow_scene):
+    """params.keep([key]) before mi.render (before: KeyError 'light.faces' / 'occ.faces')."""
+    integrator = mi.load_dict({"type": "psdr", "max_depth": 2})
+    params = mi.traverse(shadow_scene)
+    key = "occ.vertex_positions"
+    params.keep([key])
+    dr.enable_grad(params[key])
+    params.update()
+    img = mi.render(shadow_scene, params, integrator=integrator, spp=16, seed=1)
+    dr.backward(dr.sum(img))
+    assert abs(float(np.asarray(dr.grad(params[key])).reshape(-1, 3)[:, 0].sum())) > 10
+
+
+def test_plugin_warns_about_undifferentiable_shapes():
+    from psdr_cli.backend import select_variant
+    from psdr_cli.integrator import register
+    from psdr_cli.plugin_scene import differentiable_meshes
+    select_variant("auto")
+    register()
+    scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere", "center": [0, 0, 0], "radius": 0.5},
+                          "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+                          "light": {"type": "constant"}})
+    params = mi.traverse(scene)
+    dr.enable_grad(params["ball.to_world"].matrix)
+    params.update()
+    with pytest.warns(UserWarning, match="'ball'"):
+        differentiable_meshes(scene, scene.sensors()[0])
+
+
+# ---- smooth shading ---------------------------------------------------------------------------
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open: the shadow terminator of smooth shading is not differentiated "
+                                        "(measured −116 ± 1.8 vs FD −92.8 ± 0.8)")
+def test_smooth_blob_matches_finite_differences(tmp_path):
+    exp = load(blob_cfg(True), tmp_path, {"blob": bumpy_blob()})
+    stats, _, _ = fd_agreement(exp, 0.005, 16384)
+    assert agrees(stats), describe(stats)
+
+
+def test_smooth_mesh_gradient_warns(tmp_path):
+    exp = load(blob_cfg(True), tmp_path, {"blob": bumpy_blob(1)})
+    messages = []
+    api.grad(exp, spp=1, terms="interior", out=tmp_path, warn=messages.append)
+    assert len(messages) == 1 and "'blob'" in messages[0] and "smooth" in messages[0]
