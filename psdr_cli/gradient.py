@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, fileio
-from .config import TERMS, EstimatorConfig, Experiment, parse_terms, parse_views
+from .config import TERMS, EstimatorConfig, Experiment, option_number, option_spp, parse_terms, parse_views
 from .errors import PsdrError
 from .estimators import interior
 from .estimators.boundary_sampling import BoundaryEdges, edge_list
@@ -106,8 +106,7 @@ def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetu
     """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
     if exp.parameter is None:
         raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
-    if spp is not None and spp < 1:
-        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    option_spp("--spp", spp, exp.scene.width, exp.scene.height)
     backend.activate(exp)
     scene = scene or build_scene(exp)
     settings = Settings.from_experiment(exp, spp)
@@ -260,8 +259,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
     statistics. PNG previews use a diverging colour map shared by all terms."""
-    if fd is not None and not fd > 0:
-        raise PsdrError(f"--fd: expected a positive step size, got {fd}")
+    option_number("--fd", fd)
+    option_spp("--fd-spp", fd_spp, exp.scene.width, exp.scene.height)
     if fd_spp is not None and fd_spp < FD_BATCHES:
         raise PsdrError(f"--fd-spp: expected at least {FD_BATCHES} samples per pixel ({FD_BATCHES} batches), got {fd_spp}")
     terms = parse_terms(terms) or exp.estimator.terms
