@@ -22,7 +22,7 @@ from rich.table import Table
 
 from . import __version__, api
 from .config import load_experiment, with_estimator
-from .errors import PsdrError
+from .errors import PsdrError, PsdrWarning
 
 app = typer.Typer(
     name="psdr",
@@ -301,7 +301,10 @@ def run(args: list[str] | None = None) -> int:
 
 
 def show_warning(message, category, filename, lineno, file=None, line=None):
-    """Python warnings (e.g. a torn log.csv being read) as one ``warning:`` line."""
+    """psdr's warnings (e.g. a torn log.csv being read) as one ``warning:`` line; other libraries'
+    warnings (numpy overflow in a cast, ...) only with ``PSDR_DEBUG=1``."""
+    if not issubclass(category, PsdrWarning) and not os.environ.get("PSDR_DEBUG"):
+        return
     console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
 
 

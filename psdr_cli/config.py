@@ -215,7 +215,7 @@ def color(value, where, maximum: float = MAX_RADIANCE):
     if rgb is None:
         raise where.fail(f"expected a number or a list of 3 numbers, got {_describe(value)}")
     if min(rgb) < 0 or max(rgb) > maximum:
-        raise where.fail(f"expected values in [0, {maximum:g}], got {_describe(list(value))}")
+        raise where.fail(f"expected non-negative values <= {maximum:g}, got {_describe(list(value))}")
     return rgb
 
 

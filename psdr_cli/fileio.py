@@ -42,6 +42,20 @@ def atomic_path(path):
             os.unlink(tmp)
 
 
+def writable_folder(folder) -> Path:
+    """``folder``, created if missing, once a file could be created in it; else a
+    :class:`PsdrError` naming it (checked before long work, so that it fails at once)."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".psdr-write-test.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise PsdrError(f"{folder}: cannot write the output folder ({describe_os_error(exc)})") from None
+    return folder
+
+
 def describe_os_error(exc: OSError) -> str:
     """'No space left on device', 'Permission denied', ... naming the file when it is another one."""
     text = exc.strerror or type(exc).__name__

@@ -269,7 +269,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     variant = mi.variant()
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
-    folder = exp.command_dir("grad", out)
+    folder = fileio.writable_folder(exp.command_dir("grad", out))
     result = GradResult(folder, views, parameter.name, variant=variant)
     if progress:
         per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)

@@ -76,7 +76,7 @@ def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: 
     variant = backend.activate(exp)
     scene = build_scene(exp)
     views = parse_views(views, len(exp.scene.cameras))
-    folder = exp.command_dir("render", out)
+    folder = fileio.writable_folder(exp.command_dir("render", out))
     W, H = scene.resolution
     result = RenderResult(folder, views, spp=spp, resolution=(W, H), variant=variant)
     if progress:

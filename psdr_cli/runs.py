@@ -39,7 +39,7 @@ import numpy as np
 
 from . import fileio
 from .config import Experiment, with_estimator
-from .errors import PsdrError
+from .errors import PsdrError, PsdrWarning
 from .meshes import write_ply
 
 LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
@@ -63,10 +63,6 @@ class RunFiles:
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
-
-
-class PsdrWarning(UserWarning):
-    """Something psdr recovered from (e.g. a damaged log.csv tail); printed as one warning line."""
 
 
 @contextmanager
@@ -140,7 +136,8 @@ def existing_runs(exp: Experiment, command: str) -> list:
 
 
 def write_mesh(path: Path, V, F):
-    """PLY written atomically (opens in MeshLab and Blender)."""
+    """PLY written atomically (opens in MeshLab and Blender); refuses NaN or infinite vertices."""
+    fileio.check_finite(path, V, "mesh")
     with fileio.atomic_path(path) as tmp:
         write_ply(tmp, V, F)
 
@@ -207,9 +204,8 @@ def read_log(path: Path, before: int | None = None) -> list:
     for number, line in enumerate(lines[1:], start=2):
         fields = next(csv.reader([line]), [])
         if not line.endswith("\n") or len(fields) != len(LOG_FIELDS) or not _complete(fields, len(rows)):
-            if line.strip("\x00 \r\n") or number < len(lines):
-                warnings.warn(f"{path}: line {number} is torn or damaged; ignoring it and the "
-                              f"{len(lines) - number} lines after it", PsdrWarning, stacklevel=2)
+            warnings.warn(f"{path}: line {number} is torn or damaged; ignoring it and the "
+                          f"{len(lines) - number} lines after it", PsdrWarning, stacklevel=2)
             break
         rows.append(dict(zip(LOG_FIELDS, fields)))
     return [r for r in rows if before is None or int(r["iteration"]) < before]
