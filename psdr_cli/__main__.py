@@ -1,4 +1,6 @@
 """``python -m psdr_cli`` runs the CLI."""
+import sys
+
 from .cli import run
 
-run()
+sys.exit(run())

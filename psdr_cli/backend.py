@@ -11,6 +11,7 @@ import glob
 import os
 import re
 import subprocess
+from contextlib import contextmanager
 
 from .config import VARIANTS
 from .errors import PsdrError
@@ -129,6 +130,27 @@ def select_variant(variant: str = "auto") -> str:
         except Exception as exc:  # noqa: BLE001
             raise PsdrError(f"cannot activate Mitsuba variant '{variant}': {exc}") from exc
     return variant
+
+
+@contextmanager
+def optimization_threads():
+    """Run the block with ``PSDR_OPTIMIZE_THREADS`` Dr.Jit CPU threads (default 1).
+
+    With more than one thread, Dr.Jit's LLVM backend accumulates reverse-mode gradients (and guide
+    statistics) with atomic scatter-adds whose order depends on thread scheduling, so two runs
+    differ in the last bits; the optimisation amplifies that (remeshing and boundary sampling are
+    discontinuous in the vertices) to percent-level loss differences. One thread makes
+    ``psdr optimize`` bit-reproducible (docs/optimize.md, "Reproducibility")."""
+    import drjit as dr  # deferred on purpose: configure_environment() must run before drjit loads
+    value = os.environ.get("PSDR_OPTIMIZE_THREADS", "1").strip()
+    if not value.isdigit() or int(value) < 1 or int(value) > 1024:
+        raise PsdrError(f"PSDR_OPTIMIZE_THREADS: expected a number of threads >= 1, got '{value}'")
+    before = dr.thread_count()
+    dr.set_thread_count(int(value))
+    try:
+        yield int(value)
+    finally:
+        dr.set_thread_count(before)
 
 
 def activate(exp) -> str:

@@ -9,18 +9,21 @@ import functools
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
+from typer._click.exceptions import UsageError  # typer vendors click: its usage errors
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from . import __version__, api
 from .config import load_experiment, with_estimator
-from .errors import PsdrError
+from .errors import PsdrError, PsdrWarning
 from .verdict import describe
 
 app = typer.Typer(
@@ -36,7 +39,7 @@ out = Console()
 
 
 def fail(message: str, code: int = 2):
-    console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -303,9 +306,31 @@ def table2(configs: list[Path] = typer.Argument(..., help="Experiment files whos
     out.print(f"written: {path}")
 
 
-def run():
-    """Console-script entry point."""
-    app(prog_name="psdr")
+def run(args: list[str] | None = None) -> int:
+    """Console-script entry point. Usage errors (unknown option or subcommand, a missing argument,
+    an option value of the wrong type) are printed as one ``error:`` line with exit code 2, like
+    every other error; ``--help`` prints the usual help."""
+    warnings.showwarning = show_warning
+    try:
+        code = app(args=args, prog_name="psdr", standalone_mode=False)
+    except UsageError as exc:
+        command = exc.ctx.command_path if exc.ctx is not None else "psdr"
+        message = " ".join(exc.format_message().split())
+        console.print(f"[bold red]error:[/] {escape(f'{command}: {message} (see {command} --help)')}",
+                      highlight=False, soft_wrap=True)
+        return 2
+    except typer.Abort:
+        console.print("interrupted")
+        return 130
+    return code if isinstance(code, int) else 0
+
+
+def show_warning(message, category, filename, lineno, file=None, line=None):
+    """psdr's warnings (e.g. a torn log.csv being read) as one ``warning:`` line; other libraries'
+    warnings (numpy overflow in a cast, ...) only with ``PSDR_DEBUG=1``."""
+    if not issubclass(category, PsdrWarning) and not os.environ.get("PSDR_DEBUG"):
+        return
+    console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ Unknown keys are errors, so a typo never passes silently. The key reference is `
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -31,6 +32,34 @@ SAMPLINGS = ("dir", "light", "mis")
 REMESH_METHODS = ("instant", "isotropic", "none")
 #: Mitsuba variants (``auto``: CUDA when present, else LLVM).
 VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
+
+# --------------------------------------------------------------------------------------------
+# Limits: values are used in float32, and one huge number must not make a command run for hours
+# or exhaust memory (docs/config.md, "Limits").
+# --------------------------------------------------------------------------------------------
+#: Largest finite float32; every number must fit (Mitsuba and Dr.Jit compute in float32).
+FLOAT32_MAX = 3.4028234663852886e38
+#: Coordinates, sizes and scales: |x| ≤ this (squared distances must stay finite in float32).
+MAX_COORD = 1e6
+#: Radiances and emitter scales: ≤ this (a pixel sums spp of them in float32).
+MAX_RADIANCE = 1e9
+#: Samples per pixel of one image or term.
+MAX_SPP = 1 << 20
+#: Paths of one image (width · height · spp), about an hour of rendering on two CPU cores.
+MAX_PATHS = 1 << 32
+#: Film width and height.
+MAX_FILM = 8192
+#: Path length (scene.max_depth).
+MAX_DEPTH = 64
+#: Cells of a guide grid (nx · ny · nz) and samples spent building it.
+MAX_GRID_CELLS = 1 << 22
+MAX_GRID_SAMPLES = 1 << 28
+#: Vertices of a remeshed shape (remesh.initial, remesh.vertices).
+MAX_VERTICES = 500_000
+#: Passes of one estimate (estimator.passes, compare.reference_passes).
+MAX_PASSES = 1 << 16
+#: Object names Mitsuba ids are generated from: an object may not be called like them.
+RESERVED_NAME = r"(sensor|emitter)_\d+"
 
 
 # --------------------------------------------------------------------------------------------
@@ -64,6 +93,8 @@ def _describe(value) -> str:
     if isinstance(value, str):
         return f"string '{value}'"
     if isinstance(value, list):
+        if len(value) <= 8 and all(isinstance(v, (int, float, str, bool)) or v is None for v in value):
+            return "[" + ", ".join(str(v) for v in value) + "]"
         return f"a list of {len(value)}"
     if isinstance(value, dict):
         return "a mapping"
@@ -97,20 +128,33 @@ class Section:
             raise self.where.child(unknown[0]).fail(f"unknown key (expected one of: {allowed})")
 
 
-def integer(minimum: int | None = None) -> Parser:
+def integer(minimum: int | None = None, maximum: int | None = None) -> Parser:
+    """An integer in [minimum, maximum]; a bound that is exceeded is named in the message."""
     def parse(value, where):
+        if isinstance(value, float) and value.is_integer() and abs(value) < 2 ** 63:
+            value = int(value)  # YAML reads 1e12 as a float
         if isinstance(value, bool) or not isinstance(value, int):
             raise where.fail(f"expected an integer, got {_describe(value)}")
         if minimum is not None and value < minimum:
             raise where.fail(f"expected an integer >= {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            raise where.fail(f"expected an integer <= {maximum} (a resource limit), got {value}")
         return value
     return parse
+
+
+def finite32(value) -> bool:
+    """Whether ``value`` is a number that is finite in float32 (the precision it is used in)."""
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and abs(value) <= FLOAT32_MAX)
 
 
 def number(minimum: float | None = None, positive: bool = False, maximum: float | None = None) -> Parser:
     def parse(value, where):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise where.fail(f"expected a number, got {_describe(value)}")
+        if not finite32(value):
+            raise where.fail(f"expected a number representable in float32 (|x| <= 3.4e38), got {value}")
         if positive and value <= 0:
             raise where.fail(f"expected a number > 0, got {value}")
         if minimum is not None and value < minimum:
@@ -143,12 +187,17 @@ def choice(*options: str) -> Parser:
     return parse
 
 
-def vector(n: int = 3, nonzero: bool = False, positive: bool = False) -> Parser:
+def vector(n: int = 3, nonzero: bool = False, positive: bool = False, bound: float = MAX_COORD) -> Parser:
+    """A list of ``n`` finite numbers with |x| ≤ ``bound``."""
     def parse(value, where):
         ok = isinstance(value, (list, tuple)) and len(value) == n and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
         if not ok:
             raise where.fail(f"expected a list of {n} numbers, got {_describe(value)}")
+        if not all(math.isfinite(v) for v in value):
+            raise where.fail(f"expected {n} finite numbers, got {_describe(list(value))}")
+        if max(abs(v) for v in value) > bound:
+            raise where.fail(f"expected {n} numbers within ±{bound:g}, got {_describe(list(value))}")
         out = tuple(float(v) for v in value)
         if nonzero and not any(out):
             raise where.fail("expected a non-zero vector")
@@ -158,16 +207,21 @@ def vector(n: int = 3, nonzero: bool = False, positive: bool = False) -> Parser:
     return parse
 
 
-def color(value, where):
-    """A non-negative RGB value: one number (grey) or [r, g, b]."""
+def color(value, where, maximum: float = MAX_RADIANCE):
+    """A non-negative RGB value in [0, ``maximum``]: one number (grey) or [r, g, b]."""
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = [value] * 3
-    rgb = vector(3)(value, where) if isinstance(value, (list, tuple)) else None
+    rgb = vector(3, bound=FLOAT32_MAX)(value, where) if isinstance(value, (list, tuple)) else None
     if rgb is None:
         raise where.fail(f"expected a number or a list of 3 numbers, got {_describe(value)}")
-    if min(rgb) < 0:
-        raise where.fail(f"expected non-negative values, got {list(value)}")
+    if min(rgb) < 0 or max(rgb) > maximum:
+        raise where.fail(f"expected non-negative values <= {maximum:g}, got {_describe(list(value))}")
     return rgb
+
+
+def reflectance(value, where):
+    """An albedo: one number or [r, g, b] in [0, 1] (energy conservation)."""
+    return color(value, where, maximum=1.0)
 
 
 def scale3(value, where):
@@ -425,23 +479,42 @@ BSDF_PARAMS = {
                    "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss", "spec_trans", "eta"),
 }
 SHAPE_PARAMS = {
-    "sphere": {"radius": number(positive=True), "subdivisions": integer(0), "resolution": integer(3)},
+    "sphere": {"radius": number(positive=True, maximum=MAX_COORD), "subdivisions": integer(0, 8),
+               "resolution": integer(3, 2048)},
     "plane": {"size": None},
     "cube": {"size": None},
-    "torus": {"major_radius": number(positive=True), "minor_radius": number(positive=True),
-              "major_sections": integer(3), "minor_sections": integer(3)},
-    "bunny": {"size": number(positive=True), "faces": integer(100)},
+    "torus": {"major_radius": number(positive=True, maximum=MAX_COORD),
+              "minor_radius": number(positive=True, maximum=MAX_COORD),
+              "major_sections": integer(3, 4096), "minor_sections": integer(3, 4096)},
+    "bunny": {"size": number(positive=True, maximum=MAX_COORD), "faces": integer(100, 1_000_000)},
 }
+#: Physical range of the numeric BSDF parameters (per channel); the others only need to be finite.
+BSDF_RANGES = {name: (0.0, 1.0) for name in (
+    "reflectance", "specular_reflectance", "specular_transmittance", "base_color", "roughness", "metallic",
+    "specular", "spec_tint", "anisotropic", "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss", "spec_trans",
+    "alpha", "alpha_u", "alpha_v")}
+BSDF_RANGES.update({name: (1e-3, 10.0) for name in ("eta", "int_ior", "ext_ior")})
+BSDF_RANGES["k"] = (0.0, 100.0)
+
+
 def _bsdf_value(value, where):
     if isinstance(value, str):
         return value
     if isinstance(value, bool):
         return value
+    name = where.path.rsplit(".", 1)[-1]
+    lo, hi = BSDF_RANGES.get(name, (-MAX_COORD, MAX_COORD))
     if isinstance(value, (int, float)):
-        return number()(value, where)
-    if isinstance(value, list):
-        return vector(3)(value, where)
-    raise where.fail(f"expected a number, a list of 3 numbers or a string, got {_describe(value)}")
+        v = number()(value, where)
+        values = [v]
+    elif isinstance(value, list):
+        v = vector(3, bound=FLOAT32_MAX)(value, where)
+        values = list(v)
+    else:
+        raise where.fail(f"expected a number, a list of 3 numbers or a string, got {_describe(value)}")
+    if min(values) < lo or max(values) > hi:
+        raise where.fail(f"expected values in [{lo:g}, {hi:g}], got {_describe(value)}")
+    return v
 
 
 def parse_bsdf(value, where) -> BsdfConfig:
@@ -481,6 +554,15 @@ def parse_mesh(base: Path) -> Parser:
     return parse
 
 
+def object_name(value, where):
+    """An object's name: not one of the ids generated for cameras and emitters."""
+    name = string(value, where)
+    if re.fullmatch(RESERVED_NAME, name):
+        raise where.fail(f"'{name}' is reserved (cameras and emitters are called sensor_NNN and emitter_NN); "
+                         f"choose another name")
+    return name
+
+
 def _plane_size(value, where):
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = [value, value]
@@ -505,7 +587,7 @@ def parse_object(base: Path) -> Parser:
     def parse(value, where):
         sec = Section(value, where)
         obj = ObjectConfig(
-            name=sec.get("name", string),
+            name=sec.get("name", object_name),
             mesh=sec.get("mesh", parse_mesh(base)),
             key=where.path,
             transform=sec.get("transform", parse_transform, TransformConfig()),
@@ -533,14 +615,14 @@ def parse_emitter(base: Path) -> Parser:
             em.radiance = sec.get("radiance", color)
         elif kind == "envmap":
             em.file = sec.get("file", path_relative_to(base))
-            em.scale = sec.get("scale", number(minimum=0), 1.0)
+            em.scale = sec.get("scale", number(minimum=0, maximum=MAX_RADIANCE), 1.0)
             em.rotate_deg = sec.get("rotate_deg", number(), 0.0)
         elif kind == "sky":
             em.sun_direction = _unit(sec.get("sun_direction", vector(3, nonzero=True)))
             em.turbidity = sec.get("turbidity", number(minimum=1, maximum=10), 3.0)
             em.albedo = sec.get("albedo", number(minimum=0, maximum=1), 0.3)
-            em.sun_scale = sec.get("sun_scale", number(minimum=0), 1.0)
-            em.sky_scale = sec.get("sky_scale", number(minimum=0), 1.0)
+            em.sun_scale = sec.get("sun_scale", number(minimum=0, maximum=MAX_RADIANCE), 1.0)
+            em.sky_scale = sec.get("sky_scale", number(minimum=0, maximum=MAX_RADIANCE), 1.0)
             em.rotate_deg = sec.get("rotate_deg", number(), 0.0)
         else:
             em.radiance = sec.get("radiance", color)
@@ -595,8 +677,8 @@ def parse_cameras(value, where) -> list:
         if sec.has("orbit"):
             orb = Section(sec.get("orbit", lambda x, _: x), w.child("orbit"))
             ring = orbit_cameras(
-                count=orb.get("count", integer(1)),
-                radius=orb.get("radius", number(positive=True)),
+                count=orb.get("count", integer(1, 4096)),
+                radius=orb.get("radius", number(positive=True, maximum=MAX_COORD)),
                 elevation_deg=orb.get("elevation_deg", number(minimum=-89.9, maximum=89.9), 20.0),
                 azimuth_deg=orb.get("azimuth_deg", number(), 0.0),
                 target=orb.get("target", vector(3), (0.0, 0.0, 0.0)),
@@ -622,12 +704,12 @@ def parse_scene(base: Path) -> Parser:
     def parse(value, where):
         sec = Section(value, where)
         film = Section(sec.get("film", lambda v, _: v, {}), where.child("film"))
-        width = film.get("width", integer(1), 128)
-        height = film.get("height", integer(1), 128)
+        width = film.get("width", integer(1, MAX_FILM), 128)
+        height = film.get("height", integer(1, MAX_FILM), 128)
         film.done()
         scene = SceneConfig(
             width=width, height=height,
-            max_depth=sec.get("max_depth", integer(1), 2),
+            max_depth=sec.get("max_depth", integer(1, MAX_DEPTH), 2),
             cameras=sec.get("cameras", parse_cameras),
             emitters=sec.get("emitters", list_of(parse_emitter(base), min_len=1)),
             objects=sec.get("objects", list_of(parse_object(base)), []),
@@ -666,6 +748,35 @@ def parse_parameter(value, where) -> ParameterConfig:
     axis = sec.get("axis", vector(3, nonzero=True), DEFAULT_AXIS[kind])
     sec.done()
     return ParameterConfig(kind=kind, object=obj, axis=axis if kind == "scale" else _unit(axis), camera=camera)
+
+
+def check_paths(spp: int, width: int, height: int, fail) -> int:
+    """``spp`` if one image of ``width × height`` pixels at ``spp`` samples per pixel stays within
+    :data:`MAX_SPP` and :data:`MAX_PATHS`; else ``fail(message)`` is raised."""
+    if spp > MAX_SPP:
+        raise fail(f"{spp} samples per pixel exceed the limit of {MAX_SPP} (a resource limit)")
+    if spp * width * height > MAX_PATHS:
+        raise fail(f"{spp} samples per pixel × {width}×{height} pixels = {spp * width * height:.3g} paths per image "
+                   f"exceed the limit of {MAX_PATHS:.3g} (hours of rendering; a resource limit)")
+    return spp
+
+
+def option_spp(name: str, spp: int | None, width: int, height: int) -> int | None:
+    """A ``--spp``-like command-line value: None, or a positive count within the limits."""
+    if spp is None:
+        return None
+    if spp < 1:
+        raise PsdrError(f"{name}: expected a positive number of samples per pixel, got {spp}")
+    return check_paths(spp, width, height, lambda m: PsdrError(f"{name}: {m}"))
+
+
+def option_number(name: str, value: float | None, positive: bool = True) -> float | None:
+    """A real-valued command-line option (e.g. ``--fd``): None, or finite in float32 (and > 0)."""
+    if value is None:
+        return None
+    if not finite32(value) or (positive and value <= 0):
+        raise PsdrError(f"{name}: expected a finite number{' > 0' if positive else ''}, got {value}")
+    return value
 
 
 def parse_views(views, count: int) -> list[int]:
@@ -709,8 +820,8 @@ def with_estimator(exp: "Experiment", **overrides) -> "Experiment":
     allowed = {"sampling": SAMPLINGS, "guiding": GUIDINGS}
     changes = {k: v for k, v in overrides.items() if v is not None}
     for key, value in changes.items():
-        if key.endswith("spp") and not (isinstance(value, int) and value >= 1):
-            raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {value}")
+        if key.endswith("spp"):
+            option_spp("--spp", value, exp.scene.width, exp.scene.height)
         if key in allowed and value not in allowed[key]:
             raise PsdrError(f"--{key.replace('_', '-')}: expected one of {', '.join(allowed[key])}, got '{value}'")
     return replace(exp, estimator=replace(exp.estimator, **changes)) if changes else exp
@@ -726,13 +837,13 @@ def _terms(value, where):
 def parse_estimator(value, where) -> EstimatorConfig:
     sec = Section(value, where)
     est = EstimatorConfig()
-    est.spp = sec.get("spp", integer(1), est.spp)
-    est.primary_spp = sec.get("primary_spp", integer(1), est.primary_spp)
-    est.boundary_spp = sec.get("boundary_spp", integer(1), est.boundary_spp)
+    est.spp = sec.get("spp", integer(1, MAX_SPP), est.spp)
+    est.primary_spp = sec.get("primary_spp", integer(1, MAX_SPP), est.primary_spp)
+    est.boundary_spp = sec.get("boundary_spp", integer(1, MAX_SPP), est.boundary_spp)
     est.terms = sec.get("terms", _terms, est.terms)
     est.sampling = sec.get("sampling", choice(*SAMPLINGS), est.sampling)
     est.guiding = sec.get("guiding", choice(*GUIDINGS), est.guiding)
-    est.passes = sec.get("passes", integer(1), est.passes)
+    est.passes = sec.get("passes", integer(1, MAX_PASSES), est.passes)
     est.guide_epsilon = sec.get("guide_epsilon", number(minimum=0, maximum=1), est.guide_epsilon)
     est.edge_sort = sec.get("edge_sort", boolean, est.edge_sort)
     if sec.has("grid"):
@@ -742,6 +853,14 @@ def parse_estimator(value, where) -> EstimatorConfig:
             samples_per_cell=g.get("samples_per_cell", integer(1), GridConfig.samples_per_cell))
         if len(est.grid.resolution) != 3:
             raise where.child("grid").child("resolution").fail("expected a list of 3 integers [nx, ny, nz]")
+        cells = math.prod(est.grid.resolution)
+        if cells > MAX_GRID_CELLS:
+            raise where.child("grid").child("resolution").fail(
+                f"{cells} cells exceed the limit of {MAX_GRID_CELLS} (nx·ny·nz; a resource limit)")
+        if cells * est.grid.samples_per_cell > MAX_GRID_SAMPLES:
+            raise where.child("grid").child("samples_per_cell").fail(
+                f"{cells} cells × {est.grid.samples_per_cell} samples exceed the limit of {MAX_GRID_SAMPLES} "
+                f"samples per guide build (a resource limit)")
         g.done()
     if sec.has("chains"):
         c = Section(sec.get("chains", lambda v, _: v), where.child("chains"))
@@ -753,12 +872,12 @@ def parse_estimator(value, where) -> EstimatorConfig:
         k = Section(sec.get("kdtree", lambda v, _: v), where.child("kdtree"))
         d = KdTreeConfig()
         est.kdtree = KdTreeConfig(
-            samples_per_node=k.get("samples_per_node", integer(4), d.samples_per_node),
-            initial_samples=k.get("initial_samples", integer(0), d.initial_samples),
+            samples_per_node=k.get("samples_per_node", integer(4, 1 << 16), d.samples_per_node),
+            initial_samples=k.get("initial_samples", integer(0, 1 << 26), d.initial_samples),
             interval_share=k.get("interval_share", number(minimum=0, maximum=1), d.interval_share),
             threshold=k.get("threshold", number(minimum=0), d.threshold),
-            max_depth=k.get("max_depth", integer(1), d.max_depth),
-            max_leaves=k.get("max_leaves", integer(1), d.max_leaves))
+            max_depth=k.get("max_depth", integer(1, 64), d.max_depth),
+            max_leaves=k.get("max_leaves", integer(1, 1 << 22), d.max_leaves))
         k.done()
     sec.done()
     return est
@@ -768,9 +887,9 @@ def parse_remesh(value, where) -> RemeshConfig:
     sec = Section(value, where)
     r = RemeshConfig()
     r.method = sec.get("method", choice(*REMESH_METHODS), r.method)
-    r.initial = sec.get("initial", integer(50), r.initial)
+    r.initial = sec.get("initial", integer(50, MAX_VERTICES), r.initial)
     r.at = tuple(sec.get("at", list_of(integer(1)), []))
-    r.vertices = tuple(sec.get("vertices", list_of(integer(50)), []))
+    r.vertices = tuple(sec.get("vertices", list_of(integer(50, MAX_VERTICES)), []))
     sec.done()
     if len(r.at) != len(r.vertices):
         raise where.child("vertices").fail(f"expected one vertex budget per entry of 'at' ({len(r.at)}), "
@@ -798,7 +917,7 @@ def parse_optimize(base: Path) -> Parser:
             if o.target_images is not None and not Path(o.target_images).is_absolute():
                 o.target_images = str(base / o.target_images)
             o.target_mesh = t.get("mesh", parse_mesh(base), None)
-            o.target_spp = t.get("spp", integer(1), o.target_spp)
+            o.target_spp = t.get("spp", integer(1, MAX_SPP), o.target_spp)
             t.done()
         if sec.has("init"):
             i = Section(sec.get("init", lambda v, _: v), where.child("init"))
@@ -818,7 +937,7 @@ def parse_optimize(base: Path) -> Parser:
         if sec.has("albedo"):
             a = Section(sec.get("albedo", lambda v, _: v), where.child("albedo"))
             o.albedo = True
-            o.albedo_init = a.get("init", color, None)
+            o.albedo_init = a.get("init", reflectance, None)
             o.albedo_learning_rate = a.get("learning_rate", number(positive=True), o.albedo_learning_rate)
             a.done()
         if sec.has("envmap_rotation"):
@@ -880,7 +999,7 @@ def parse_compare(value, where) -> CompareConfig:
     c.view = sec.get("view", integer(0), c.view)
     c.budget_seconds = sec.get("budget_seconds", number(positive=True), c.budget_seconds)
     c.trials = sec.get("trials", integer(1), c.trials)
-    c.reference_passes = sec.get("reference_passes", integer(2), c.reference_passes)
+    c.reference_passes = sec.get("reference_passes", integer(2, MAX_PASSES), c.reference_passes)
     sec.done()
     return c
 
@@ -890,7 +1009,7 @@ def parse_evaluate(base: Path) -> Parser:
         sec = Section(value, where)
         e = EvaluateConfig()
         e.reference = sec.get("reference", path_relative_to(base), None)
-        e.samples = sec.get("samples", integer(100), e.samples)
+        e.samples = sec.get("samples", integer(100, 10_000_000), e.samples)
         e.seed = sec.get("seed", integer(0), e.seed)
         sec.done()
         return e
@@ -942,10 +1061,36 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
     if exp.parameter and exp.parameter.camera is not None and exp.parameter.camera >= len(exp.scene.cameras):
         raise where.child("parameter").child("camera").fail(
             f"camera {exp.parameter.camera} does not exist (the scene has cameras 0..{len(exp.scene.cameras) - 1})")
+    for key, spp in (("estimator.spp", exp.estimator.spp), ("estimator.primary_spp", exp.estimator.primary_spp),
+                     ("estimator.boundary_spp", exp.estimator.boundary_spp),
+                     ("optimize.target.spp", exp.optimize.target_spp if exp.optimize else 0)):
+        check_paths(spp, exp.scene.width, exp.scene.height, Where(str(file), key).fail)
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")
     return exp
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, except that a key given twice in one mapping is an error (PyYAML
+    keeps the last value silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                continue  # the base class reports unhashable keys
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key '{key}' (first given on line {seen[key] + 1})", key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep)
+
+
+UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, UniqueKeyLoader.construct_mapping)
 
 
 def load_experiment(path) -> Experiment:
@@ -958,7 +1103,7 @@ def load_experiment(path) -> Experiment:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(path, "", f"cannot read: {exc}") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -13,3 +13,7 @@ class ConfigError(PsdrError):
         self.file, self.key, self.message = str(file), key, message
         where = f"{self.file}: {key}" if key else self.file
         super().__init__(f"{where}: {message}")
+
+
+class PsdrWarning(UserWarning):
+    """Something psdr recovered from (e.g. a damaged log.csv tail); the CLI prints it as one line."""

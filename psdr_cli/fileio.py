@@ -11,32 +11,72 @@ import mitsuba as mi
 import numpy as np
 import OpenEXR
 
+from .errors import PsdrError
+
 
 @contextmanager
 def atomic_path(path):
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
 
     A reader never sees a half-written file, and an interrupted write leaves the old file intact.
+    A failure of the file system (the folder is a file or read-only, the disk is full) is raised
+    as a :class:`PsdrError` naming ``path``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
         yield Path(tmp)
+        if path.is_dir():
+            raise IsADirectoryError(21, "Is a directory")
         os.replace(tmp, path)
+    except OSError as exc:
+        raise PsdrError(f"{path}: cannot write ({describe_os_error(exc)})") from None
     finally:
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def writable_folder(folder) -> Path:
+    """``folder``, created if missing, once a file could be created in it; else a
+    :class:`PsdrError` naming it (checked before long work, so that it fails at once)."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".psdr-write-test.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise PsdrError(f"{folder}: cannot write the output folder ({describe_os_error(exc)})") from None
+    return folder
+
+
+def describe_os_error(exc: OSError) -> str:
+    """'No space left on device', 'Permission denied', ... naming the file when it is another one."""
+    text = exc.strerror or type(exc).__name__
+    return f"{text}: {exc.filename}" if exc.filename else text
+
+
+def check_finite(path, array, what: str):
+    """Raise a :class:`PsdrError` naming ``path`` when ``array`` holds NaN or infinite values
+    (psdr never writes such a file)."""
+    bad = int(np.size(array) - np.count_nonzero(np.isfinite(array)))
+    if bad:
+        raise PsdrError(f"{path}: not written: the {what} has {bad} NaN or infinite values "
+                        f"(check radiances, scales, coordinates and sample counts)")
 
 
 def write_exr(path, channels: dict, header: dict | None = None):
     """Multi-channel float32 EXR. ``channels`` maps names ('R', 'direct.G', ...) to (H, W) arrays;
     ``header`` entries are stored as string attributes (tev and OpenEXR tools show them)."""
     chans = {name: np.ascontiguousarray(a, np.float32) for name, a in channels.items()}
+    for name, a in chans.items():
+        check_finite(path, a, f"image channel {name}")
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for key, value in (header or {}).items():
         hdr[key] = value if isinstance(value, str) else json.dumps(value)

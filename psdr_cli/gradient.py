@@ -18,7 +18,7 @@ import numpy as np
 
 from . import backend, fileio
 from .camera_motion import check_camera_motion, with_all_edges
-from .config import TERMS, EstimatorConfig, Experiment, parse_terms, parse_views
+from .config import TERMS, EstimatorConfig, Experiment, option_number, option_spp, parse_terms, parse_views
 from .errors import PsdrError
 from .estimators import interior
 from .estimators.boundary_sampling import BoundaryEdges, edge_list
@@ -108,8 +108,7 @@ def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetu
     """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
     if exp.parameter is None:
         raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
-    if spp is not None and spp < 1:
-        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    option_spp("--spp", spp, exp.scene.width, exp.scene.height)
     backend.activate(exp)
     scene = scene or build_scene(exp)
     if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
@@ -265,8 +264,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
     statistics. PNG previews use a diverging colour map shared by all terms."""
-    if fd is not None and not fd > 0:
-        raise PsdrError(f"--fd: expected a positive step size, got {fd}")
+    option_number("--fd", fd)
+    option_spp("--fd-spp", fd_spp, exp.scene.width, exp.scene.height)
     if fd_spp is not None and fd_spp < FD_BATCHES:
         raise PsdrError(f"--fd-spp: expected at least {FD_BATCHES} samples per pixel ({FD_BATCHES} batches), got {fd_spp}")
     terms = parse_terms(terms) or exp.estimator.terms
@@ -277,7 +276,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
         warn(smooth_warning(scene))
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
-    folder = exp.command_dir("grad", out)
+    folder = fileio.writable_folder(exp.command_dir("grad", out))
     result = GradResult(folder, views, parameter.name, variant=variant)
     if progress:
         per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)

@@ -12,8 +12,8 @@ import numpy as np
 import pymeshlab
 import trimesh
 
-from .config import MeshSpec, TransformConfig, Where
-from .errors import ConfigError
+from .config import MAX_COORD, MeshSpec, TransformConfig, Where
+from .errors import ConfigError, PsdrError
 
 
 def sphere(radius: float = 1.0, subdivisions: int = 3, resolution: int | None = None):
@@ -90,6 +90,11 @@ def procedural(shape: str, params: dict):
 
 def read_mesh_file(path: Path):
     """Vertices and triangles of a PLY or OBJ file, unprocessed (no merging, no reordering)."""
+    if Path(path).suffix.lower() == ".obj":
+        try:
+            Path(path).read_bytes().decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"not a text OBJ file (byte {exc.start} is not UTF-8)") from None
     mesh = trimesh.load(str(path), force="mesh", process=False)
     return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
 
@@ -159,6 +164,10 @@ def validate_mesh(V, F, where: Where, repair: bool = False):
     bad = ~np.isfinite(V).all(axis=1)
     if bad.any():
         raise where.fail(f"mesh has {int(bad.sum())} vertices with NaN or infinite coordinates")
+    far = (np.abs(V) > MAX_COORD).any(axis=1)
+    if far.any():
+        raise where.fail(f"mesh has {int(far.sum())} vertices with coordinates beyond ±{MAX_COORD:g} "
+                         f"(e.g. {V[far][0].tolist()}; float32 rendering needs smaller values)")
     if F.min() < 0 or F.max() >= len(V):
         raise where.fail(f"mesh has face indices outside 0..{len(V) - 1}")
     degenerate = degenerate_faces(V, F)
@@ -199,5 +208,9 @@ def apply_transform(V, M):
 
 
 def write_ply(path, V, F):
-    """Binary PLY without normals or colours (opens in MeshLab and Blender)."""
+    """Binary PLY without normals or colours (opens in MeshLab and Blender); refuses non-finite
+    vertices."""
+    if not np.isfinite(np.asarray(V, float)).all():
+        bad = int((~np.isfinite(np.asarray(V, float))).any(axis=1).sum())
+        raise PsdrError(f"{path}: not written: the mesh has {bad} vertices with NaN or infinite coordinates")
     trimesh.Trimesh(V, F, process=False).export(str(path), file_type="ply")

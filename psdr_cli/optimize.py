@@ -42,8 +42,8 @@ from .gradient import Settings, make_guides
 from .parameters import Parameter
 from .remesh import remesh
 from .render import render_view
-from .runs import (RunFiles, append_log, clear_run, read_log, run_fingerprint, saved_fingerprint,
-                   variant_experiments, write_log, write_mesh)
+from .runs import (RunFiles, append_log, clear_run, lock_run, move_aside, read_log, run_fingerprint,
+                   saved_fingerprint, variant_experiments, write_log, write_mesh)
 from .scene import build_scene, object_mesh
 
 
@@ -156,13 +156,22 @@ class State:
     seconds: float = 0.0                         # optimisation time so far
     u: np.ndarray | None = None                  # large-steps latent (V = solve(u) exactly as before)
     basis: np.ndarray | None = None              # vertices LargeSteps was built from (orders u)
+    guide_V: np.ndarray | None = None            # vertices the current guides were built from
+    guide_values: dict = field(default_factory=dict)  # extra unknowns when they were built
 
     def save(self, path: Path):
+        """Written atomically; refuses NaN or infinite values (nothing non-finite is ever saved)."""
         arrays = {"V": self.V, "F": self.F, "u": self.u, "basis": self.basis}
+        if self.guide_V is not None:
+            arrays["guide_V"] = self.guide_V
+            for k, v in self.guide_values.items():
+                arrays[f"guidevalue_{k}"] = v
         for k, (t, m, v) in self.adam.items():
             arrays[f"adam_{k}_m"], arrays[f"adam_{k}_v"] = m, v
         for k, v in self.values.items():
             arrays[f"value_{k}"] = v
+        for k, a in arrays.items():
+            fileio.check_finite(path, a, f"state '{k}'")
         meta = {"iteration": self.iteration, "seconds": self.seconds,
                 "adam_t": {k: int(t) for k, (t, _, _) in self.adam.items()}}
         with fileio.atomic_path(path) as tmp:
@@ -176,11 +185,17 @@ class State:
                 meta = json.loads(bytes(z["meta"]).decode())
                 adam = {k: (t, z[f"adam_{k}_m"], z[f"adam_{k}_v"]) for k, t in meta["adam_t"].items()}
                 values = {k[6:]: z[k] for k in z.files if k.startswith("value_")}
-                return State(meta["iteration"], z["V"], z["F"], adam, values, meta.get("seconds", 0.0),
-                             z["u"], z["basis"])
+                guide_values = {k[11:]: z[k] for k in z.files if k.startswith("guidevalue_")}
+                state = State(meta["iteration"], z["V"], z["F"], adam, values, meta.get("seconds", 0.0),
+                              z["u"], z["basis"], z["guide_V"] if "guide_V" in z.files else None, guide_values)
+                arrays = [state.V, state.u, state.basis, *values.values(),
+                          *(a for _, m, v in adam.values() for a in (m, v))]
         except Exception as exc:  # noqa: BLE001 - a damaged state file
             raise PsdrError(f"{path}: cannot read the saved state ({type(exc).__name__}); "
                             f"delete it to start over") from None
+        if not all(np.isfinite(np.asarray(a, float)).all() for a in arrays):
+            raise PsdrError(f"{path}: the saved state holds NaN or infinite values; delete it to start over")
+        return state
 
 
 def adam_export(opt, key):
@@ -319,17 +334,29 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     cfg = exp.optimize
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
-    total = iterations or cfg.iterations
+    total = cfg.iterations if iterations is None else iterations
     if total < 1:
         raise PsdrError(f"--iterations: expected a positive number, got {total}")
     backend.activate(exp)
     files = RunFiles(exp.run_dir)
+    with lock_run(files), backend.optimization_threads():
+        return _optimize(exp, files, total, iterations, resume, progress, warn)
+
+
+def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progress, warn) -> OptimizeResult:
+    """:func:`optimize` once the run folder is locked."""
+    cfg = exp.optimize
     state = State.load(files.state) if resume and files.state.exists() else None
     if resume and state is None:
         warn(f"--resume: no saved state in {files.root}; starting from the beginning")
     if state is not None and saved_fingerprint(files) not in (None, run_fingerprint(exp)):
-        warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; starting from the beginning")
+        kept = move_aside(files)
+        warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; the old run is kept "
+             f"in {kept}, starting from the beginning")
         state = None
+    if state is not None and state.iteration > total:
+        raise PsdrError(f"--iterations: {total} is fewer than the {state.iteration} iterations the run in "
+                        f"{files.root} has done (ask for at least {state.iteration}, or start afresh without --resume)")
     # Targets and reference
     cameras = None
     if cfg.target_images:
@@ -367,7 +394,11 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     target_arrays = [mi.Float(np.asarray(t, np.float32).ravel()) for t in targets]
     if progress:
         progress.start(total, start)
-    guides = None
+    guides = guide_snapshot = None
+    if state is not None and state.guide_V is not None and settings.guiding != "none":
+        # the guides in use when the run stopped, rebuilt from the shape they were built from
+        guide_snapshot = (state.guide_V, state.guide_values)
+        guides = rebuild_guides(problem, exp, settings, state.guide_V, state.guide_values, n_views, terms)
     it = start
     try:
         for it in range(start, total):
@@ -392,6 +423,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
             if settings.guiding != "none" and (guides is None or (it - anchor) % cfg.guide_every == 0):
                 with dr.suspend_grad():
                     guides = make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
+                guide_snapshot = (problem.vertices(), problem.values())
             t_render = time.perf_counter()
             views = batch_views(exp.seed, it, n_views, cfg.batch_size)
             loss = mi.Float(0.0)
@@ -428,7 +460,10 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
                 total = it + 1  # time budget spent: this is the last iteration
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == total:
                 result.checkpoints.append(save_checkpoint(problem, files, it + 1, targets, exp))
-            problem.export(it + 1, seconds_so_far).save(files.state)
+            saved = problem.export(it + 1, seconds_so_far)
+            if guide_snapshot is not None:
+                saved.guide_V, saved.guide_values = guide_snapshot
+            saved.save(files.state)
             if progress:
                 progress.advance(1, loss_value)
             if it + 1 == total:
@@ -472,6 +507,28 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
         with progress(label) as bar:
             result = optimize(run, iterations=iterations, resume=resume, progress=bar, warn=warn)
         yield label, result
+
+
+def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms):
+    """The guides of ``problem`` as they were built from vertices ``V`` and unknowns ``values``
+    (a resumed run continues with the guides the interrupted run was using; guide building is
+    seeded, so they are the same guides). The scene is left for :meth:`Problem.apply` to reset."""
+    cfg = exp.optimize
+    with dr.suspend_grad():
+        problem.params[problem.key] = mi.Float(np.asarray(V, np.float32).ravel())
+        if problem.albedo_key and "albedo" in values:
+            a = np.clip(np.asarray(values["albedo"], np.float64).ravel(), 0.0, 1.0)
+            problem.params[problem.albedo_key] = (mi.Color3f(*(float(x) for x in np.broadcast_to(a, 3)))
+                                                  if isinstance(problem.params[problem.albedo_key], mi.Color3f)
+                                                  else mi.Float(float(a.mean())))
+        if problem.envmap and "envmap_angle" in values:
+            problem.envmap.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
+        else:
+            problem.params.update()
+        problem.scene.objects[cfg.object].vertices = np.asarray(V, np.float64)
+        problem.scene.objects[cfg.object].faces = problem.F
+        edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
+        return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
 
 
 def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> Path:

@@ -16,8 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, fileio
-from .config import Experiment, parse_views
-from .errors import PsdrError
+from .config import Experiment, option_spp, parse_views
 from .estimators import interior
 from .estimators.camera import camera_rays
 from .estimators.passes import make_sampler, pass_seed, passes_for
@@ -73,12 +72,11 @@ def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: 
     ``progress`` is an optional object with ``start(total_samples)`` and ``advance(n)``.
     """
     spp = exp.estimator.spp if spp is None else spp
-    if spp < 1:
-        raise PsdrError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    option_spp("--spp", spp, exp.scene.width, exp.scene.height)
     variant = backend.activate(exp)
     scene = build_scene(exp)
     views = parse_views(views, len(exp.scene.cameras))
-    folder = exp.command_dir("render", out)
+    folder = fileio.writable_folder(exp.command_dir("render", out))
     W, H = scene.resolution
     result = RenderResult(folder, views, spp=spp, resolution=(W, H), variant=variant)
     if progress:

@@ -13,15 +13,25 @@ variant, ``<output>/<name>/<label>/``) and holds
     final.ply, optimize.json, loss.png, chamfer.png   once the run has finished
 
 Every file is written atomically (:func:`psdr_cli.fileio.atomic_path`) except ``log.csv``, which
-is appended to and rewritten (atomically) up to the last saved iteration on resume.
+is appended to and rewritten (atomically) up to the last saved iteration on resume; it is read
+tolerantly (:func:`read_log`: a torn or garbage tail is ignored with a warning).
+
+While ``psdr optimize`` writes a run folder it holds an exclusive lock (:func:`lock_run`,
+``fcntl.flock`` on ``.<name>.lock`` next to the folder, released by the OS when the process
+ends); a second process is refused with the holder's PID.
 """
 from __future__ import annotations
 
 import csv
+import fcntl
 import hashlib
 import io
 import json
+import os
 import shutil
+import time
+import warnings
+from contextlib import contextmanager
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -29,7 +39,7 @@ import numpy as np
 
 from . import fileio
 from .config import Experiment, with_estimator
-from .errors import PsdrError
+from .errors import PsdrError, PsdrWarning
 from .meshes import write_ply
 
 LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
@@ -53,6 +63,48 @@ class RunFiles:
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
+
+
+@contextmanager
+def lock_run(files: RunFiles):
+    """Hold the exclusive lock of a run folder for the duration of the block.
+
+    The lock is ``fcntl.flock`` on ``<parent>/.<name>.lock`` (outside the folder, so that the folder
+    itself can be moved aside), which holds the PID of its holder; the OS releases it when the
+    process dies, so a killed run never leaves a stale lock."""
+    path = files.root.parent / f".{files.root.name}.lock"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise PsdrError(f"{path}: cannot create the run's lock file ({fileio.describe_os_error(exc)})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise PsdrError(f"{files.root}: another psdr process (PID {holder}) is writing this run; "
+                            f"wait for it to end or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock (the file stays: unlinking it would race with a waiting process)
+
+
+def move_aside(files: RunFiles) -> Path:
+    """Rename a run folder to ``<name>.previous-<time>`` (kept, not deleted); returns the new path."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    target = files.root.with_name(f"{files.root.name}.previous-{stamp}")
+    n = 1
+    while target.exists():
+        n += 1
+        target = files.root.with_name(f"{files.root.name}.previous-{stamp}-{n}")
+    try:
+        files.root.rename(target)
+    except OSError as exc:
+        raise PsdrError(f"{files.root}: cannot move the previous run aside ({fileio.describe_os_error(exc)})") from None
+    return target
 
 
 def variant_experiments(exp: Experiment, labels=None) -> list:
@@ -84,7 +136,8 @@ def existing_runs(exp: Experiment, command: str) -> list:
 
 
 def write_mesh(path: Path, V, F):
-    """PLY written atomically (opens in MeshLab and Blender)."""
+    """PLY written atomically (opens in MeshLab and Blender); refuses NaN or infinite vertices."""
+    fileio.check_finite(path, V, "mesh")
     with fileio.atomic_path(path) as tmp:
         write_ply(tmp, V, F)
 
@@ -128,11 +181,46 @@ def clear_run(files: RunFiles):
 # log.csv
 # --------------------------------------------------------------------------------------------
 def read_log(path: Path, before: int | None = None) -> list:
-    """Rows of ``log.csv`` (for iterations < ``before``: later rows belong to unsaved work)."""
+    """Rows of ``log.csv`` (for iterations < ``before``: later rows belong to unsaved work).
+
+    The log is appended to in place, so a killed process or a full disk can leave a torn last
+    row or garbage (NUL bytes) at its end. Rows are read up to the first one that is not complete:
+    every field present and numeric, iterations consecutive from 0, the line ended by a newline.
+    The rest is ignored with a :class:`PsdrWarning` naming the line (``psdr optimize --resume``
+    then rewrites the log without it)."""
     if not path.exists():
         return []
-    with open(path, newline="") as f:
-        return [r for r in csv.DictReader(f) if before is None or int(r["iteration"]) < before]
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise PsdrError(f"{path}: cannot read ({fileio.describe_os_error(exc)})") from None
+    lines = raw.decode("utf-8", errors="replace").splitlines(keepends=True)
+    rows = []
+    header = next(csv.reader(lines[:1]), None)
+    if header != list(LOG_FIELDS):
+        if raw.strip(b"\x00 \r\n"):
+            warnings.warn(f"{path}: the header is damaged; the log is ignored", PsdrWarning, stacklevel=2)
+        return []
+    for number, line in enumerate(lines[1:], start=2):
+        fields = next(csv.reader([line]), [])
+        if not line.endswith("\n") or len(fields) != len(LOG_FIELDS) or not _complete(fields, len(rows)):
+            warnings.warn(f"{path}: line {number} is torn or damaged; ignoring it and the "
+                          f"{len(lines) - number} lines after it", PsdrWarning, stacklevel=2)
+            break
+        rows.append(dict(zip(LOG_FIELDS, fields)))
+    return [r for r in rows if before is None or int(r["iteration"]) < before]
+
+
+def _complete(fields: list, index: int) -> bool:
+    """Whether a log row's fields parse (integer iteration ``index``, numbers elsewhere)."""
+    try:
+        if int(fields[0]) != index:
+            return False
+        for value in fields[1:]:
+            float(value)
+        return True
+    except ValueError:
+        return False
 
 
 def write_log(path: Path, rows: list):
@@ -146,9 +234,12 @@ def write_log(path: Path, rows: list):
 
 
 def append_log(path: Path, row: dict):
-    """One more row at the end of the log."""
-    with open(path, "a", newline="") as f:
-        csv.DictWriter(f, LOG_FIELDS).writerow(row)
+    """One more row at the end of the log (flushed to the OS before returning)."""
+    try:
+        with open(path, "a", newline="") as f:
+            csv.DictWriter(f, LOG_FIELDS).writerow(row)
+    except OSError as exc:
+        raise PsdrError(f"{path}: cannot write ({fileio.describe_os_error(exc)})") from None
 
 
 # --------------------------------------------------------------------------------------------
