@@ -74,7 +74,7 @@ _POSITION = re.compile(r"\(line (\d+), col(?:umn)? (\d+)\)")
 
 def xml_error(exc: Exception, file: Path) -> ConfigError:
     """Mitsuba's parse or plugin error as one line ``file: line N, column M: message``."""
-    text = " ".join(str(exc).split("\n")[0].split()) or type(exc).__name__
+    text = " ".join(str(exc).split()) or type(exc).__name__
     text = re.sub(r"^\[[^\]]*\]\s*", "", text)  # "[parser.cpp:1087] "
     named = re.search(r'(?:At|loading|XML file)\s+"?([^"]+?)"?\s*(?:\(line|failed|:)', text)
     where_file = Path(named.group(1)) if named else file
@@ -88,15 +88,20 @@ def xml_error(exc: Exception, file: Path) -> ConfigError:
         message = re.sub(r'^Parsing of XML file "[^"]*" failed:\s*', "", message)
         if not message:
             message = re.sub(r'^Parsing of XML file "[^"]*" failed:\s*', "", text[:pos.start()]).strip()
-        return ConfigError(where_file, f"line {pos.group(1)}, column {pos.group(2)}", message)
+        return ConfigError(where_file, f"line {pos.group(1)}, column {pos.group(2)}", message.strip())
     return ConfigError(where_file, "", re.sub(r'^"[^"]*":\s*', "", message))
 
 
-def load_xml(src, variant_exp: Experiment | None = None) -> mi.Scene:
-    """``mi.load_file(src.file, **src.params)``; any failure is one :class:`ConfigError` line."""
+def load_xml(src, yaml_file: str | None = None) -> mi.Scene:
+    """``mi.load_file(src.file, **src.params)``; any failure is one :class:`ConfigError` line (a
+    ``params`` entry the XML does not use names the experiment file's key)."""
     try:
         return mi.load_file(str(src.file), **src.params)
     except Exception as exc:  # noqa: BLE001 - Mitsuba reports XML and plugin errors as RuntimeError
+        unused = re.findall(r"\$(\S+?)=", str(exc)) if "unused parameters" in str(exc) else []
+        if unused and yaml_file:
+            raise ConfigError(yaml_file, f"scene.params.{unused[0]}",
+                              f"{src.file.name} does not use ${unused[0]}") from None
         raise xml_error(exc, src.file) from None
 
 
@@ -162,15 +167,19 @@ def read_scene(exp: Experiment) -> XmlScene:
     """Read and check the experiment's XML scene (a variant must be active)."""
     src, yaml_file = exp.scene.mitsuba, str(exp.file)
     xml = src.file
-    mi_scene = load_xml(src)
+    mi_scene = load_xml(src, yaml_file)
 
     def fail(what: str, message: str) -> ConfigError:
         return ConfigError(xml, what, message)
 
     warnings = []
     # Sensors
-    sensors, cameras, sizes = [], [], set()
-    if not src.cameras_given:
+    sensors, cameras = [], []
+    films = [tuple(int(s) for s in sensor.film().size()) for sensor in mi_scene.sensors() if sensor.film()]
+    sizes = set(films)
+    if src.cameras_given:   # scene.cameras replace the XML's sensors; the film size is the first one's
+        sizes = {films[0] if films else (128, 128)}
+    else:
         for i, sensor in enumerate(mi_scene.sensors()):
             kind = sensor.class_name()
             what = f"sensor {i}" + (f" '{sensor.id()}'" if sensor.id() else "")
@@ -181,10 +190,8 @@ def read_scene(exp: Experiment) -> XmlScene:
             if any(abs(float(p[k][0])) > 1e-7 for k in ("principal_point_offset_x", "principal_point_offset_y")):
                 raise fail(what, "principal point offsets are not supported (psdr's film projection is centred)")
             film = sensor.film()
-            size = tuple(int(s) for s in film.size())
-            if tuple(int(s) for s in film.crop_size()) != size and src.film is None:
+            if tuple(film.crop_size()) != tuple(film.size()) and src.film is None:
                 warnings.append(f"{xml.name}: {what}: the film's crop window is ignored (psdr renders the whole film)")
-            sizes.add(size)
             M = _matrix(p["to_world"])
             fov = float(p["x_fov"][0])
             sensors.append((M, fov, float(sensor.near_clip()), float(sensor.far_clip())))
