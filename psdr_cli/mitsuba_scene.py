@@ -8,7 +8,7 @@ it and the scene is rebuilt with ``mi.load_dict`` under psdr's naming:
   without one: ``<plugin>_<k>``). Each is rebuilt as an ``mi.Mesh`` from its world-space
   vertex positions, faces, and (when present) vertex normals and texture coordinates, with its
   own BSDF instance, so ``<id>.vertex_positions`` is a differentiable parameter. Smooth shading =
-  the shape has vertex normals; ``edges`` = true unless ``scene.objects: {id: {edges: false}}``.
+  the shape has vertex normals that are not just its face normals; ``edges`` = true unless ``scene.objects: {id: {edges: false}}``.
 - **emitting shapes** (area lights on any shape) stay as they are: static light geometry, like
   the YAML ``area`` emitter (cameras see them, they cast shadows, their edges are not sampled).
 - **environment emitters** ``envmap``, ``constant`` and ``sunsky`` keep their XML ``to_world``
@@ -153,6 +153,16 @@ def _shape_names(mi_scene) -> list:
     return names
 
 
+def flat_normals(V, F, normals, cos_tol: float = 1 - 1e-5) -> bool:
+    """Whether every vertex normal equals the normal of each face using the vertex (a flat-shaded
+    mesh stored with split vertices). Such meshes are flat for psdr (``smooth: false``): its
+    smooth-shading boundary handling assumes normals interpolated across edges."""
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    N = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    return bool(all((np.einsum("ij,ij->i", N[F[:, k]], n) > cos_tol).all() for k in range(3)))
+
+
 def bsdf_name(bsdf) -> str:
     """Plugin name of a BSDF instance; transmissive BSDFs psdr does not list are reported as
     ``dielectric`` so that their concave edges stay in the boundary terms."""
@@ -257,6 +267,8 @@ def read_scene(exp: Experiment) -> XmlScene:
             warnings.append(f"{xml.name}: {what}: {int(bad.sum())} degenerate (zero-area) triangles of {len(F)} dropped")
             F = F[~bad]
         normals = np.array(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3) if shape.has_vertex_normals() else None
+        if normals is not None and flat_normals(V, F, normals):
+            normals = None  # per-face normals on split vertices (a cube, a rectangle): flat shading
         uv = np.array(shape.vertex_texcoords_buffer(), np.float64).reshape(-1, 2) if shape.has_vertex_texcoords() else None
         objects[name] = XmlObject(name, V, F, normals, uv, bsdf)
     unknown = [n for n in src.edges if n not in objects]

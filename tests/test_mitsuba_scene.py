@@ -71,6 +71,7 @@ def test_xml_scene_is_read_like_its_yaml_twin(tmp_path):
     assert {o.name: (o.edges, o.bsdf.type) for o in ex.scene.objects} == {
         "ball": (True, "diffuse"), "box": (True, "diffuse"), "floor": (False, "diffuse")}
     assert [e.type for e in ex.scene.emitters] == ["area"]
+    assert not any(o.smooth for o in ex.scene.objects)   # the rectangle's normals are its face normal: flat
     cx, cy = ex.scene.cameras[0], ey.scene.cameras[0]
     direction = np.subtract(cy.target, cy.origin)
     assert np.allclose(cx.origin, cy.origin, atol=1e-5) and np.allclose(cx.up, [0, 0.4930, 0.8700], atol=1e-3)
