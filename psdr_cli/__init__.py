@@ -15,8 +15,8 @@ from .backend import configure_environment
 configure_environment()  # must run before drjit is first imported (by the imports below)
 
 from . import api  # noqa: E402
-from .api import grad, gradient_images, guide_stats, render, setup  # noqa: E402
-from .config import Experiment, load_experiment  # noqa: E402
+from .api import grad, gradient_images, guide_stats, load_experiment, render, setup  # noqa: E402
+from .config import Experiment  # noqa: E402
 from .errors import ConfigError, PsdrError  # noqa: E402
 from .scene import build_scene  # noqa: E402
 

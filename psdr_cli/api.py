@@ -14,12 +14,26 @@ from pathlib import Path
 
 from . import backend
 from . import compare as comparison
+from . import config
 from . import evaluate as evaluation
 from . import gradient
+from . import mitsuba_scene
 from . import optimize as optimization
 from . import render as rendering
 from .config import Experiment
 from .guiding import stats
+
+
+def load_experiment(path, warn=mitsuba_scene.warn_stderr) -> Experiment:
+    """Read and validate an experiment file, then its scene: a Mitsuba XML scene is read (one
+    ``warn`` line per item psdr renders but cannot differentiate) and split OBJ objects are
+    expanded, so that object names, views and emitters are known."""
+    return mitsuba_scene.resolve(config.load_experiment(path), warn)
+
+
+def resolved(exp: Experiment) -> Experiment:
+    """``exp`` with its scene read (a no-op for experiments from :func:`load_experiment`)."""
+    return mitsuba_scene.resolve(exp)
 
 
 def setup(exp: Experiment) -> str:
@@ -29,41 +43,41 @@ def setup(exp: Experiment) -> str:
 
 def render(exp: Experiment, spp: int | None = None, views=None, out: Path | None = None, progress=None):
     """``psdr render``: EXR + PNG per view in ``<output>/<name>/render/``; returns a RenderResult."""
-    return rendering.render_experiment(exp, spp, views, out, progress)
+    return rendering.render_experiment(resolved(exp), spp, views, out, progress)
 
 
 def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
                     scene=None, progress=None) -> dict:
     """Forward-mode gradient images dI/dθ of one view, {term: TermEstimate}; writes nothing."""
-    return gradient.gradient_images(exp, view, terms, spp, min_passes, scene, progress)
+    return gradient.gradient_images(resolved(exp), view, terms, spp, min_passes, scene, progress)
 
 
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None):
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
     ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings."""
-    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn)
+    return gradient.grad_experiment(resolved(exp), spp, terms, views, out, fd, fd_spp, progress, warn)
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):
     """``psdr guide-stats``: guides built with and without edge sorting; a GuideStatsResult."""
-    return stats.guide_stats(exp, kinds, views, out, progress)
+    return stats.guide_stats(resolved(exp), kinds, views, out, progress)
 
 
 def compare(exp: Experiment, out: Path | None = None, progress=None):
     """``psdr compare``: the experiment's ``compare:`` section; a CompareResult."""
-    return comparison.run_comparison(exp, out, progress)
+    return comparison.run_comparison(resolved(exp), out, progress)
 
 
 def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print):
     """``psdr optimize`` of one run (an experiment without variants, or one variant's run)."""
-    return optimization.optimize(exp, iterations=iterations, resume=resume, progress=progress, warn=warn)
+    return optimization.optimize(resolved(exp), iterations=iterations, resume=resume, progress=progress, warn=warn)
 
 
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
                       progress=None, warn=print):
     """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult)."""
-    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn)
+    return optimization.optimize_variants(resolved(exp), labels, iterations, resume, progress, warn)
 
 
 def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,

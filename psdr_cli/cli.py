@@ -22,7 +22,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from . import __version__, api
-from .config import load_experiment, with_estimator
+from .config import with_estimator
 from .errors import PsdrError, PsdrWarning
 from .verdict import describe
 
@@ -87,6 +87,12 @@ class Bar:
 
     def advance(self, n: int):
         self.progress.advance(self.task, n)
+
+
+def load_experiment(config: Path):
+    """The experiment file, its scene read; warnings (what psdr cannot differentiate) on stderr."""
+    return api.load_experiment(config, warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False,
+                                                                     soft_wrap=True))
 
 
 def version_callback(value: bool):

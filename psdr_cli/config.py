@@ -285,9 +285,11 @@ class EmitterConfig:
 class MeshSpec:
     key: str
     file: Path | None = None
-    shape: str | None = None
+    shape: str | None = None   # a procedural shape, or "mitsuba" for a mesh of an XML scene
     params: dict = field(default_factory=dict)
     repair: bool = False
+    part: str | None = None    # one group/object of an OBJ file
+    split: bool = False        # one scene object per group/object of an OBJ file
 
 
 @dataclass
@@ -313,6 +315,28 @@ class ObjectConfig:
     bsdf: BsdfConfig = field(default_factory=BsdfConfig)
     edges: bool = True
     smooth: bool = False
+    bsdf_given: bool = True     # False: the default BSDF, which an OBJ part's MTL colour replaces (then True)
+    parts: dict = field(default_factory=dict)  # split objects: part name -> {bsdf, edges, smooth} overrides
+
+
+@dataclass
+class MitsubaSource:
+    """``scene: {mitsuba: scene.xml}``: a Mitsuba 3 XML scene (read by :mod:`psdr_cli.mitsuba_scene`).
+
+    ``params``: ``$name`` substitutions; ``film``: (width, height) replacing the XML film's size;
+    ``edges``: {shape id: bool} overrides; ``up``: the scene's up axis (default of camera ``up``
+    and of rotation axes); ``up_given``: whether the file set it. ``digest`` and ``resolved``
+    are filled once the XML has been read."""
+    file: Path
+    params: dict = field(default_factory=dict)
+    film: tuple | None = None
+    edges: dict = field(default_factory=dict)
+    up: tuple = (0.0, 0.0, 1.0)
+    up_given: bool = False
+    cameras_given: bool = False
+    max_depth_given: bool = False
+    digest: str = ""
+    resolved: bool = False
 
 
 @dataclass
@@ -323,6 +347,15 @@ class SceneConfig:
     cameras: list
     emitters: list
     objects: list
+    mitsuba: MitsubaSource | None = None   # an XML scene: cameras, emitters, objects come from it
+
+    @property
+    def resolved(self) -> bool:
+        """False until an XML scene has been read and split OBJ objects expanded into their parts
+        (:func:`psdr_cli.mitsuba_scene.resolve`); object names are only known then."""
+        if self.mitsuba is not None:
+            return self.mitsuba.resolved
+        return not any(o.mesh.split or (o.mesh.part is not None and not o.bsdf_given) for o in self.objects)
 
 
 @dataclass
@@ -537,7 +570,14 @@ def parse_mesh(base: Path) -> Parser:
         repair = sec.get("repair", boolean, False)
         if sec.has("file"):
             spec = MeshSpec(where.path + ".file", file=sec.get("file", path_relative_to(base)), repair=repair)
+            spec.part = sec.get("part", string, None)
+            spec.split = sec.get("split", boolean, False)
             sec.done()
+            if (spec.part is not None or spec.split) and spec.file.suffix.lower() != ".obj":
+                raise where.child("part" if spec.part is not None else "split").fail(
+                    f"parts need an .obj file (groups 'g' / objects 'o'), got '{spec.file.name}'")
+            if spec.part is not None and spec.split:
+                raise where.fail("give either 'part' or 'split: true', not both")
             return spec
         shape = sec.get("shape", choice(*SHAPE_PARAMS), None)
         if shape is None:
@@ -594,10 +634,30 @@ def parse_object(base: Path) -> Parser:
             bsdf=sec.get("bsdf", parse_bsdf, BsdfConfig("diffuse", {"reflectance": (0.5, 0.5, 0.5)})),
             edges=sec.get("edges", boolean, True),
             smooth=sec.get("smooth", boolean, False),
+            bsdf_given=sec.has("bsdf"),
         )
+        if sec.has("parts"):
+            if not obj.mesh.split:
+                raise where.child("parts").fail("only allowed with 'mesh: {file: x.obj, split: true}'")
+            obj.parts = sec.get("parts", parse_parts)
         sec.done()
         return obj
     return parse
+
+
+def parse_parts(value, where) -> dict:
+    """``parts: {NAME: {bsdf, edges, smooth}}``: per-part overrides of a split OBJ object."""
+    if not isinstance(value, dict):
+        raise where.fail(f"expected a mapping of part names, got {_describe(value)}")
+    out = {}
+    for name, entry in value.items():
+        w = where.child(str(name))
+        sec = Section(entry, w)
+        out[str(name)] = {k: v for k, v in (("bsdf", sec.get("bsdf", parse_bsdf, None)),
+                                            ("edges", sec.get("edges", boolean, None)),
+                                            ("smooth", sec.get("smooth", boolean, None))) if v is not None}
+        sec.done()
+    return out
 
 
 EMITTER_TYPES = ("area", "envmap", "sky", "constant")
@@ -665,9 +725,9 @@ def orbit_cameras(count, radius, elevation_deg, azimuth_deg, target, fov, up=(0.
     return cams
 
 
-def parse_cameras(value, where) -> list:
+def parse_cameras(value, where, up=(0.0, 0.0, 1.0)) -> list:
     """A list of cameras and ``orbit:`` rings; a single ``{orbit: {...}}`` mapping is accepted
-    as a one-item list."""
+    as a one-item list. ``up`` is the default up direction (the scene's up axis)."""
     if isinstance(value, dict) and set(value) == {"orbit"}:
         value = [value]
     items = list_of(lambda v, w: (v, w), min_len=1)(value, where)
@@ -683,7 +743,7 @@ def parse_cameras(value, where) -> list:
                 azimuth_deg=orb.get("azimuth_deg", number(), 0.0),
                 target=orb.get("target", vector(3), (0.0, 0.0, 0.0)),
                 fov=orb.get("fov", number(positive=True, maximum=179), 40.0),
-                up=orb.get("up", vector(3, nonzero=True), (0.0, 0.0, 1.0)),
+                up=orb.get("up", vector(3, nonzero=True), up),
             )
             orb.done()
             sec.done()
@@ -692,7 +752,7 @@ def parse_cameras(value, where) -> list:
         cam = CameraConfig(
             origin=sec.get("origin", vector(3)),
             target=sec.get("target", vector(3)),
-            up=sec.get("up", vector(3, nonzero=True), (0.0, 0.0, 1.0)),
+            up=sec.get("up", vector(3, nonzero=True), up),
             fov=sec.get("fov", number(positive=True, maximum=179), 40.0),
         )
         sec.done()
@@ -700,9 +760,57 @@ def parse_cameras(value, where) -> list:
     return cams
 
 
+def _xml_param(value, where):
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float, str)):
+        return str(value)
+    raise where.fail(f"expected a number, a string or true/false, got {_describe(value)}")
+
+
+def parse_mitsuba_scene(sec: Section, where: Where, base: Path) -> SceneConfig:
+    """``scene: {mitsuba: file.xml, params, film, max_depth, cameras, up, objects}``. The XML
+    itself is read later (it needs Mitsuba): its sensors, emitters and shapes fill the scene."""
+    file = sec.get("mitsuba", path_relative_to(base))
+    if file.suffix.lower() != ".xml":
+        raise where.child("mitsuba").fail(f"expected a Mitsuba 3 scene file (.xml), got '{file.name}'")
+    if not file.is_file():
+        raise where.child("mitsuba").fail(f"file not found: {file}")
+    src = MitsubaSource(file=file)
+    params = sec.get("params", lambda v, w: v, {})
+    if not isinstance(params, dict):
+        raise where.child("params").fail(f"expected a mapping of $name: value, got {_describe(params)}")
+    src.params = {str(k): _xml_param(v, where.child("params").child(str(k))) for k, v in params.items()}
+    if sec.has("film"):
+        film = Section(sec.get("film", lambda v, _: v), where.child("film"))
+        src.film = (film.get("width", integer(1)), film.get("height", integer(1)))
+        film.done()
+    src.up_given = sec.has("up")
+    src.up = _unit(sec.get("up", vector(3, nonzero=True), src.up))
+    src.cameras_given = sec.has("cameras")
+    src.max_depth_given = sec.has("max_depth")
+    objects = sec.get("objects", lambda v, w: v, {})
+    if not isinstance(objects, dict):
+        raise where.child("objects").fail(f"expected a mapping of XML shape ids to {{edges: ...}}, got "
+                                          f"{_describe(objects)}")
+    for name, entry in objects.items():
+        o = Section(entry, where.child("objects").child(str(name)))
+        src.edges[str(name)] = o.get("edges", boolean)
+        o.done()
+    scene = SceneConfig(
+        width=src.film[0] if src.film else 0, height=src.film[1] if src.film else 0,
+        max_depth=sec.get("max_depth", integer(1), 2),
+        cameras=sec.get("cameras", lambda v, w: parse_cameras(v, w, src.up), []),
+        emitters=[], objects=[], mitsuba=src)
+    sec.done()
+    return scene
+
+
 def parse_scene(base: Path) -> Parser:
     def parse(value, where):
         sec = Section(value, where)
+        if sec.has("mitsuba"):
+            return parse_mitsuba_scene(sec, where, base)
         film = Section(sec.get("film", lambda v, _: v, {}), where.child("film"))
         width = film.get("width", integer(1, MAX_FILM), 128)
         height = film.get("height", integer(1, MAX_FILM), 128)
@@ -715,16 +823,21 @@ def parse_scene(base: Path) -> Parser:
             objects=sec.get("objects", list_of(parse_object(base)), []),
         )
         sec.done()
-        names = set()
-        for obj in scene.objects:
-            if obj.name in names:
-                raise Where(where.file, obj.key + ".name").fail(f"duplicate object name '{obj.name}'")
-            names.add(obj.name)
-        n_env = sum(e.type in ("envmap", "sky", "constant") for e in scene.emitters)
-        if n_env > 1:
-            raise where.child("emitters").fail("at most one environment emitter (envmap, sky or constant) is allowed")
+        check_scene(scene, where.file)
         return scene
     return parse
+
+
+def check_scene(scene: SceneConfig, file: str):
+    """Unique object names and at most one environment emitter (also after a scene is resolved)."""
+    names = set()
+    for obj in scene.objects:
+        if obj.name in names:
+            raise Where(file, obj.key + ".name").fail(f"duplicate object name '{obj.name}'")
+        names.add(obj.name)
+    n_env = sum(e.type in ("envmap", "sky", "constant") for e in scene.emitters)
+    if n_env > 1:
+        raise Where(file, "scene.emitters").fail("at most one environment emitter (envmap, sky or constant) is allowed")
 
 
 PARAMETER_KINDS = ("translate", "rotate", "scale", "envmap_rotate")
@@ -732,7 +845,8 @@ DEFAULT_AXIS = {"translate": (1.0, 0.0, 0.0), "rotate": (0.0, 0.0, 1.0), "scale"
                 "envmap_rotate": (0.0, 0.0, 1.0)}
 
 
-def parse_parameter(value, where) -> ParameterConfig:
+def parse_parameter(value, where, up=(0.0, 0.0, 1.0)) -> ParameterConfig:
+    """The ``parameter:`` section; rotations default to the axis ``up`` (the scene's up axis)."""
     sec = Section(value, where)
     kind = sec.get("kind", choice(*PARAMETER_KINDS))
     obj = sec.get("object", string, None)
@@ -745,7 +859,8 @@ def parse_parameter(value, where) -> ParameterConfig:
         raise where.child("object").fail(f"missing (required for kind '{kind}'; or 'camera: INDEX')")
     if kind == "envmap_rotate" and obj is not None:
         raise where.child("object").fail("not allowed for kind 'envmap_rotate'")
-    axis = sec.get("axis", vector(3, nonzero=True), DEFAULT_AXIS[kind])
+    default = tuple(up) if kind in ("rotate", "envmap_rotate") else DEFAULT_AXIS[kind]
+    axis = sec.get("axis", vector(3, nonzero=True), default)
     sec.done()
     return ParameterConfig(kind=kind, object=obj, axis=axis if kind == "scale" else _unit(axis), camera=camera)
 
@@ -1026,14 +1141,17 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
     sec = Section(data, where)
     base = file.resolve().parent
     out = sec.get("output", string, "runs")
+    name = sec.get("name", string, file.stem)
+    scene = sec.get("scene", parse_scene(base))
+    up = scene.mitsuba.up if scene.mitsuba else (0.0, 0.0, 1.0)
     exp = Experiment(
         file=file.resolve(),
-        name=sec.get("name", string, file.stem),
+        name=name,
         output=(Path(cwd or Path.cwd()) / out).resolve(),
         seed=sec.get("seed", integer(0), 0),
         variant=sec.get("variant", choice(*VARIANTS), "auto"),
-        scene=sec.get("scene", parse_scene(base)),
-        parameter=sec.get("parameter", parse_parameter, None),
+        scene=scene,
+        parameter=sec.get("parameter", lambda v, w: parse_parameter(v, w, up), None),
         estimator=sec.get("estimator", parse_estimator, EstimatorConfig()),
         optimize=sec.get("optimize", parse_optimize(base), None),
         evaluate=sec.get("evaluate", parse_evaluate(base), None),
@@ -1042,6 +1160,15 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
     sec.done()
     if "/" in exp.name or exp.name in (".", ".."):
         raise where.child("name").fail(f"expected a plain folder name, got '{exp.name}'")
+    if exp.scene.resolved:
+        check_experiment(exp)
+    return exp
+
+
+def check_experiment(exp: Experiment):
+    """Checks that need the scene's object names, views and emitters. An XML scene or a split
+    OBJ object is checked once it has been read (:func:`psdr_cli.mitsuba_scene.resolve`)."""
+    where = Where(str(exp.file), "")
     if exp.parameter and exp.parameter.object:
         names = [o.name for o in exp.scene.objects]
         if exp.parameter.object not in names:
@@ -1068,7 +1195,6 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")
-    return exp
 
 
 class UniqueKeyLoader(yaml.SafeLoader):

@@ -12,6 +12,7 @@ import numpy as np
 import pymeshlab
 import trimesh
 
+from . import obj_parts
 from .config import MAX_COORD, MeshSpec, TransformConfig, Where
 from .errors import ConfigError, PsdrError
 
@@ -122,7 +123,9 @@ def load_mesh(spec: MeshSpec, file: str):
         if not os.access(spec.file, os.R_OK):
             raise where.fail(f"mesh file is not readable: {spec.file}")
         try:
-            V, F = read_mesh_file(spec.file)
+            V, F = read_mesh_file(spec.file) if spec.part is None else obj_parts.read_part(spec.file, spec.part)
+        except KeyError as exc:
+            raise where.fail(exc.args[0]) from None
         except Exception as exc:  # noqa: BLE001 - any parser failure is a bad file
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise where.fail(f"cannot read mesh {spec.file.name}: {msg}") from None

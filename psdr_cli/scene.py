@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import mitsuba as mi
 import numpy as np
 
-from . import meshes
+from . import meshes, mitsuba_scene
 from .config import EmitterConfig, Experiment, ObjectConfig, SceneConfig
 from .errors import ConfigError
 
@@ -55,7 +55,10 @@ def bsdf_dict(obj: ObjectConfig) -> dict:
 
 
 def object_mesh(obj: ObjectConfig, file: str):
-    """World-space (V, F) of an object: its mesh, validated, then its transform."""
+    """World-space (V, F) of an object: its mesh, validated, then its transform (an XML scene's
+    mesh: as Mitsuba loaded it, in world space)."""
+    if obj.mesh.shape == "mitsuba":
+        return mitsuba_scene.object_geometry(obj)
     V, F = meshes.load_mesh(obj.mesh, file)
     V = meshes.apply_transform(V, meshes.transform_matrix(obj.transform))
     return V, F
@@ -145,8 +148,12 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
     """Mitsuba scene of an experiment: every camera, emitter and object.
 
     ``objects`` may override meshes by name (``{name: (V, F)}``, e.g. the current shape of an
-    optimisation); ``cameras`` may replace the camera list.
+    optimisation); ``cameras`` may replace the camera list. An XML scene (``scene.mitsuba``) is
+    read by :mod:`psdr_cli.mitsuba_scene`; split OBJ objects are expanded into their parts.
     """
+    exp = mitsuba_scene.resolve(exp)
+    if exp.scene.mitsuba is not None:
+        return build_xml_scene(exp, objects or {}, cameras)
     cfg = exp.scene
     built = build_objects(exp)
     for name, (V, F) in (objects or {}).items():
@@ -167,4 +174,23 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
         mi_scene = mi.load_dict(d)
     except Exception as exc:  # noqa: BLE001 - Mitsuba rejects a parameter value
         raise ConfigError(exp.file, "scene", f"Mitsuba could not build the scene: {str(exc).splitlines()[0]}") from None
+    return Scene(mi_scene, cfg, built)
+
+
+def build_xml_scene(exp: Experiment, objects: dict, cameras: list | None) -> Scene:
+    """The Mitsuba scene of a resolved XML experiment (see :mod:`psdr_cli.mitsuba_scene`)."""
+    cfg = exp.scene
+    unknown = [name for name in objects if name not in {o.name for o in cfg.objects}]
+    if unknown:
+        raise ConfigError(exp.file, "scene", f"no object '{unknown[0]}' in {cfg.mitsuba.file.name}")
+    sensors = None
+    if cameras or cfg.mitsuba.cameras_given:
+        sensors = [sensor_dict(cam, cfg.width, cfg.height) for cam in (cameras or cfg.cameras)]
+    entries, geometry = mitsuba_scene.scene_entries(exp, objects, sensors)
+    d = {"type": "scene", "integrator": {"type": "path", "max_depth": cfg.max_depth}, **entries}
+    try:
+        mi_scene = mi.load_dict(d)
+    except Exception as exc:  # noqa: BLE001
+        raise ConfigError(cfg.mitsuba.file, "", f"Mitsuba could not rebuild the scene: {str(exc).splitlines()[0]}") from None
+    built = {o.name: ObjectMesh(o.name, *geometry[o.name], o.edges, o) for o in cfg.objects}
     return Scene(mi_scene, cfg, built)

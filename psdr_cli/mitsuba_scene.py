@@ -1,0 +1,407 @@
+"""Mitsuba 3 XML scenes as psdr scenes (``scene: {mitsuba: scene.xml}``).
+
+The XML is read with ``mi.load_file(file, **params)``; what psdr can differentiate is taken from
+it and the scene is rebuilt with ``mi.load_dict`` under psdr's naming:
+
+- **triangle meshes** (``obj``, ``ply``, ``serialized``, ``rectangle``, ``cube``, ...: every shape
+  with ``is_mesh()`` that does not emit) become scene objects named by their XML ``id`` (shapes
+  without one: ``<plugin>_<k>``). Each is rebuilt as an ``mi.Mesh`` from its world-space
+  vertex positions, faces, and (when present) vertex normals and texture coordinates, with its
+  own BSDF instance, so ``<id>.vertex_positions`` is a differentiable parameter. Smooth shading =
+  the shape has vertex normals that are not just its face normals; ``edges`` = true unless ``scene.objects: {id: {edges: false}}``.
+- **emitting shapes** (area lights on any shape) stay as they are: static light geometry, like
+  the YAML ``area`` emitter (cameras see them, they cast shadows, their edges are not sampled).
+- **environment emitters** ``envmap``, ``constant`` and ``sunsky`` keep their XML ``to_world``
+  (the scene keeps its own frame) and are named ``emitter_00`` (``envmap_rotate`` finds them).
+- **analytic shapes** (``sphere``, ``disk``, ``cylinder``, instances, ...) are rendered, with one
+  warning each: psdr cannot sample their edges, so silhouettes and shadows of them carry no
+  derivative.
+- **refused** with one error line: non-``perspective`` sensors or ones with a principal-point
+  offset, delta emitters (``point``, ``spot``, ``directional``, ``projector``), ``mask`` and
+  ``null`` BSDFs (surfaces rays pass through), participating media, more than one environment.
+- **replaced**: the XML integrator (psdr's estimators render; its ``max_depth`` is the default of
+  ``scene.max_depth``), the sampler (``estimator.spp``) and the film's reconstruction filter
+  (psdr integrates box pixels). Sensors keep their ``to_world``, horizontal field of view and
+  clip planes; ``scene.film`` may replace the film size, ``scene.cameras`` the sensors.
+
+Parse errors become one line ``scene.xml: line N, column M: message``.
+"""
+from __future__ import annotations
+
+import hashlib
+import re
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from . import backend, meshes
+from .config import (BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig, Where,
+                     check_experiment, check_scene)
+from .errors import ConfigError
+from .obj_parts import expand_objects
+
+#: Emitter classes psdr handles → the YAML emitter type they correspond to.
+EMITTERS = {"AreaLight": "area", "EnvironmentMapEmitter": "envmap", "ConstantBackgroundEmitter": "constant",
+            "SunskyEmitter": "sky"}
+#: Delta emitters: refused (their hard shadows have no boundary samples in psdr).
+DELTA_EMITTERS = {"PointLight": "point", "SpotLight": "spot", "DirectionalEmitter": "directional",
+                  "Projector": "projector"}
+#: BSDFs that let rays pass through a surface: refused (the boundary terms assume opaque or
+#: refracting surfaces).
+PASS_THROUGH_BSDFS = {"MaskBSDF": "mask", "Null": "null"}
+#: BSDF classes → plugin names (the boundary code tells transmissive BSDFs by these names).
+BSDF_NAMES = {"SmoothDiffuse": "diffuse", "RoughConductor": "roughconductor", "SmoothConductor": "conductor",
+              "SmoothDielectric": "dielectric", "RoughDielectric": "roughdielectric",
+              "ThinDielectric": "thindielectric", "Principled": "principled", "PrincipledThin": "principledthin",
+              "SmoothPlastic": "plastic", "RoughPlastic": "roughplastic", "TwoSidedBRDF": "twosided"}
+ANALYTIC = {"Sphere": "sphere", "Disk": "disk", "Cylinder": "cylinder", "Instance": "instance",
+            "BSplineCurve": "bsplinecurve", "LinearCurve": "linearcurve", "SDFGrid": "sdfgrid",
+            "ShapeGroup": "shapegroup", "Ellipsoids": "ellipsoids", "EllipsoidsMesh": "ellipsoidsmesh"}
+
+
+def warn_stderr(message: str):
+    print(f"warning: {message}", file=sys.stderr)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading the XML
+# --------------------------------------------------------------------------------------------
+_POSITION = re.compile(r"\(line (\d+), col(?:umn)? (\d+)\)")
+
+
+def xml_error(exc: Exception, file: Path) -> ConfigError:
+    """Mitsuba's parse or plugin error as one line ``file: line N, column M: message``."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    text = re.sub(r"^\[[^\]]*\]\s*", "", text)  # "[parser.cpp:1087] "
+    named = re.search(r'(?:At|loading|XML file)\s+"?([^"]+?)"?\s*(?:\(line|failed|:)', text)
+    where_file = Path(named.group(1)) if named else file
+    if not where_file.is_absolute():
+        where_file = file.parent / where_file if not where_file.exists() else where_file.resolve()
+    pos = _POSITION.search(text)
+    message = text
+    if pos:
+        message = text[pos.end():].lstrip(": ").strip() or text[:pos.start()]
+        # "Parsing of XML file "x" failed: Error parsing end element tag (line 5, col 1)"
+        message = re.sub(r'^Parsing of XML file "[^"]*" failed:\s*', "", message)
+        if not message:
+            message = re.sub(r'^Parsing of XML file "[^"]*" failed:\s*', "", text[:pos.start()]).strip()
+        return ConfigError(where_file, f"line {pos.group(1)}, column {pos.group(2)}", message.strip())
+    return ConfigError(where_file, "", re.sub(r'^"[^"]*":\s*', "", message))
+
+
+def load_xml(src, yaml_file: str | None = None) -> mi.Scene:
+    """``mi.load_file(src.file, **src.params)``; any failure is one :class:`ConfigError` line (a
+    ``params`` entry the XML does not use names the experiment file's key)."""
+    try:
+        return mi.load_file(str(src.file), **src.params)
+    except Exception as exc:  # noqa: BLE001 - Mitsuba reports XML and plugin errors as RuntimeError
+        unused = re.findall(r"\$(\S+?)=", str(exc)) if "unused parameters" in str(exc) else []
+        if unused and yaml_file:
+            raise ConfigError(yaml_file, f"scene.params.{unused[0]}",
+                              f"{src.file.name} does not use ${unused[0]}") from None
+        raise xml_error(exc, src.file) from None
+
+
+@dataclass
+class XmlObject:
+    """A triangle mesh of the XML: world-space arrays as Mitsuba loaded them and its BSDF."""
+    name: str
+    V: np.ndarray
+    F: np.ndarray
+    normals: np.ndarray | None
+    texcoords: np.ndarray | None
+    bsdf: object
+
+
+@dataclass
+class XmlScene:
+    """What psdr takes from an XML scene (see the module docstring)."""
+    sensors: list                     # (to_world 4×4, x_fov, near, far) per XML sensor
+    cameras: list                     # CameraConfig per XML sensor (origin, target, up, fov)
+    size: tuple | None                # film (width, height) of the XML sensors
+    emitters: list                    # EmitterConfig per emitter (area lights included)
+    environment: dict = field(default_factory=dict)   # emitter_NN -> environment emitter instance
+    shapes: dict = field(default_factory=dict)        # id -> light or analytic shape instance (kept)
+    objects: dict = field(default_factory=dict)       # id -> XmlObject
+    max_depth: int | None = None
+    warnings: list = field(default_factory=list)
+    digest: str = ""
+
+
+def _matrix(transform) -> np.ndarray:
+    return np.array(transform.matrix, dtype=np.float64).reshape(4, 4)
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+def _shape_names(mi_scene) -> list:
+    """XML id of every shape (shapes without one: ``<plugin>_<k>``, numbered per plugin)."""
+    counts, names = {}, []
+    for shape in mi_scene.shapes():
+        if shape.id():
+            names.append(shape.id())
+            continue
+        kind = shape.class_name().lower()
+        names.append(f"{kind}_{counts.get(kind, 0)}")
+        counts[kind] = counts.get(kind, 0) + 1
+    return names
+
+
+def flat_normals(V, F, normals, cos_tol: float = 1 - 1e-5) -> bool:
+    """Whether every vertex normal equals the normal of each face using the vertex (a flat-shaded
+    mesh stored with split vertices). Such meshes are flat for psdr (``smooth: false``): its
+    smooth-shading boundary handling assumes normals interpolated across edges."""
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    N = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    return bool(all((np.einsum("ij,ij->i", N[F[:, k]], n) > cos_tol).all() for k in range(3)))
+
+
+def bsdf_name(bsdf) -> str:
+    """Plugin name of a BSDF instance; transmissive BSDFs psdr does not list are reported as
+    ``dielectric`` so that their concave edges stay in the boundary terms."""
+    name = BSDF_NAMES.get(bsdf.class_name(), bsdf.class_name().lower())
+    if mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission) and name not in (
+            "dielectric", "roughdielectric", "thindielectric"):
+        return "dielectric"
+    return name
+
+
+def read_scene(exp: Experiment) -> XmlScene:
+    """Read and check the experiment's XML scene (a variant must be active)."""
+    src, yaml_file = exp.scene.mitsuba, str(exp.file)
+    xml = src.file
+    mi_scene = load_xml(src, yaml_file)
+
+    def fail(what: str, message: str) -> ConfigError:
+        return ConfigError(xml, what, message)
+
+    warnings = []
+    # Sensors
+    sensors, cameras = [], []
+    films = [tuple(int(s) for s in sensor.film().size()) for sensor in mi_scene.sensors() if sensor.film()]
+    sizes = set(films)
+    if src.cameras_given:   # scene.cameras replace the XML's sensors; the film size is the first one's
+        sizes = {films[0] if films else (128, 128)}
+    else:
+        for i, sensor in enumerate(mi_scene.sensors()):
+            kind = sensor.class_name()
+            what = f"sensor {i}" + (f" '{sensor.id()}'" if sensor.id() else "")
+            if kind != "PerspectiveCamera":
+                raise fail(what, f"'{kind}' is not supported (psdr needs perspective sensors: its film "
+                                 f"projection and camera connections assume a pinhole)")
+            p = mi.traverse(sensor)
+            if any(abs(float(p[k][0])) > 1e-7 for k in ("principal_point_offset_x", "principal_point_offset_y")):
+                raise fail(what, "principal point offsets are not supported (psdr's film projection is centred)")
+            film = sensor.film()
+            if tuple(film.crop_size()) != tuple(film.size()) and src.film is None:
+                warnings.append(f"{xml.name}: {what}: the film's crop window is ignored (psdr renders the whole film)")
+            M = _matrix(p["to_world"])
+            fov = float(p["x_fov"][0])
+            sensors.append((M, fov, float(sensor.near_clip()), float(sensor.far_clip())))
+            origin = M[:3, 3]
+            cameras.append(CameraConfig(origin=tuple(float(c) for c in origin),
+                                        target=tuple(float(c) for c in origin + _unit(M[:3, 2])),
+                                        up=tuple(float(c) for c in _unit(M[:3, 1])), fov=fov))
+        if not sensors:
+            raise fail("", "has no sensor (add a perspective <sensor>, or give scene.cameras)")
+        if len(sizes) > 1 and src.film is None:
+            raise fail("", f"its sensors have different film sizes {sorted(sizes)}; give scene.film")
+        if not src.up_given:
+            axis = int(np.argmax(np.abs(cameras[0].up)))
+            uses_up = src.cameras_given or (exp.parameter is not None and exp.parameter.kind in ("rotate", "envmap_rotate"))
+            if axis != 2 and uses_up:
+                name = "xyz"[axis]
+                warnings.append(f"{xml.name}: its first camera is {name}-up but scene.up is [0, 0, 1] (the default "
+                                f"of rotation axes and camera up); set scene.up for this scene's frame")
+    # Emitters (area lights are counted with their shapes)
+    emitters, environment = [], {}
+    for em in mi_scene.emitters():
+        kind = em.class_name()
+        what = f"emitter '{em.id()}'" if em.id() else f"emitter {kind}"
+        if kind in DELTA_EMITTERS:
+            raise fail(what, f"'{DELTA_EMITTERS[kind]}' lights are not supported (delta lights: psdr's boundary "
+                             f"terms need area or environment emitters; its hard shadows would have no derivative)")
+        if kind not in EMITTERS:
+            raise fail(what, f"'{kind}' is not supported (psdr handles area, envmap, constant and sunsky emitters)")
+        if kind == "AreaLight":
+            continue
+        environment[f"emitter_{len(environment):02d}"] = em
+        emitters.append(EmitterConfig(type=EMITTERS[kind], key=what))
+    if len(environment) > 1:
+        raise fail("", "has more than one environment emitter (psdr allows one envmap, constant or sunsky)")
+    # Shapes
+    shapes, objects = {}, {}
+    for name, shape in zip(_shape_names(mi_scene), mi_scene.shapes()):
+        what = f"shape '{name}'"
+        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+            raise fail(what, "participating media are not supported")
+        bsdf = shape.bsdf()
+        if bsdf is not None and bsdf.class_name() in PASS_THROUGH_BSDFS:
+            raise fail(what, f"'{PASS_THROUGH_BSDFS[bsdf.class_name()]}' BSDFs are not supported (rays pass through "
+                             f"the surface; psdr's boundary terms assume opaque or refracting surfaces)")
+        if name in objects or name in shapes:
+            raise fail(what, "duplicate shape id")
+        if shape.emitter() is not None:
+            shapes[name] = shape
+            emitters.append(EmitterConfig(type="area", key=what))
+            continue
+        if not shape.is_mesh():
+            kind = ANALYTIC.get(shape.class_name(), shape.class_name().lower())
+            warnings.append(f"{xml.name}: {what} is an analytic '{kind}': it is rendered, but psdr cannot sample "
+                            f"its edges, so its silhouette and shadows have no derivative (use a mesh)")
+            shapes[name] = shape
+            continue
+        V = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+        F = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
+        if len(F) == 0:
+            raise fail(what, "mesh is empty")
+        bad = meshes.degenerate_faces(V, F)
+        if bad.any():
+            warnings.append(f"{xml.name}: {what}: {int(bad.sum())} degenerate (zero-area) triangles of {len(F)} dropped")
+            F = F[~bad]
+        normals = np.array(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3) if shape.has_vertex_normals() else None
+        if normals is not None and flat_normals(V, F, normals):
+            normals = None  # per-face normals on split vertices (a cube, a rectangle): flat shading
+        uv = np.array(shape.vertex_texcoords_buffer(), np.float64).reshape(-1, 2) if shape.has_vertex_texcoords() else None
+        objects[name] = XmlObject(name, V, F, normals, uv, bsdf)
+    unknown = [n for n in src.edges if n not in objects]
+    if unknown:
+        raise ConfigError(yaml_file, f"scene.objects.{unknown[0]}",
+                          f"no mesh shape '{unknown[0]}' in {xml.name} (meshes: {', '.join(objects) or 'none'})")
+    # Integrator depth: psdr renders with its own estimators; the XML's max_depth is the default
+    max_depth = None
+    m = re.search(r"max_depth\s*=\s*(-?\d+)", str(mi_scene.integrator()))
+    if m and int(m.group(1)) >= 1:
+        max_depth = int(m.group(1))
+    elif not src.max_depth_given:
+        warnings.append(f"{xml.name}: the integrator's max_depth is {m.group(1) if m else 'not given'}; psdr uses "
+                        f"scene.max_depth = 2 (set it in the experiment)")
+    h = hashlib.sha256(xml.read_bytes())
+    h.update(repr(sorted(src.params.items())).encode())
+    for name, o in objects.items():
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(o.V).tobytes())
+        h.update(np.ascontiguousarray(o.F).tobytes())
+    return XmlScene(sensors, cameras, sizes.pop() if len(sizes) == 1 else None, emitters, environment, shapes,
+                    objects, max_depth, warnings, h.hexdigest()[:16])
+
+
+# --------------------------------------------------------------------------------------------
+# Resolving an experiment: the scene section filled in from the XML (and split OBJ objects)
+# --------------------------------------------------------------------------------------------
+_GEOMETRY = {}  # (digest, object id) -> (V, F): the XML's meshes, for optimize's ground truth
+
+
+def object_config(name: str, o: XmlObject, src) -> ObjectConfig:
+    return ObjectConfig(name=name, mesh=MeshSpec(key=f"scene.mitsuba#{name}", shape="mitsuba",
+                                                 params={"id": name, "digest": ""}),
+                        key=f"scene.objects.{name}", bsdf=BsdfConfig(bsdf_name(o.bsdf), {}),
+                        edges=src.edges.get(name, True), smooth=o.normals is not None)
+
+
+def resolve(exp: Experiment, warn=warn_stderr) -> Experiment:
+    """The experiment with its scene read: an XML scene's cameras (unless ``scene.cameras`` is
+    given), film size, emitters and objects filled in, split OBJ objects expanded into their
+    parts; then the checks that need object names run (:func:`psdr_cli.config.check_experiment`).
+    An already resolved experiment is returned unchanged. ``warn`` receives one line per item
+    psdr renders but cannot differentiate."""
+    scene = exp.scene
+    if scene.resolved:
+        return exp
+    if scene.mitsuba is None:
+        scene = expand_objects(scene, str(exp.file))
+        check_scene(scene, str(exp.file))
+        exp = replace(exp, scene=scene)
+        check_experiment(exp)
+        return exp
+    backend.activate(exp)
+    src = scene.mitsuba
+    xs = read_scene(exp)
+    for message in xs.warnings:
+        warn(message)
+    width, height = src.film or xs.size
+    objects = []
+    for name, o in xs.objects.items():
+        cfg = object_config(name, o, src)
+        cfg.mesh.params["digest"] = xs.digest
+        _GEOMETRY[(xs.digest, name)] = (o.V, o.F)
+        objects.append(cfg)
+    max_depth = scene.max_depth if src.max_depth_given or xs.max_depth is None else xs.max_depth
+    scene = replace(scene, width=width, height=height, max_depth=max_depth,
+                    cameras=scene.cameras if src.cameras_given else xs.cameras, emitters=xs.emitters,
+                    objects=objects, mitsuba=replace(src, digest=xs.digest, resolved=True))
+    check_scene(scene, str(exp.file))
+    exp = replace(exp, scene=scene)
+    check_experiment(exp)
+    return exp
+
+
+def object_geometry(obj: ObjectConfig):
+    """World-space (V, F) of an XML object (after :func:`resolve`)."""
+    key = (obj.mesh.params.get("digest"), obj.mesh.params.get("id"))
+    if key not in _GEOMETRY:
+        raise ConfigError(obj.mesh.key, "", "the XML scene has not been read (resolve the experiment first)")
+    return _GEOMETRY[key]
+
+
+# --------------------------------------------------------------------------------------------
+# Building the Mitsuba scene
+# --------------------------------------------------------------------------------------------
+def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = False):
+    """``mi.Mesh`` from arrays with a BSDF instance; ``normals`` (or ``smooth``: normals computed
+    by Mitsuba) and ``texcoords`` as given."""
+    props = mi.Properties()
+    if bsdf is not None:
+        props["bsdf"] = bsdf
+    m = mi.Mesh(name, len(V), len(F), props, normals is not None or smooth, texcoords is not None)
+    params = mi.traverse(m)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(V, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.ascontiguousarray(F, np.uint32).ravel())
+    if texcoords is not None:
+        params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(texcoords, np.float32).ravel())
+    params.update()
+    if normals is not None:  # after the update, which recomputes normals from the positions
+        params["vertex_normals"] = mi.Float(np.ascontiguousarray(normals, np.float32).ravel())
+        params.update()
+    return m
+
+
+def sensor_dicts(xs: XmlScene, width: int, height: int) -> list:
+    """Perspective sensors of the XML (to_world, horizontal fov, clip planes) with a box-filtered
+    film of the given size."""
+    return [{"type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mi.ScalarTransform4f(M),
+             "near_clip": near, "far_clip": far,
+             "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                      "rfilter": {"type": "box"}},
+             "sampler": {"type": "independent"}} for M, fov, near, far in xs.sensors]
+
+
+def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):
+    """(``mi.load_dict`` entries without the integrator, {id: (V, F)} of the objects) of a
+    resolved XML experiment. ``overrides``: {id: (V, F)} replacing meshes (flat or, for shapes
+    with normals, smooth shading computed by Mitsuba); ``sensors``: sensor dicts replacing the
+    XML's."""
+    xs = read_scene(exp)
+    cfg = exp.scene
+    d = {}
+    for i, s in enumerate(sensors if sensors is not None else sensor_dicts(xs, cfg.width, cfg.height)):
+        d[f"sensor_{i:03d}"] = s
+    d.update(xs.environment)
+    d.update(xs.shapes)
+    geometry = {}
+    for name, o in xs.objects.items():
+        if name in overrides:
+            V, F = (np.asarray(a) for a in overrides[name])
+            d[name] = mesh(name, V, F, o.bsdf, smooth=o.normals is not None)
+        else:
+            V, F = o.V, o.F
+            d[name] = mesh(name, V, F, o.bsdf, o.normals, o.texcoords)
+        geometry[name] = (np.asarray(V, float), np.asarray(F, np.int64))
+    return d, geometry
