@@ -20,15 +20,15 @@ Files reach the run folders in one of two ways (``RayOptions.files``):
 ``copy``    a worker runs in a temporary folder of its own node, seeded with the run folder's
             resume set (``state.npz``, ``log.csv``, ``run.json``, ``targets/``) and sends the
             folder's new and changed files to the driver every ``sync_seconds`` and at the end,
-            through a small actor (:class:`Hub`); the driver, the only writer of the run
-            folders, writes them atomically (``state.npz`` last, so a saved state never runs
+            through a small actor (:class:`Hub`), and all of them with its result; the driver,
+            the only writer of the run folders, writes them atomically (``state.npz`` last, so a saved state never runs
             ahead of its log) and mirrors a fresh start's :func:`psdr_cli.runs.clear_run`.
 
 ``auto`` is ``shared`` for a local instance and ``copy`` when joining a cluster.
 
-A task whose worker dies is retried (``RayOptions.retries``) and the retry resumes from the
-run's last saved state (shared: ``state.npz`` in the run folder; copy: the state last sent to
-the driver); resuming reproduces an uninterrupted run's losses (``docs/optimize.md``). Every run
+A task whose worker (or node) dies is submitted again (``RayOptions.retries`` times) and
+resumes from the run's last saved state (shared: ``state.npz`` in the run folder; copy: the
+state last sent to the driver); resuming reproduces an uninterrupted run's losses (``docs/optimize.md``). Every run
 has its own folder and exactly one task writes it at a time (a retry starts only once its failed
 attempt is gone); files are written atomically. Progress events (start, iteration and loss,
 warnings) go through the same actor to the driver, which shows one line per run.
@@ -66,7 +66,7 @@ class RayOptions:
     cpus: int = 1                   # CPUs per task (and Dr.Jit threads) on the LLVM backend
     gpus: float | None = None       # GPUs per task; None: 1 on CUDA, 0 otherwise
     files: str = "auto"             # shared | copy | auto (see the module docstring)
-    retries: int = 3                # retries of a task whose worker died
+    retries: int = 3                # resubmissions of a task whose worker died
     sync_seconds: float = 30.0      # copy mode: how often a task sends its new files to the driver
     local_cpus: int | None = None   # CPUs of a local instance (default: all of the machine)
 
@@ -107,29 +107,18 @@ def import_ray():
 # The actor between tasks and the driver
 # --------------------------------------------------------------------------------------------
 class Hub:
-    """Progress events and files from the tasks to the driver, and the state a retried task
-    resumes from (a Ray actor; the driver drains it while it waits)."""
+    """Progress events and files from the tasks to the driver (a Ray actor the driver drains while
+    it waits). Tasks only ever send to it, never wait on it: a task blocked in ``ray.get`` gives
+    its CPUs back to Ray, which would then start more tasks than the node has cores."""
 
-    def __init__(self, snapshots: dict):
-        self.snapshots = snapshots   # label -> {relative path: bytes}: the resume set (copy mode)
-        self.attempts = {}
+    def __init__(self):
         self.events, self.files = [], []
-
-    def begin(self, label):
-        """(attempt number, resume-set files) of a task that starts."""
-        n = self.attempts.get(label, 0)
-        self.attempts[label] = n + 1
-        return n, self.snapshots.get(label, {})
 
     def event(self, label, kind, *args):
         self.events.append((label, kind, args))
 
-    def push(self, label, fresh: bool, files: dict):
-        snap = self.snapshots.setdefault(label, {})
-        if fresh:
-            snap.pop("state.npz", None)
-        snap.update({k: v for k, v in files.items() if k.startswith(RESUME_SET)})
-        self.files.append((label, fresh, files))
+    def push(self, label, attempt: int, seq: int, fresh: bool, files: dict):
+        self.files.append((label, attempt, seq, fresh, files))
 
     def drain(self):
         events, files = self.events, self.files
@@ -178,25 +167,33 @@ class TaskProgress:
     """The ``progress`` object :func:`optimize` gets inside a task: events to the hub and, in copy
     mode, the run folder's new files every ``sync_seconds`` (called after each saved iteration)."""
 
-    def __init__(self, ray, hub, label, folder: Path | None, sync_seconds: float):
-        self.ray, self.hub, self.label, self.folder, self.sync_seconds = ray, hub, label, folder, sync_seconds
-        self.seen, self.fresh, self.last = {}, False, time.monotonic()
-        if folder is not None:
-            self.seen = self.scan()
+    def __init__(self, hub, label, attempt: int, folder: Path | None, sync_seconds: float):
+        self.hub, self.label, self.attempt, self.folder, self.sync_seconds = hub, label, attempt, folder, sync_seconds
+        self.seq, self.fresh, self.last = 0, False, time.monotonic()
+        self.initial = self.seen = self.scan() if folder is not None else {}
 
     def scan(self) -> dict:
         return {p: (p.stat().st_size, p.stat().st_mtime_ns) for p in self.folder.rglob("*")
                 if p.is_file() and not p.name.startswith(".")}
 
+    def changed(self, since: dict) -> tuple[dict, dict]:
+        now = self.scan()
+        return now, {p.relative_to(self.folder).as_posix(): p.read_bytes() for p, sig in now.items()
+                     if since.get(p) != sig}
+
     def sync(self):
-        """Send the files that are new or changed since the last sync (and wait for the hub)."""
+        """Send the files that are new or changed since the last sync (without waiting)."""
         if self.folder is None:
             return
-        now = self.scan()
-        changed = {p.relative_to(self.folder).as_posix(): p.read_bytes()
-                   for p, sig in now.items() if self.seen.get(p) != sig}
-        self.ray.get(self.hub.push.remote(self.label, self.fresh, changed))
-        self.seen, self.fresh, self.last = now, False, time.monotonic()
+        self.seen, files = self.changed(self.seen)
+        self.seq += 1   # only the first batch of a fresh run clears the driver's run folder
+        self.hub.push.remote(self.label, self.attempt, self.seq, self.fresh and self.seq == 1, files)
+        self.last = time.monotonic()
+
+    def final(self) -> tuple[int, bool, dict]:
+        """(sequence number, fresh, every file new or changed since the task started): the
+        task's return carries it, so a sync still on its way may be dropped."""
+        return self.seq + 1, self.fresh, self.changed(self.initial)[1]
 
     def start(self, total: int, done: int = 0):
         self.hub.event.remote(self.label, "start", total, done)
@@ -213,18 +210,15 @@ class TaskProgress:
         self.hub.event.remote(self.label, "warn", message)
 
 
-def optimize_task(run: Experiment, label, iterations, resume: bool, hub, copy: bool, sync_seconds: float,
-                  threads: int | None, variant: str | None):
-    """One run of a sweep (a Ray task): :func:`optimize` on the run, resumed on a retry."""
-    ray = import_ray()
+def optimize_task(run: Experiment, label, iterations, resume: bool, hub, attempt: int, snapshot: dict | None,
+                  sync_seconds: float, threads: int | None, variant: str | None):
+    """One run of a sweep (a Ray task): :func:`optimize` on the run. ``snapshot``: copy mode, the
+    run folder's resume set; the task runs in a temporary folder and returns
+    (result, (seq, fresh, files)); shared mode (None): returns (result, None)."""
     limit_threads(threads, variant)
-    attempt, snapshot = ray.get(hub.begin.remote(label))
-    resume = resume or attempt > 0   # a retry continues from the last saved state
-    if attempt > 0:
-        hub.event.remote(label, "warn", f"attempt {attempt + 1}: resuming from the saved state")
-    if not copy:
-        progress = TaskProgress(ray, hub, label, None, sync_seconds)
-        return optimize(run, iterations=iterations, resume=resume, progress=progress, warn=progress.warn)
+    if snapshot is None:
+        progress = TaskProgress(hub, label, attempt, None, sync_seconds)
+        return optimize(run, iterations=iterations, resume=resume, progress=progress, warn=progress.warn), None
     target = run.run_dir
     tmp = Path(tempfile.mkdtemp(prefix="psdr-ray-"))
     try:
@@ -234,17 +228,16 @@ def optimize_task(run: Experiment, label, iterations, resume: bool, hub, copy: b
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(data)
         local.run_dir.mkdir(parents=True, exist_ok=True)
-        progress = TaskProgress(ray, hub, label, local.run_dir, sync_seconds)
+        progress = TaskProgress(hub, label, attempt, local.run_dir, sync_seconds)
         result = optimize(local, iterations=iterations, resume=resume, progress=progress, warn=progress.warn)
         files = RunFiles(local.run_dir)
         if files.summary.exists():  # the summary names the final mesh where the driver will have it
             info = json.loads(files.summary.read_text())
             info["final"] = str(RunFiles(target).final)
             fileio.write_json(files.summary, info)
-        progress.sync()
         move = lambda p: target / Path(p).relative_to(local.run_dir)  # noqa: E731
         return replace(result, folder=target, final=move(result.final) if result.final else None,
-                       checkpoints=[move(p) for p in result.checkpoints])
+                       checkpoints=[move(p) for p in result.checkpoints]), progress.final()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -322,15 +315,15 @@ def task_error(label, exc) -> PsdrError:
 
 
 def wait_all(ray, hub, pending: dict, on_event=None, on_files=None):
-    """Yield (label, result or PsdrError) as the tasks end, forwarding the hub's events and files."""
+    """Yield (label, result or exception) as the tasks end, forwarding the hub's events and files."""
     def flush():
         if hub is None:
             return
         events, files = ray.get(hub.drain.remote())
         for label, kind, args in events:
             on_event(label, kind, args)
-        for label, fresh, batch in files:
-            on_files(label, fresh, batch)
+        for label, *batch in files:
+            on_files(label, *batch)
     try:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
@@ -339,38 +332,57 @@ def wait_all(ray, hub, pending: dict, on_event=None, on_files=None):
                 label = pending.pop(ref)
                 try:
                     yield label, ray.get(ref)
-                except Exception as exc:  # noqa: BLE001 - the task failed for good (after its retries)
-                    yield label, task_error(label, exc)
+                except Exception as exc:  # noqa: BLE001 - the caller decides: retry or report
+                    yield label, exc
         flush()
     finally:
         for ref in pending:  # interrupted: the runs' saved states stay; --resume continues them
             ray.cancel(ref, force=True)
 
 
+def died(ray, exc) -> bool:
+    """Whether a task failed because its worker or node died (retried) rather than raised."""
+    e = ray.exceptions
+    kinds = tuple(getattr(e, n) for n in ("WorkerCrashedError", "NodeDiedError", "OutOfMemoryError",
+                                          "LocalRayletDiedError") if hasattr(e, n))
+    return isinstance(exc, kinds)
+
+
 def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
                    opts: RayOptions | None = None, progress=None, warn=print):
     """:func:`psdr_cli.optimize.optimize_variants` on Ray: every run one task; yields
     (label, OptimizeResult) as each ends (in the order they end); raises the first failure once
-    every run has ended.
+    every run has ended. A task whose worker died is submitted again (``opts.retries`` times),
+    continuing from the run's saved state.
 
     ``progress(label)``: optional factory of an object with ``start(total, done)`` and
     ``advance(n, loss)`` per run (one progress line per run)."""
     opts = opts or RayOptions()
     if exp.optimize is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
-    runs = variant_experiments(exp, labels)
+    runs = dict(variant_experiments(exp, labels))
     with Session(opts) as session:
         ray = session.ray
-        snapshots = {label: read_folder(run.run_dir, RESUME_SET) for label, run in runs} if opts.copy else {}
-        hub = ray.remote(num_cpus=0)(Hub).remote(snapshots)
-        task = ray.remote(max_retries=opts.retries)(optimize_task)
-        folders, bars, pending = {}, {}, {}
-        for label, run in runs:
+        hub = ray.remote(num_cpus=0)(Hub).remote()
+        task = ray.remote(max_retries=0)(optimize_task)   # retried below, resuming
+        attempts, applied, pending = {}, {}, {}
+
+        def submit(label, resume_run: bool):
+            run = runs[label]
+            attempts[label] = attempts.get(label, -1) + 1
+            applied[label] = 0
             request, variant, threads = session.resources(run)
-            ref = task.options(**request).remote(run, label, iterations, resume, hub, opts.copy, opts.sync_seconds,
-                                                 threads, variant)
-            pending[ref], folders[label] = label, run.run_dir
-            bars[label] = progress(label) if progress else None
+            snapshot = read_folder(run.run_dir, RESUME_SET) if opts.copy else None
+            ref = task.options(**request).remote(run, label, iterations, resume_run, hub, attempts[label], snapshot,
+                                                 opts.sync_seconds, threads, variant)
+            pending[ref] = label
+
+        def on_files(label, attempt, seq, fresh, files):
+            if attempt == attempts[label] and seq > applied[label]:  # late syncs of a finished or dead attempt: dropped
+                write_files(runs[label].run_dir, fresh, files)
+                applied[label] = seq
+
+        bars = {label: progress(label) if progress else None for label in runs}
 
         def on_event(label, kind, args):
             if kind == "warn":
@@ -378,13 +390,23 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
             elif bars[label] is not None:
                 getattr(bars[label], kind)(*args)
 
+        for label in runs:
+            submit(label, resume)
         failure = None
-        for label, result in wait_all(ray, hub, pending, on_event,
-                                      lambda label, fresh, files: write_files(folders[label], fresh, files)):
-            if isinstance(result, PsdrError):
-                warn(f"{label or 'run'} failed: {result}")
-                failure = failure or result
+        for label, outcome in wait_all(ray, hub, pending, on_event, on_files):
+            if isinstance(outcome, Exception):
+                if died(ray, outcome) and attempts[label] < opts.retries:
+                    warn(f"{label or 'run'}: the task died ({type(outcome).__name__}); attempt "
+                         f"{attempts[label] + 2} resumes from the saved state")
+                    submit(label, True)
+                    continue
+                error = task_error(label, outcome)
+                warn(f"{label or 'run'} failed: {error}")
+                failure = failure or error
                 continue
+            result, final = outcome
+            if final is not None:
+                on_files(label, attempts[label], *final)
             yield label, result
         if failure:
             raise failure
@@ -411,8 +433,8 @@ def compare_sweep(exp: Experiment, out: Path | None = None, opts: RayOptions | N
                 bar.start(1, 0)
         results = {}
         for label, result in wait_all(ray, None, pending):
-            if isinstance(result, PsdrError):
-                raise result
+            if isinstance(result, Exception):
+                raise task_error(label, result)
             results[label] = result
             if bars[label] is not None:
                 bars[label].advance(1, result.rel_mse if label != "reference" else None)
