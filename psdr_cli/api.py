@@ -7,6 +7,9 @@
     optimize     → :func:`psdr_cli.optimize.optimize` (``optimize_variants``: every run of an ablation)
     evaluate     → :func:`psdr_cli.evaluate.evaluate_meshes` (inputs: :func:`psdr_cli.evaluate.evaluate_inputs`)
     table2       → :func:`psdr_cli.evaluate.table2`
+
+``optimize_variants`` and ``compare`` with ``ray=RayOptions(...)`` run each run / variant as a
+Ray task (:mod:`psdr_cli.sweep`; needs the optional extra ``psdr[ray]``).
 """
 from __future__ import annotations
 
@@ -20,8 +23,10 @@ from . import gradient
 from . import mitsuba_scene
 from . import optimize as optimization
 from . import render as rendering
+from . import sweep
 from .config import Experiment
 from .guiding import stats
+from .sweep import RayOptions  # noqa: F401  (re-exported: api.RayOptions)
 
 
 def load_experiment(path, warn=mitsuba_scene.warn_stderr) -> Experiment:
@@ -64,8 +69,11 @@ def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None
     return stats.guide_stats(resolved(exp), kinds, views, out, progress)
 
 
-def compare(exp: Experiment, out: Path | None = None, progress=None):
-    """``psdr compare``: the experiment's ``compare:`` section; a CompareResult."""
+def compare(exp: Experiment, out: Path | None = None, progress=None, ray: "sweep.RayOptions | None" = None):
+    """``psdr compare``: the experiment's ``compare:`` section; a CompareResult. With ``ray``: one
+    Ray task per variant, ``progress(label)`` giving one progress object per task."""
+    if ray is not None:
+        return sweep.compare_sweep(resolved(exp), out, ray, progress)
     return comparison.run_comparison(resolved(exp), out, progress)
 
 
@@ -75,8 +83,12 @@ def optimize(exp: Experiment, iterations: int | None = None, resume: bool = Fals
 
 
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
-                      progress=None, warn=print):
-    """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult)."""
+                      progress=None, warn=print, ray: "sweep.RayOptions | None" = None):
+    """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult). With
+    ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving
+    one progress object (``start``, ``advance``) per run."""
+    if ray is not None:
+        return sweep.optimize_sweep(resolved(exp), labels, iterations, resume, ray, progress, warn)
     return optimization.optimize_variants(resolved(exp), labels, iterations, resume, progress, warn)
 
 

@@ -114,6 +114,17 @@ def main(ctx: typer.Context,
 ConfigArg = typer.Argument(..., help="YAML experiment file.", show_default=False)
 ViewsOption = typer.Option(None, "--views", help="Views, e.g. 0,3 or 0-2 (default: all).")
 OutOption = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")
+RayOption = typer.Option(None, "--ray", metavar="[ADDRESS]",
+                         help="One Ray task per run/variant: a local Ray instance, or join 'auto' / 'ray://HOST:PORT' "
+                              "(needs pip install 'psdr[ray]').")
+RayCpusOption = typer.Option(1, "--ray-cpus", help="With --ray: CPUs (and Dr.Jit threads) per task on the CPU backend.")
+RayFilesOption = typer.Option("auto", "--ray-files", help="With --ray: shared (workers write the run folders) or copy "
+                              "(workers send their files to the driver); auto: shared locally, copy on a cluster.")
+
+
+def ray_options(address, cpus: int, files: str):
+    """api.RayOptions of the --ray options, or None without --ray."""
+    return None if address is None else api.RayOptions(address=address, cpus=cpus, files=files)
 
 
 @app.command()
@@ -201,11 +212,16 @@ def guide_stats(config: Path = ConfigArg,
 @app.command()
 @guarded
 def compare(config: Path = ConfigArg,
-            out_dir: Optional[Path] = OutOption):
+            out_dir: Optional[Path] = OutOption,
+            ray: Optional[str] = RayOption, ray_cpus: int = RayCpusOption, ray_files: str = RayFilesOption):
     """Equal-time / equal-sample comparison of boundary estimators (the experiment's compare: section)."""
     exp = load_experiment(config)
-    with Bar("compare") as bar:
-        res = api.compare(exp, out=out_dir, progress=bar)
+    opts = ray_options(ray, ray_cpus, ray_files)
+    if opts is not None:
+        res = api.compare(exp, out=out_dir, progress=lambda label: TaskLine(f"compare {label}"), ray=opts)
+    else:
+        with Bar("compare") as bar:
+            res = api.compare(exp, out=out_dir, progress=bar)
     table = Table(title=f"psdr compare: {exp.name} (reference relMSE ≈ {res.reference_rel_mse:.2g})")
     for col in ("variant", "relMSE", "passes", "build s"):
         table.add_column(col, justify="left" if col == "variant" else "right")
@@ -213,6 +229,20 @@ def compare(config: Path = ConfigArg,
         table.add_row(r.variant.label, f"{r.rel_mse:.4g}", str(int(np.mean(r.passes))), f"{r.build_seconds:.2f}")
     out.print(table)
     out.print(f"outputs in {res.folder} (compare.md, compare.json, grid.png, one EXR per variant)")
+
+
+class TaskLine:
+    """Progress of one task of a Ray comparison: one line when it ends."""
+
+    def __init__(self, label: str):
+        self.label, self.t0 = label, time.monotonic()
+
+    def start(self, total: int, done: int = 0):
+        self.t0 = time.monotonic()
+
+    def advance(self, n: int, rel_mse: float | None = None):
+        value = f", relMSE {rel_mse:.4g}" if rel_mse is not None else ""
+        console.print(f"{self.label}: done after {time.monotonic() - self.t0:.0f} s{value}", highlight=False)
 
 
 class LossBar(Bar):
@@ -247,18 +277,49 @@ class LossBar(Bar):
                           f"elapsed {elapsed:.0f} s, ETA {eta:.0f} s", highlight=False)
 
 
+class RunLines:
+    """One progress line per run of a Ray sweep: rows of one live display on a terminal; plain
+    lines (as :class:`LossBar`) otherwise."""
+
+    def __init__(self, every: int = 10):
+        self.every = every
+        self.progress = LossBar("", every).progress
+
+    def __enter__(self):
+        if console.is_terminal:
+            self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if console.is_terminal:
+            self.progress.__exit__(*exc)
+
+    def row(self, label):
+        bar = LossBar(f"{label}" if label else "run", self.every)
+        bar.progress = self.progress  # shared display, started once by __enter__
+        return bar
+
+
 @app.command()
 @guarded
 def optimize(config: Path = ConfigArg,
              resume: bool = typer.Option(False, "--resume", help="Continue from the run's saved state."),
              iterations: Optional[int] = typer.Option(None, "--iterations", help="Total iterations (default: optimize.iterations)."),
              variant: Optional[list[str]] = typer.Option(None, "--variant", help="Run only this variant of optimize.variants (repeatable; default: all)."),
-             log_every: int = typer.Option(10, "--log-every", min=1, help="When the output is not a terminal: a progress line every N iterations.")):
+             log_every: int = typer.Option(10, "--log-every", min=1, help="When the output is not a terminal: a progress line every N iterations."),
+             ray: Optional[str] = RayOption, ray_cpus: int = RayCpusOption, ray_files: str = RayFilesOption):
     """Reconstruct an object's shape from images (mini-batches, L1 loss, large steps, checkpoints)."""
     exp = load_experiment(config)
-    runs = api.optimize_variants(exp, variant, iterations, resume,
-                                 progress=lambda label: LossBar(f"optimize {label}" if label else "optimize", log_every),
-                                 warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
+    warn = lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False)  # noqa: E731
+    opts = ray_options(ray, ray_cpus, ray_files)
+    label_of = lambda label: f"optimize {label}" if label else "optimize"  # noqa: E731
+    if opts is None:
+        runs = api.optimize_variants(exp, variant, iterations, resume, warn=warn,
+                                     progress=lambda label: LossBar(label_of(label), log_every))
+    else:  # one line per run while they run side by side; the summaries once all have ended
+        with RunLines(log_every) as lines:
+            runs = list(api.optimize_variants(exp, variant, iterations, resume, warn=warn, ray=opts,
+                                              progress=lambda label: lines.row(label_of(label))))
     for label, res in runs:
         if res.interrupted:
             raise typer.Exit(130)
@@ -312,13 +373,24 @@ def table2(configs: list[Path] = typer.Argument(..., help="Experiment files whos
     out.print(f"written: {path}")
 
 
+def ray_flag(argv: list) -> list:
+    """``--ray`` takes an optional address: without one (end of the line, an option or the
+    experiment file next) it means a local Ray instance, ``--ray local``."""
+    out = list(argv)
+    for i in [i for i, a in enumerate(out) if a == "--ray"][::-1]:
+        if i + 1 == len(out) or not api.RayOptions.is_address(out[i + 1]):
+            out.insert(i + 1, "local")
+    return out
+
+
 def run(args: list[str] | None = None) -> int:
     """Console-script entry point. Usage errors (unknown option or subcommand, a missing argument,
     an option value of the wrong type) are printed as one ``error:`` line with exit code 2, like
     every other error; ``--help`` prints the usual help."""
     warnings.showwarning = show_warning
     try:
-        code = app(args=args, prog_name="psdr", standalone_mode=False)
+        code = app(args=ray_flag(sys.argv[1:] if args is None else args), prog_name="psdr",
+                   standalone_mode=False)
     except UsageError as exc:
         command = exc.ctx.command_path if exc.ctx is not None else "psdr"
         message = " ".join(exc.format_message().split())

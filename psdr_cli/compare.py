@@ -138,13 +138,7 @@ def run_comparison(exp: Experiment, out: Path | None = None, progress=None) -> C
     """Run the experiment's ``compare:`` section ; writes
     ``compare.json``, ``compare.md``, ``grid.png`` and one EXR per variant to
     ``<output>/<name>/compare/``."""
-    cfg = exp.compare
-    if cfg is None:
-        raise PsdrError(f"{exp.file}: compare: missing (expected variants: [{{label: ..., guiding: ...}}, ...])")
-    if exp.parameter is None:
-        raise PsdrError(f"{exp.file}: parameter: missing (compare needs the scalar θ of the gradient)")
-    if cfg.view >= len(exp.scene.cameras):
-        raise PsdrError(f"{exp.file}: compare.view: view {cfg.view} does not exist (0..{len(exp.scene.cameras) - 1})")
+    cfg = check_comparison(exp)
     backend.activate(exp)
     folder = exp.command_dir("compare", out)
     c = Comparison(exp, cfg.terms, cfg.view)
@@ -153,14 +147,35 @@ def run_comparison(exp: Experiment, out: Path | None = None, progress=None) -> C
     ref, noise, ref_s = c.reference(cfg.reference_passes)
     if progress:
         progress.advance(1)
-    result = CompareResult(folder, reference_rel_mse=noise)
+    rows = []
     for v in cfg.variants:
-        row = c.measure(v, ref, noise, cfg.budget_seconds, cfg.trials)
-        result.rows.append(row)
-        fileio.write_rgb_exr(folder / f"{v.label.replace('/', '_').replace(' ', '_')}.exr", row.image,
-                         {"psdr.variant": v.label, "psdr.rel_mse": f"{row.rel_mse:.6g}"})
+        rows.append(c.measure(v, ref, noise, cfg.budget_seconds, cfg.trials))
         if progress:
             progress.advance(1)
+    return write_comparison(exp, folder, ref, noise, ref_s, rows)
+
+
+def check_comparison(exp: Experiment):
+    """The experiment's ``compare:`` section, or a one-line error."""
+    cfg = exp.compare
+    if cfg is None:
+        raise PsdrError(f"{exp.file}: compare: missing (expected variants: [{{label: ..., guiding: ...}}, ...])")
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (compare needs the scalar θ of the gradient)")
+    if cfg.view >= len(exp.scene.cameras):
+        raise PsdrError(f"{exp.file}: compare.view: view {cfg.view} does not exist (0..{len(exp.scene.cameras) - 1})")
+    return cfg
+
+
+def write_comparison(exp: Experiment, folder: Path, ref, noise: float, ref_s: float, rows: list) -> CompareResult:
+    """The files of a comparison (one EXR per variant, reference.exr, grid.png, compare.md,
+    compare.json) from its reference and rows (the sequential run's or a Ray sweep's)."""
+    cfg = exp.compare
+    result = CompareResult(folder, rows=list(rows), reference_rel_mse=noise)
+    for row in result.rows:
+        v = row.variant
+        fileio.write_rgb_exr(folder / f"{v.label.replace('/', '_').replace(' ', '_')}.exr", row.image,
+                             {"psdr.variant": v.label, "psdr.rel_mse": f"{row.rel_mse:.6g}"})
     fileio.write_rgb_exr(folder / "reference.exr", ref, {"psdr.passes": str(cfg.reference_passes)})
     plots.gradient_grid(folder / "grid.png", ref, [(r.variant.label, r.image, r.rel_mse) for r in result.rows],
                         f"{exp.name}: {'+'.join(cfg.terms)} gradient, "
