@@ -1191,7 +1191,7 @@ def check_experiment(exp: Experiment):
     for key, spp in (("estimator.spp", exp.estimator.spp), ("estimator.primary_spp", exp.estimator.primary_spp),
                      ("estimator.boundary_spp", exp.estimator.boundary_spp),
                      ("optimize.target.spp", exp.optimize.target_spp if exp.optimize else 0)):
-        check_paths(spp, exp.scene.width, exp.scene.height, Where(str(file), key).fail)
+        check_paths(spp, exp.scene.width, exp.scene.height, Where(str(exp.file), key).fail)
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")
