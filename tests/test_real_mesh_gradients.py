@@ -1,4 +1,4 @@
-"""Issue 13: gradients that were wrong without warning on published meshes, by class, each with a
+"""Gradients that were wrong without warning on published meshes, by class, each with a
 procedural stand-in checked against central finite differences (sum and 4×4 tiles):
 
 - a dense flat bumpy blob (silhouette pixels were over-counted by the primary term: hidden edges
