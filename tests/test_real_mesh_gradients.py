@@ -266,10 +266,13 @@ def test_plugin_warns_about_undifferentiable_shapes():
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="open: the shadow terminator of smooth shading is not differentiated "
-                                        "(measured −116 ± 1.8 vs FD −92.8 ± 0.8)")
+                                        "(measured at these counts, seeds 1–3: sum z +1.9…+7.7, max tile "
+                                        "|z| 6.6…13.4; at 8× fewer samples the interior's noise hid it)")
 def test_smooth_blob_matches_finite_differences(tmp_path):
-    exp = load(blob_cfg(True), tmp_path, {"blob": bumpy_blob()})
-    stats, _, _ = fd_agreement(exp, 0.005, 16384)
+    cfg = blob_cfg(True)
+    cfg["estimator"] = {"spp": 512, "primary_spp": 2048, "boundary_spp": 2048}
+    exp = load(cfg, tmp_path, {"blob": bumpy_blob()})
+    stats, _, _ = fd_agreement(exp, 0.005, 65536)
     assert agrees(stats), describe(stats)
 
 

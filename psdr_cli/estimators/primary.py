@@ -34,16 +34,25 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin):
     """(v0, v1, face0, face1, mesh index) of the edges that can carry an image discontinuity for
     this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on open edges).
 
-    Smooth-shaded meshes: silhouette and open edges; flat-shaded meshes: every non-flat edge with
+    Smooth-shaded meshes: silhouette and open edges (with the experimental terminator factor,
+    ``interior.SMOOTH_TERMINATOR``, every non-flat edge too: the factor depends on the face
+    normal and jumps across edges); flat-shaded meshes: every non-flat edge with
     at least one face towards the camera (an edge between two back faces of a closed mesh is never
     seen, and near a silhouette it projects just behind a grazing front face)."""
     cols = [[] for _ in range(6)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
-        sel = topo.primary(Vo, camera_origin) if smooth else topo.creases(Vo, camera_origin)
+        sel = topo.creases(Vo, camera_origin)
+        strict = np.ones(len(sel), bool)
+        if smooth:  # silhouettes keep the one-side visibility rule (see docs/gradients.md)
+            silhouette = topo.primary(Vo, camera_origin)
+            if not interior.SMOOTH_TERMINATOR:
+                sel = silhouette
+            sel = np.union1d(sel, silhouette)
+            strict = ~np.isin(sel, silhouette)
         f1 = np.where(topo.open, topo.face0, topo.face1)
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
-                                 np.full(len(sel), m), np.full(len(sel), not smooth))):
+                                 np.full(len(sel), m), strict)):
             c.append(arr)
     if not cols[0]:
         return [np.zeros(0, np.int64)] * 6
