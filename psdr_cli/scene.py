@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import mitsuba as mi
 import numpy as np
 
-from . import meshes, mitsuba_scene
+from . import fileio, meshes, mitsuba_scene
 from .config import BSDF_RANGES, BitmapConfig, EmitterConfig, Experiment, ObjectConfig, SceneConfig
 from .errors import ConfigError
 
@@ -61,7 +61,7 @@ def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
         bitmap = mi.Bitmap(np.ascontiguousarray(b.data, np.float32))
     else:
         try:
-            bitmap = mi.Bitmap(str(b.file))
+            bitmap = mi.Bitmap(exr_texels(b.file)) if b.file.suffix.lower() == ".exr" else mi.Bitmap(str(b.file))
         except Exception as exc:  # noqa: BLE001 - a damaged or unsupported image
             raise ConfigError(file, key + ".file", f"cannot read texture {b.file.name}: "
                               f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
@@ -78,6 +78,19 @@ def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
         raise ConfigError(file, key + ".file", f"texture {what} has values in [{texels.min():g}, "
                           f"{texels.max():g}], expected [{lo:g}, {hi:g}] for {name}")
     return bitmap
+
+
+def exr_texels(path) -> np.ndarray:
+    """(H, W, 3) or (H, W, 1) float32 texels of an EXR texture (R, G, B or Y; alpha dropped), read
+    with :mod:`fileio` (``mi.Bitmap`` reading an EXR hangs while Dr.Jit runs one thread, as
+    ``psdr optimize`` does)."""
+    channels = fileio.read_exr(path)
+    if all(c in channels for c in "RGB"):
+        return np.ascontiguousarray(np.stack([channels[c] for c in "RGB"], -1), np.float32)
+    if "Y" in channels:
+        return np.ascontiguousarray(channels["Y"][..., None], np.float32)
+    names = ", ".join(sorted(k for k in channels if k != "__header__"))
+    raise ValueError(f"no R, G, B or Y channels (has {names or 'none'})")
 
 
 def bsdf_dict(obj: ObjectConfig, file: str = "") -> dict:
