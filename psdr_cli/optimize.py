@@ -265,8 +265,10 @@ class Problem:
             if self.uv is None:
                 raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
             init = state_values.get("albedo")
-            if init is None:
-                W, H = self.cfg.albedo_texture
+            W, H = self.cfg.albedo_texture
+            if init is not None:
+                init = np.asarray(init, np.float64).reshape(H, W, 3)
+            else:
                 init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
             built = texture_experiment(exp, np.clip(init, 0.0, 1.0))
         mesh = (V, F) if self.uv is None else (V, F, self.uv)
@@ -352,7 +354,7 @@ class Problem:
         out = {}
         if self.albedo_key:
             a = np.asarray(self.opt["albedo"], np.float64)
-            out["albedo"] = a if self.texture else a.ravel()
+            out["albedo"] = a.reshape(self.opt["albedo"].shape) if self.texture else a.ravel()
         if self.envmap:
             out["envmap_angle"] = np.asarray(self.opt["envmap_angle"], np.float64).ravel()
         return out
