@@ -367,7 +367,8 @@ class Problem:
 
 def texture_experiment(exp, texture):
     """``exp`` with the optimised object's reflectance (diffuse) or base colour (principled)
-    replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``)."""
+    replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``),
+    looked up with the object's own bitmap's ``filter_type`` and ``wrap_mode`` if it has one."""
     exp = mitsuba_scene.resolve(exp)
     if exp.scene.mitsuba is not None:
         raise PsdrError(f"{exp.file}: optimize.albedo.texture: not available for objects of a Mitsuba XML scene")
@@ -376,7 +377,11 @@ def texture_experiment(exp, texture):
     if name is None:
         raise PsdrError(f"{exp.file}: optimize.albedo.texture: the object's BSDF '{obj.bsdf.type}' has no "
                         f"reflectance or base_color (use diffuse or principled)")
-    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: BitmapConfig(data=np.asarray(texture, np.float32))})
+    given = obj.bsdf.params.get(name)
+    bitmap = BitmapConfig(data=np.asarray(texture, np.float32))
+    if isinstance(given, BitmapConfig):  # the object's own lookup settings
+        bitmap = replace(given, file=None, raw=False, data=bitmap.data)
+    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
     objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
     return replace(exp, scene=replace(exp.scene, objects=objects))
 

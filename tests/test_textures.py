@@ -172,7 +172,7 @@ def texture_run(tmp_path, iterations=40):
 
 def test_texture_is_recovered_jointly_with_the_shape(tmp_path):
     """From a grey 0.5 start, 60 iterations (4 views at 20 px, shape free with a small step)
-    bring the texture's mean error to the true texture down at least 2.5 times; albedo.exr and
+    bring the texture's mean error to the true texture down at least 3 times; albedo.exr and
     its preview are written, and the state holds the texture and its Adam moments."""
     path, run = texture_run(tmp_path, 60)
     assert cli.run(["optimize", str(path)]) == 0
@@ -180,7 +180,7 @@ def test_texture_is_recovered_jointly_with_the_shape(tmp_path):
     assert got.shape == TRUE.shape and np.isfinite(got).all()
     before, after = np.abs(0.5 - TRUE).mean(), np.abs(got - TRUE).mean()
     print(f"texture error {before:.4f} -> {after:.4f}")
-    assert after < before / 2.5, (before, after)
+    assert after < before / 3, (before, after)  # measured: 0.275 -> 0.054
     assert (run / "albedo.png").exists() and (run / "previews" / "iter_0060_albedo.png").exists()
     with np.load(run / "state.npz") as z:
         assert z["value_albedo"].shape == (4, 8, 3) and z["adam_albedo_m"].size == 4 * 8 * 3
