@@ -177,10 +177,11 @@ def load_mesh(spec: MeshSpec, file: str):
     return load_mesh_uv(spec, file)[:2]
 
 
-def load_mesh_uv(spec: MeshSpec, file: str):
+def load_mesh_uv(spec: MeshSpec, file: str, keep_uv: bool = True):
     """(V, F, UV) of an object's ``mesh:`` entry, validated; UV is None for a mesh without texture
-    coordinates. A mesh with UVs keeps one vertex per position/UV pair (split at UV seams, as
-    Mitsuba needs them); one without is welded by position."""
+    coordinates. A file mesh with UVs keeps one vertex per position/UV pair (split at UV seams, as
+    Mitsuba needs them) when ``keep_uv``; otherwise (and without UVs) it is welded by position
+    and its UVs dropped, as untextured objects always were."""
     where = Where(file, spec.key)
     uv = None
     if spec.file is not None:
@@ -193,6 +194,7 @@ def load_mesh_uv(spec: MeshSpec, file: str):
         try:
             if spec.part is None:
                 V, F, uv = read_mesh_file_uv(spec.file)
+                uv = uv if keep_uv else None
             else:
                 V, F = obj_parts.read_part(spec.file, spec.part)
         except KeyError as exc:

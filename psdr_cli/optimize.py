@@ -72,7 +72,7 @@ def initial_shape_uv(exp, reference):
     cfg = exp.optimize
     texture = cfg.albedo and cfg.albedo_texture is not None
     if cfg.init is not None:
-        V, F, uv = meshes.load_mesh_uv(cfg.init, str(exp.file))
+        V, F, uv = meshes.load_mesh_uv(cfg.init, str(exp.file), keep_uv=texture)
         if texture and uv is None:
             raise PsdrError(f"{exp.file}: optimize.init.mesh: has no UV coordinates, which optimize.albedo.texture "
                             f"needs (e.g. {{shape: sphere, resolution: 16, uv: true}}, or an OBJ with 'vt')")

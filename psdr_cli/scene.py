@@ -113,10 +113,11 @@ def object_mesh(obj: ObjectConfig, file: str):
 
 
 def object_mesh_uv(obj: ObjectConfig, file: str):
-    """:func:`object_mesh` with the mesh's per-vertex texture coordinates: (V, F, UV or None)."""
+    """:func:`object_mesh` with the mesh's per-vertex texture coordinates: (V, F, UV or None); a
+    file mesh keeps its UVs (and its seam-split vertices) only when the BSDF has a bitmap."""
     if obj.mesh.shape == "mitsuba":
         return (*mitsuba_scene.object_geometry(obj), None)
-    V, F, uv = meshes.load_mesh_uv(obj.mesh, file)
+    V, F, uv = meshes.load_mesh_uv(obj.mesh, file, keep_uv=has_bitmap(obj))
     V = meshes.apply_transform(V, meshes.transform_matrix(obj.transform))
     return V, F, uv
 
