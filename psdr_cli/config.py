@@ -8,6 +8,7 @@ Unknown keys are errors, so a typo never passes silently. The key reference is `
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -301,6 +302,18 @@ class TransformConfig:
 
 
 @dataclass
+class BitmapConfig:
+    """A bitmap texture as a BSDF parameter value (Mitsuba's ``bitmap``): an image file (PNG, EXR,
+    JPG) looked up at the mesh's UV coordinates, or (``data``, not a YAML key) an in-memory
+    (H, W, 3) linear float image, e.g. the texture an optimisation is recovering."""
+    file: Path | None = None
+    filter_type: str = "bilinear"
+    wrap_mode: str = "repeat"
+    raw: bool = False
+    data: Any = None
+
+
+@dataclass
 class BsdfConfig:
     type: str = "diffuse"
     params: dict = field(default_factory=dict)
@@ -431,6 +444,7 @@ class OptimizeConfig:
     albedo: bool = False
     albedo_init: tuple | None = None       # default: the object's BSDF value
     albedo_learning_rate: float = 0.02
+    albedo_texture: tuple | None = None    # (W, H): recover a bitmap texture instead of one colour
     envmap_rotation: bool = False
     envmap_axis: tuple = (0.0, 0.0, 1.0)
     envmap_init_deg: float = 0.0
@@ -513,7 +527,7 @@ BSDF_PARAMS = {
 }
 SHAPE_PARAMS = {
     "sphere": {"radius": number(positive=True, maximum=MAX_COORD), "subdivisions": integer(0, 8),
-               "resolution": integer(3, 2048)},
+               "resolution": integer(3, 2048), "uv": boolean},
     "plane": {"size": None},
     "cube": {"size": None},
     "torus": {"major_radius": number(positive=True, maximum=MAX_COORD),
@@ -528,6 +542,32 @@ BSDF_RANGES = {name: (0.0, 1.0) for name in (
     "alpha", "alpha_u", "alpha_v")}
 BSDF_RANGES.update({name: (1e-3, 10.0) for name in ("eta", "int_ior", "ext_ior")})
 BSDF_RANGES["k"] = (0.0, 100.0)
+#: Image formats a bitmap texture may be read from (by ``mi.Bitmap``).
+BITMAP_FORMATS = (".png", ".exr", ".jpg", ".jpeg")
+BITMAP_FILTERS = ("bilinear", "nearest")
+BITMAP_WRAPS = ("repeat", "mirror", "clamp")
+
+
+def parse_bitmap(value, where) -> BitmapConfig:
+    """``{type: bitmap, file: image, filter_type, wrap_mode, raw}``; ``file`` is relative to the
+    experiment file and must exist, be readable and be a PNG, EXR or JPG image (its texels are
+    checked when the scene is built)."""
+    sec = Section(value, where)
+    sec.get("type", choice("bitmap"))
+    file = sec.get("file", path_relative_to(Path(where.file).resolve().parent))
+    b = BitmapConfig(file=file,
+                     filter_type=sec.get("filter_type", choice(*BITMAP_FILTERS), "bilinear"),
+                     wrap_mode=sec.get("wrap_mode", choice(*BITMAP_WRAPS), "repeat"),
+                     raw=sec.get("raw", boolean, False))
+    sec.done()
+    w = where.child("file")
+    if file.suffix.lower() not in BITMAP_FORMATS:
+        raise w.fail(f"unsupported image format '{file.suffix}' (expected {', '.join(BITMAP_FORMATS)})")
+    if not file.is_file():
+        raise w.fail(f"texture file not found: {file}")
+    if not os.access(file, os.R_OK):
+        raise w.fail(f"texture file is not readable: {file}")
+    return b
 
 
 def _bsdf_value(value, where):
@@ -543,8 +583,11 @@ def _bsdf_value(value, where):
     elif isinstance(value, list):
         v = vector(3, bound=FLOAT32_MAX)(value, where)
         values = list(v)
+    elif isinstance(value, dict):
+        return parse_bitmap(value, where)
     else:
-        raise where.fail(f"expected a number, a list of 3 numbers or a string, got {_describe(value)}")
+        raise where.fail(f"expected a number, a list of 3 numbers, a string or a bitmap "
+                         f"{{type: bitmap, file: ...}}, got {_describe(value)}")
     if min(values) < lo or max(values) > hi:
         raise where.fail(f"expected values in [{lo:g}, {hi:g}], got {_describe(value)}")
     return v
@@ -1014,6 +1057,13 @@ def parse_remesh(value, where) -> RemeshConfig:
     return r
 
 
+def _texture_size(value, where):
+    """[W, H] of a texture being optimised: integers in 1..MAX_FILM."""
+    if not isinstance(value, list) or len(value) != 2:
+        raise where.fail(f"expected [width, height], got {_describe(value)}")
+    return tuple(integer(1, MAX_FILM)(v, where.child(i)) for i, v in enumerate(value))
+
+
 def parse_optimize(base: Path) -> Parser:
     def parse(value, where) -> OptimizeConfig:
         sec = Section(value, where)
@@ -1054,7 +1104,12 @@ def parse_optimize(base: Path) -> Parser:
             o.albedo = True
             o.albedo_init = a.get("init", reflectance, None)
             o.albedo_learning_rate = a.get("learning_rate", number(positive=True), o.albedo_learning_rate)
+            o.albedo_texture = a.get("texture", _texture_size, None)
             a.done()
+            if o.albedo_texture is not None and (o.remesh.method != "none" or o.remesh.at):
+                raise where.child("remesh").fail(
+                    "optimize.albedo.texture needs 'remesh: {method: none}' without 'at' (remeshing "
+                    "discards the UV coordinates the texture is laid out in)")
         if sec.has("envmap_rotation"):
             e = Section(sec.get("envmap_rotation", lambda v, _: v), where.child("envmap_rotation"))
             o.envmap_rotation = True

@@ -27,6 +27,31 @@ def sphere(radius: float = 1.0, subdivisions: int = 3, resolution: int | None = 
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
+def uv_sphere(radius: float = 1.0, resolution: int = 16):
+    """UV sphere with texture coordinates: ``resolution`` rings × 2·``resolution`` segments,
+    u = φ/2π (longitude from +x), v = θ/π (colatitude from the north pole z = +r: v = 0, the top
+    row of a texture, is north, as in a lat-long map). Returns (V, F, UV); vertices are
+    split at the seam u = 0 | 1 and at the poles (one copy per segment), so each vertex has one UV;
+    the boundary code welds them by position."""
+    rings, segs = resolution, 2 * resolution
+    v = np.linspace(0.0, 1.0, rings + 1)
+    u = np.linspace(0.0, 1.0, segs + 1)
+    U, W = np.meshgrid(u, v)                       # (rings+1, segs+1)
+    theta, phi = np.pi * W, 2 * np.pi * U
+    V = radius * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), -np.cos(theta)], -1)
+    V[0, :] = (0.0, 0.0, -radius)                  # exact poles
+    V[-1, :] = (0.0, 0.0, radius)
+    idx = np.arange((rings + 1) * (segs + 1)).reshape(rings + 1, segs + 1)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]   # counter-clockwise seen from outside
+    lower = np.stack([a, b, c], -1)[1:]            # the pole rows keep one triangle per segment
+    upper = np.stack([a, c, d], -1)[:-1]
+    F = np.concatenate([lower.reshape(-1, 3), upper.reshape(-1, 3)]).astype(np.int64)
+    used = np.unique(F)
+    remap = np.full(idx.size, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return V.reshape(-1, 3)[used], remap[F], np.stack([U, 1.0 - W], -1).reshape(-1, 2)[used]
+
+
 def plane(size=(2.0, 2.0)):
     """Rectangle ``size = (w, h)`` in the z = 0 plane, normal +z."""
     w, h = size[0] / 2, size[1] / 2
@@ -74,8 +99,30 @@ def bunny(size: float = 1.0, faces: int = 5000):
     return V, F
 
 
+#: A plane's UVs: the texture upright seen from +z (v = 0, its top row, at +y).
+PLANE_UV = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], float)
+
+
 def procedural(shape: str, params: dict):
-    """Mesh for ``{shape: ..., **params}`` of the experiment file."""
+    """Mesh (V, F) for ``{shape: ..., **params}`` of the experiment file."""
+    return procedural_uv(shape, params)[:2]
+
+
+def procedural_uv(shape: str, params: dict):
+    """(V, F, UV) for ``{shape: ..., **params}``: UV is None except for a plane ([0, 1]² over its
+    extent) and a sphere with ``uv: true`` (:func:`uv_sphere`)."""
+    if shape == "sphere" and params.get("uv"):
+        p = {k: v for k, v in params.items() if k != "uv"}
+        return uv_sphere(p.get("radius", 1.0), p.get("resolution", 16))
+    if shape == "plane":
+        return (*plane(**params), PLANE_UV.copy())
+    params = {k: v for k, v in params.items() if k != "uv"}
+    if shape == "sphere":
+        return (*sphere(**params), None)
+    return (*_procedural(shape, params), None)
+
+
+def _procedural(shape: str, params: dict):
     if shape == "sphere":
         return sphere(**params)
     if shape == "plane":
@@ -91,13 +138,26 @@ def procedural(shape: str, params: dict):
 
 def read_mesh_file(path: Path):
     """Vertices and triangles of a PLY or OBJ file, unprocessed (no merging, no reordering)."""
+    return read_mesh_file_uv(path)[:2]
+
+
+def read_mesh_file_uv(path: Path):
+    """(V, F, UV) of a PLY or OBJ file, unprocessed; UV (n, 2) are the per-vertex texture
+    coordinates as Mitsuba's own loaders read them (OBJ ``vt`` with v flipped, split into one
+    vertex per position/UV pair; PLY ``s, t`` or ``u, v`` as stored), or None when the file has
+    none. In Mitsuba's convention v = 0 is the top row of a texture image."""
     if Path(path).suffix.lower() == ".obj":
         try:
             Path(path).read_bytes().decode("utf-8")
         except UnicodeDecodeError as exc:
             raise ValueError(f"not a text OBJ file (byte {exc.start} is not UTF-8)") from None
     mesh = trimesh.load(str(path), force="mesh", process=False)
-    return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+    V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+    uv = getattr(mesh.visual, "uv", None)
+    uv = None if uv is None or len(uv) != len(V) else np.array(uv, float).reshape(-1, 2)
+    if uv is not None and Path(path).suffix.lower() == ".obj":
+        uv[:, 1] = 1.0 - uv[:, 1]  # as Mitsuba's OBJ loader: vt's v runs up the image, Mitsuba's down
+    return V, F, uv
 
 
 def face_areas(V, F):
@@ -113,8 +173,17 @@ def degenerate_faces(V, F, rel_eps: float = 1e-12):
 
 
 def load_mesh(spec: MeshSpec, file: str):
-    """Mesh of an object's ``mesh:`` entry, validated. Errors name ``file`` and the key path."""
+    """Mesh (V, F) of an object's ``mesh:`` entry, validated. Errors name ``file`` and the key path."""
+    return load_mesh_uv(spec, file)[:2]
+
+
+def load_mesh_uv(spec: MeshSpec, file: str, keep_uv: bool = True):
+    """(V, F, UV) of an object's ``mesh:`` entry, validated; UV is None for a mesh without texture
+    coordinates. A file mesh with UVs keeps one vertex per position/UV pair (split at UV seams, as
+    Mitsuba needs them) when ``keep_uv``; otherwise (and without UVs) it is welded by position
+    and its UVs dropped, as untextured objects always were."""
     where = Where(file, spec.key)
+    uv = None
     if spec.file is not None:
         if not spec.file.exists():
             raise where.fail(f"mesh file not found: {spec.file}")
@@ -123,17 +192,23 @@ def load_mesh(spec: MeshSpec, file: str):
         if not os.access(spec.file, os.R_OK):
             raise where.fail(f"mesh file is not readable: {spec.file}")
         try:
-            V, F = read_mesh_file(spec.file) if spec.part is None else obj_parts.read_part(spec.file, spec.part)
+            if spec.part is None:
+                V, F, uv = read_mesh_file_uv(spec.file)
+                uv = uv if keep_uv else None
+            else:
+                V, F = obj_parts.read_part(spec.file, spec.part)
         except KeyError as exc:
             raise where.fail(exc.args[0]) from None
         except Exception as exc:  # noqa: BLE001 - any parser failure is a bad file
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise where.fail(f"cannot read mesh {spec.file.name}: {msg}") from None
+        if uv is not None and not np.isfinite(uv).all():
+            raise where.fail(f"mesh {spec.file.name} has NaN or infinite texture coordinates")
         if len(V) and np.isfinite(V).all():
-            V, F = weld_vertices(V, F)
+            V, F, uv = weld_vertices_uv(V, F, uv)
     else:
-        V, F = procedural(spec.shape, spec.params)
-    return validate_mesh(V, F, where, spec.repair)
+        V, F, uv = procedural_uv(spec.shape, spec.params)
+    return validate_mesh_uv(V, F, uv, where, spec.repair)
 
 
 def weld(V, rel_tol: float = 1e-7):
@@ -158,8 +233,25 @@ def weld_vertices(V, F):
     return V[rep], wid[F]
 
 
+def weld_vertices_uv(V, F, uv=None):
+    """:func:`weld_vertices` for a mesh with texture coordinates ``uv`` (n, 2): only vertices with
+    the same position and the same UV are merged, so UV seams stay split. (V, F, uv)."""
+    if uv is None:
+        return (*weld_vertices(V, F), None)
+    V = np.asarray(V, float)
+    extent = float(np.abs(V).max()) or 1.0
+    wid, rep = weld(np.concatenate([V, np.asarray(uv, float) * extent], axis=1))
+    return V[rep], wid[F], np.asarray(uv, float)[rep]
+
+
 def validate_mesh(V, F, where: Where, repair: bool = False):
     """Reject empty meshes, non-finite vertices, bad indices and (unless ``repair``) degenerate faces."""
+    return validate_mesh_uv(V, F, None, where, repair)[:2]
+
+
+def validate_mesh_uv(V, F, uv, where: Where, repair: bool = False):
+    """:func:`validate_mesh` with per-vertex texture coordinates ``uv`` (or None), kept in step
+    with the vertices a repair drops: (V, F, uv)."""
     V = np.asarray(V, float).reshape(-1, 3)
     F = np.asarray(F, np.int64).reshape(-1, 3)
     if len(V) == 0 or len(F) == 0:
@@ -185,7 +277,9 @@ def validate_mesh(V, F, where: Where, repair: bool = False):
         remap = np.full(len(V), -1, np.int64)
         remap[used] = np.arange(len(used))
         V, F = V[used], remap[F]
-    return V, F
+        if uv is not None:
+            uv = np.asarray(uv, float)[used]
+    return V, F, uv
 
 
 def rotation_matrix(axis, angle_deg: float):

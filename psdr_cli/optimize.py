@@ -27,15 +27,15 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import backend, fileio, gradient, meshes, plots
-from .config import CameraConfig, Experiment, ParameterConfig
+from . import backend, fileio, gradient, meshes, mitsuba_scene, plots
+from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, ParameterConfig
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
 from .gradient import Settings, make_guides
@@ -63,17 +63,28 @@ def ground_truth(exp):
 
 def initial_shape(exp, reference):
     """(V, F) of ``init`` (with its transform), or a sphere around the reference's bounding box."""
+    return initial_shape_uv(exp, reference)[:2]
+
+
+def initial_shape_uv(exp, reference):
+    """(V, F, UV or None) of the initial shape (:func:`initial_shape`); with ``albedo.texture`` the
+    default sphere is a UV sphere, and a given ``init`` must have UVs."""
     cfg = exp.optimize
+    texture = cfg.albedo and cfg.albedo_texture is not None
     if cfg.init is not None:
-        V, F = meshes.load_mesh(cfg.init, str(exp.file))
-        return meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform)), F
+        V, F, uv = meshes.load_mesh_uv(cfg.init, str(exp.file), keep_uv=texture)
+        if texture and uv is None:
+            raise PsdrError(f"{exp.file}: optimize.init.mesh: has no UV coordinates, which optimize.albedo.texture "
+                            f"needs (e.g. {{shape: sphere, resolution: 16, uv: true}}, or an OBJ with 'vt')")
+        return meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform)), F, uv
     if reference is None:
         raise PsdrError(f"{exp.file}: optimize.init: required when the targets are images "
                         f"(e.g. init: {{mesh: {{shape: sphere, radius: 0.5}}}})")
     V, F = reference
     lo, hi = V.min(0), V.max(0)
-    Vs, Fs = meshes.sphere(radius=0.5 * float((hi - lo).max()), subdivisions=3)
-    return Vs + (lo + hi) / 2, Fs
+    radius = 0.5 * float((hi - lo).max())
+    Vs, Fs, uv = meshes.uv_sphere(radius, 16) if texture else (*meshes.sphere(radius=radius, subdivisions=3), None)
+    return Vs + (lo + hi) / 2, Fs, uv
 
 
 def target_seed(exp) -> int:
@@ -83,12 +94,16 @@ def target_seed(exp) -> int:
 
 
 def target_key(exp, reference, spp: int) -> str:
-    """Hash of everything a cached target image depends on."""
+    """Hash of everything a cached target image depends on (bitmap textures' contents included)."""
     h = hashlib.sha256()
     h.update(json.dumps(asdict(exp.scene), default=str, sort_keys=True).encode())
     h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
     h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
     h.update(f"{spp}:{target_seed(exp)}".encode())
+    for obj in exp.scene.objects:  # the textures' contents (a repainted texture makes new targets)
+        for value in obj.bsdf.params.values():
+            if isinstance(value, BitmapConfig) and value.file is not None and value.file.is_file():
+                h.update(value.file.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -158,10 +173,13 @@ class State:
     basis: np.ndarray | None = None              # vertices LargeSteps was built from (orders u)
     guide_V: np.ndarray | None = None            # vertices the current guides were built from
     guide_values: dict = field(default_factory=dict)  # extra unknowns when they were built
+    uv: np.ndarray | None = None                 # per-vertex texture coordinates (albedo.texture)
 
     def save(self, path: Path):
         """Written atomically; refuses NaN or infinite values (nothing non-finite is ever saved)."""
         arrays = {"V": self.V, "F": self.F, "u": self.u, "basis": self.basis}
+        if self.uv is not None:
+            arrays["uv"] = self.uv
         if self.guide_V is not None:
             arrays["guide_V"] = self.guide_V
             for k, v in self.guide_values.items():
@@ -187,8 +205,9 @@ class State:
                 values = {k[6:]: z[k] for k in z.files if k.startswith("value_")}
                 guide_values = {k[11:]: z[k] for k in z.files if k.startswith("guidevalue_")}
                 state = State(meta["iteration"], z["V"], z["F"], adam, values, meta.get("seconds", 0.0),
-                              z["u"], z["basis"], z["guide_V"] if "guide_V" in z.files else None, guide_values)
-                arrays = [state.V, state.u, state.basis, *values.values(),
+                              z["u"], z["basis"], z["guide_V"] if "guide_V" in z.files else None, guide_values,
+                              z["uv"] if "uv" in z.files else None)
+                arrays = [state.V, state.u, state.basis, *values.values(), *([state.uv] if state.uv is not None else []),
                           *(a for _, m, v in adam.values() for a in (m, v))]
         except Exception as exc:  # noqa: BLE001 - a damaged state file
             raise PsdrError(f"{path}: cannot read the saved state ({type(exc).__name__}); "
@@ -210,7 +229,10 @@ def adam_import(opt, key, saved):
     t, m, v = saved
     if np.size(m) != np.size(np.asarray(m0)):
         return  # shape changed (remeshed since): start the moments afresh
-    restore = lambda a, like: dr.unravel(type(like), mi.Float(np.ravel(a))) if dr.depth_v(like) > 1 else type(like)(np.ravel(a))
+    def restore(a, like):
+        if dr.is_tensor_v(like):  # a texture: (H, W, C)
+            return type(like)(np.asarray(a, np.float32).reshape(like.shape))
+        return dr.unravel(type(like), mi.Float(np.ravel(a))) if dr.depth_v(like) > 1 else type(like)(np.ravel(a))
     opt.state[key] = (value, flag, lr, (type(t0)([t]), restore(m, m0), restore(v, v0), extra))
 
 
@@ -234,9 +256,23 @@ class OptimizeResult:
 class Problem:
     """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
 
-    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None):
+    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None):
         self.exp, self.cfg = exp, exp.optimize
-        self.scene = build_scene(exp, objects={self.cfg.object: (V, F)}, cameras=cameras)
+        self.uv = None if uv is None else np.asarray(uv, np.float64)
+        self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
+        built = exp
+        if self.texture:
+            if self.uv is None:
+                raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
+            init = state_values.get("albedo")
+            W, H = self.cfg.albedo_texture
+            if init is not None:
+                init = np.asarray(init, np.float64).reshape(H, W, 3)
+            else:
+                init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
+            built = texture_experiment(exp, np.clip(init, 0.0, 1.0))
+        mesh = (V, F) if self.uv is None else (V, F, self.uv)
+        self.scene = build_scene(built, objects={self.cfg.object: mesh}, cameras=cameras)
         self.params = mi.traverse(self.scene.mi_scene)
         self.key = f"{self.cfg.object}.vertex_positions"
         self.F = np.asarray(F, np.int64)
@@ -251,20 +287,20 @@ class Problem:
             self.steps.to_differential(self.params[self.key])
         self.albedo_key = self.envmap = None
         if self.cfg.albedo:
-            keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.")
-                    and k.endswith(("reflectance.value", "base_color.value"))]
+            suffixes = ("reflectance.data", "base_color.data") if self.texture else \
+                ("reflectance.value", "base_color.value")
+            keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.") and k.endswith(suffixes)]
             if not keys:
                 raise PsdrError(f"{exp.file}: optimize.albedo: the object's BSDF has no constant "
-                                f"reflectance/base_color to optimise")
+                                f"reflectance/base_color to optimise (give 'texture: [W, H]' for a bitmap)")
             self.albedo_key = keys[0]
-            init = state_values.get("albedo")
-            if init is None:
-                init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
-            init = np.asarray(init, np.float64).ravel()
-            if isinstance(self.params[self.albedo_key], mi.Color3f):  # RGB texture
-                self.opt["albedo"] = mi.Color3f(*(float(x) for x in np.broadcast_to(init, 3)))
-            else:  # a grey (uniform) reflectance stays grey
-                self.opt["albedo"] = mi.Float(float(init.mean()))
+            if self.texture:  # the scene holds the initial texture already
+                self.opt["albedo"] = self.albedo_value(self.texture_image())
+            else:
+                init = state_values.get("albedo")
+                if init is None:
+                    init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
+                self.opt["albedo"] = self.albedo_value(init)
             self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
         if self.cfg.envmap_rotation:
             self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
@@ -299,10 +335,26 @@ class Problem:
     def vertices(self) -> np.ndarray:
         return np.asarray(dr.detach(self.params[self.key]), np.float64).reshape(-1, 3)
 
+    def albedo_value(self, a):
+        """The albedo ``a`` (numpy, clipped to [0, 1]) as the scene parameter's type: a texture
+        (H, W, 3) tensor, an RGB colour, or a grey value (a grey reflectance stays grey)."""
+        a = np.clip(np.asarray(a, np.float64), 0.0, 1.0)
+        if self.texture:
+            return mi.TensorXf(np.ascontiguousarray(a, np.float32))
+        a = a.ravel()
+        if isinstance(self.params[self.albedo_key], mi.Color3f):  # RGB texture
+            return mi.Color3f(*(float(x) for x in np.broadcast_to(a, 3)))
+        return mi.Float(float(a.mean()))
+
+    def texture_image(self) -> np.ndarray:
+        """The texture being recovered as the scene uses it: (H, W, 3) linear RGB in [0, 1]."""
+        return np.asarray(dr.detach(self.params[self.albedo_key]), np.float64)
+
     def values(self) -> dict:
         out = {}
         if self.albedo_key:
-            out["albedo"] = np.asarray(self.opt["albedo"], np.float64).ravel()
+            a = np.asarray(self.opt["albedo"], np.float64)
+            out["albedo"] = a.reshape(self.opt["albedo"].shape) if self.texture else a.ravel()
         if self.envmap:
             out["envmap_angle"] = np.asarray(self.opt["envmap_angle"], np.float64).ravel()
         return out
@@ -310,7 +362,28 @@ class Problem:
     def export(self, iteration: int, seconds: float) -> State:
         adam = {k: adam_export(self.opt, k) for k in self.opt.keys()}
         return State(iteration, self.vertices(), self.F, adam, self.values(), seconds,
-                     np.asarray(self.opt["u"], np.float32), self.basis)
+                     np.asarray(self.opt["u"], np.float32), self.basis, uv=self.uv)
+
+
+def texture_experiment(exp, texture):
+    """``exp`` with the optimised object's reflectance (diffuse) or base colour (principled)
+    replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``),
+    looked up with the object's own bitmap's ``filter_type`` and ``wrap_mode`` if it has one."""
+    exp = mitsuba_scene.resolve(exp)
+    if exp.scene.mitsuba is not None:
+        raise PsdrError(f"{exp.file}: optimize.albedo.texture: not available for objects of a Mitsuba XML scene")
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    name = {"diffuse": "reflectance", "principled": "base_color"}.get(obj.bsdf.type)
+    if name is None:
+        raise PsdrError(f"{exp.file}: optimize.albedo.texture: the object's BSDF '{obj.bsdf.type}' has no "
+                        f"reflectance or base_color (use diffuse or principled)")
+    given = obj.bsdf.params.get(name)
+    bitmap = BitmapConfig(data=np.asarray(texture, np.float32))
+    if isinstance(given, BitmapConfig):  # the object's own lookup settings
+        bitmap = replace(given, file=None, raw=False, data=bitmap.data)
+    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
+    objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
+    return replace(exp, scene=replace(exp.scene, objects=objects))
 
 
 def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
@@ -373,16 +446,18 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     # Shape
     if state is None:
         clear_run(files)  # a fresh run must never be confused with (or resumed as) an older one
-        V, F = initial_shape(exp, reference)
+        V, F, uv = initial_shape_uv(exp, reference)
         if cfg.remesh.method != "none":
             V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
+            uv = None  # (optimize.albedo.texture refuses remeshing: config.parse_optimize)
         start, values, seconds_so_far = 0, {}, 0.0
         write_mesh(files.checkpoint(0), V, F)
     else:
         V, F, start, values, seconds_so_far = state.V, state.F, state.iteration, state.values, state.seconds
+        uv = state.uv
     fileio.write_json(files.run, {"fingerprint": run_fingerprint(exp)})  # fresh, unchanged, or saved before fingerprints
     result = OptimizeResult(files.root, resumed_from=start)
-    problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else ()))
+    problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else (None, None)), uv=uv)
     if state is not None:
         for k, saved in state.adam.items():
             if k in problem.opt.keys():
@@ -487,7 +562,8 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     fileio.write_json(files.summary, {
         "experiment": str(exp.file), "iterations": total, "resumed_from": start, "views": n_views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),
-        "values": {k: v.tolist() for k, v in problem.values().items()}, "skipped_updates": result.skipped,
+        "values": {k: (str(files.albedo) if k == "albedo" and problem.texture else v.tolist())
+                   for k, v in problem.values().items()}, "skipped_updates": result.skipped,
         "seconds": seconds_so_far})
     return result
 
@@ -517,10 +593,7 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
     with dr.suspend_grad():
         problem.params[problem.key] = mi.Float(np.asarray(V, np.float32).ravel())
         if problem.albedo_key and "albedo" in values:
-            a = np.clip(np.asarray(values["albedo"], np.float64).ravel(), 0.0, 1.0)
-            problem.params[problem.albedo_key] = (mi.Color3f(*(float(x) for x in np.broadcast_to(a, 3)))
-                                                  if isinstance(problem.params[problem.albedo_key], mi.Color3f)
-                                                  else mi.Float(float(a.mean())))
+            problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])
         if problem.envmap and "envmap_angle" in values:
             problem.envmap.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
         else:
@@ -535,6 +608,11 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
     """iter_NNNN.ply and a target | current | |difference| strip per preview view."""
     path = files.checkpoint(iteration)
     write_mesh(path, problem.vertices(), problem.F)
+    if problem.texture:  # the recovered texture: albedo.exr (linear) and albedo.png, per checkpoint a preview
+        texture = problem.texture_image()
+        fileio.write_rgb_exr(files.albedo, texture, {"psdr.iteration": str(iteration)})
+        fileio.write_preview(files.albedo.with_suffix(".png"), texture)
+        fileio.write_preview(files.previews / f"iter_{iteration:04d}_albedo.png", texture)
     with dr.suspend_grad():
         for v in exp.optimize.preview_views:
             current = render_view(problem.scene, v, 16, seed=exp.seed)

@@ -60,6 +60,7 @@ class RunFiles:
         self.final = self.root / "final.ply"
         self.summary = self.root / "optimize.json"
         self.run = self.root / "run.json"          # fingerprint of the experiment the run belongs to
+        self.albedo = self.root / "albedo.exr"      # the recovered texture (optimize.albedo.texture)
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
@@ -173,7 +174,8 @@ def clear_run(files: RunFiles):
     files.state.unlink(missing_ok=True)
     for folder in (files.checkpoints, files.previews):
         shutil.rmtree(folder, ignore_errors=True)
-    for path in (files.final, files.summary, files.root / "loss.png", files.root / "chamfer.png"):
+    for path in (files.final, files.summary, files.root / "loss.png", files.root / "chamfer.png",
+                 files.albedo, files.albedo.with_suffix(".png")):
         path.unlink(missing_ok=True)
 
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 import mitsuba as mi
 import numpy as np
 
-from . import meshes, mitsuba_scene
-from .config import EmitterConfig, Experiment, ObjectConfig, SceneConfig
+from . import fileio, meshes, mitsuba_scene
+from .config import BSDF_RANGES, BitmapConfig, EmitterConfig, Experiment, ObjectConfig, SceneConfig
 from .errors import ConfigError
 
 
@@ -24,6 +24,7 @@ class ObjectMesh:
     faces: np.ndarray
     edges: bool
     config: ObjectConfig
+    uv: np.ndarray | None = None   # per-vertex texture coordinates (n, 2), when the mesh has them
 
 
 @dataclass
@@ -46,32 +47,92 @@ def _rgb(value):
     return {"type": "rgb", "value": list(value)}
 
 
-def bsdf_dict(obj: ObjectConfig) -> dict:
-    """Mitsuba BSDF dictionary; RGB triples become ``rgb`` textures, names pass through."""
+def has_bitmap(obj: ObjectConfig) -> bool:
+    """Whether the object's BSDF has a bitmap texture (and so needs UV coordinates)."""
+    return any(isinstance(v, BitmapConfig) for v in obj.bsdf.params.values())
+
+
+def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
+    """``mi.Bitmap`` of a bitmap value, its texels checked: finite, and within the parameter's
+    physical range (``config.BSDF_RANGES``, e.g. [0, 1] for a reflectance) once converted to linear
+    values as Mitsuba uses them (sRGB-decoded unless ``raw``). An in-memory ``data`` image is
+    linear float RGB."""
+    if b.data is not None:
+        bitmap = mi.Bitmap(np.ascontiguousarray(b.data, np.float32))
+    else:
+        try:
+            bitmap = mi.Bitmap(exr_texels(b.file)) if b.file.suffix.lower() == ".exr" else mi.Bitmap(str(b.file))
+        except Exception as exc:  # noqa: BLE001 - a damaged or unsupported image
+            raise ConfigError(file, key + ".file", f"cannot read texture {b.file.name}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    texels = np.asarray(bitmap.convert(component_format=mi.Struct.Type.Float32,
+                                       srgb_gamma=False if not b.raw else bitmap.srgb_gamma()), np.float64)
+    what = b.file.name if b.file is not None else "texture"
+    if texels.size == 0:
+        raise ConfigError(file, key + ".file", f"texture {what} is empty")
+    if not np.isfinite(texels).all():
+        raise ConfigError(file, key + ".file", f"texture {what} has {int((~np.isfinite(texels)).sum())} "
+                          f"NaN or infinite values")
+    lo, hi = BSDF_RANGES.get(name, (-float("inf"), float("inf")))
+    if texels.min() < lo or texels.max() > hi:
+        raise ConfigError(file, key + ".file", f"texture {what} has values in [{texels.min():g}, "
+                          f"{texels.max():g}], expected [{lo:g}, {hi:g}] for {name}")
+    return bitmap
+
+
+def exr_texels(path) -> np.ndarray:
+    """(H, W, 3) or (H, W, 1) float32 texels of an EXR texture (R, G, B or Y; alpha dropped), read
+    with :mod:`fileio` (``mi.Bitmap`` reading an EXR hangs while Dr.Jit runs one thread, as
+    ``psdr optimize`` does)."""
+    channels = fileio.read_exr(path)
+    if all(c in channels for c in "RGB"):
+        return np.ascontiguousarray(np.stack([channels[c] for c in "RGB"], -1), np.float32)
+    if "Y" in channels:
+        return np.ascontiguousarray(channels["Y"][..., None], np.float32)
+    names = ", ".join(sorted(k for k in channels if k != "__header__"))
+    raise ValueError(f"no R, G, B or Y channels (has {names or 'none'})")
+
+
+def bsdf_dict(obj: ObjectConfig, file: str = "") -> dict:
+    """Mitsuba BSDF dictionary; RGB triples become ``rgb`` textures, bitmaps Mitsuba ``bitmap``
+    textures (read and checked by :func:`read_bitmap`), names pass through."""
     d = {"type": obj.bsdf.type}
     for name, value in obj.bsdf.params.items():
-        d[name] = _rgb(value) if isinstance(value, tuple) else value
+        if isinstance(value, BitmapConfig):
+            d[name] = {"type": "bitmap", "bitmap": read_bitmap(value, name, file, f"{obj.key}.bsdf.{name}"),
+                       "filter_type": value.filter_type, "wrap_mode": value.wrap_mode, "raw": value.raw}
+        else:
+            d[name] = _rgb(value) if isinstance(value, tuple) else value
     return d
 
 
 def object_mesh(obj: ObjectConfig, file: str):
     """World-space (V, F) of an object: its mesh, validated, then its transform (an XML scene's
     mesh: as Mitsuba loaded it, in world space)."""
+    return object_mesh_uv(obj, file)[:2]
+
+
+def object_mesh_uv(obj: ObjectConfig, file: str):
+    """:func:`object_mesh` with the mesh's per-vertex texture coordinates: (V, F, UV or None); a
+    file mesh keeps its UVs (and its seam-split vertices) only when the BSDF has a bitmap."""
     if obj.mesh.shape == "mitsuba":
-        return mitsuba_scene.object_geometry(obj)
-    V, F = meshes.load_mesh(obj.mesh, file)
+        return (*mitsuba_scene.object_geometry(obj), None)
+    V, F, uv = meshes.load_mesh_uv(obj.mesh, file, keep_uv=has_bitmap(obj))
     V = meshes.apply_transform(V, meshes.transform_matrix(obj.transform))
-    return V, F
+    return V, F, uv
 
 
-def mitsuba_mesh(name: str, V, F, bsdf: dict, smooth: bool = False):
-    """``mi.Mesh`` with the given triangles; flat-shaded unless ``smooth``."""
+def mitsuba_mesh(name: str, V, F, bsdf: dict, smooth: bool = False, uv=None):
+    """``mi.Mesh`` with the given triangles; flat-shaded unless ``smooth``; with per-vertex texture
+    coordinates ``uv`` (n, 2) when given."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
-    mesh = mi.Mesh(name, len(V), len(F), props, smooth)
+    mesh = mi.Mesh(name, len(V), len(F), props, smooth, uv is not None)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(V, np.float32).ravel())
     params["faces"] = mi.UInt32(np.ascontiguousarray(F, np.uint32).ravel())
+    if uv is not None:
+        params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
     params.update()
     return mesh
 
@@ -139,16 +200,18 @@ def build_objects(exp: Experiment) -> dict:
     """World-space meshes of every object, validated (no Mitsuba needed)."""
     out = {}
     for obj in exp.scene.objects:
-        V, F = object_mesh(obj, str(exp.file))
-        out[obj.name] = ObjectMesh(obj.name, V, F, obj.edges, obj)
+        V, F, uv = object_mesh_uv(obj, str(exp.file))
+        out[obj.name] = ObjectMesh(obj.name, V, F, obj.edges, obj, uv)
     return out
 
 
 def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | None = None) -> Scene:
     """Mitsuba scene of an experiment: every camera, emitter and object.
 
-    ``objects`` may override meshes by name (``{name: (V, F)}``, e.g. the current shape of an
-    optimisation); ``cameras`` may replace the camera list. An XML scene (``scene.mitsuba``) is
+    ``objects`` may override meshes by name (``{name: (V, F)}`` or ``(V, F, UV)``, e.g. the
+    current shape of an optimisation; a (V, F) override keeps the object's UVs when F is the
+    object's own triangle list, i.e. the same vertices moved); ``cameras`` may replace the camera
+    list. An object whose BSDF has a bitmap texture must have UVs. An XML scene (``scene.mitsuba``) is
     read by :mod:`psdr_cli.mitsuba_scene`; split OBJ objects are expanded into their parts.
     """
     exp = mitsuba_scene.resolve(exp)
@@ -156,17 +219,25 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
         return build_xml_scene(exp, objects or {}, cameras)
     cfg = exp.scene
     built = build_objects(exp)
-    for name, (V, F) in (objects or {}).items():
-        built[name] = ObjectMesh(name, np.asarray(V, float), np.asarray(F, np.int64), built[name].edges,
-                                 built[name].config)
+    for name, mesh in (objects or {}).items():
+        V, F = np.asarray(mesh[0], float), np.asarray(mesh[1], np.int64)
+        old = built[name]
+        uv = mesh[2] if len(mesh) > 2 else (old.uv if old.faces.shape == F.shape and (old.faces == F).all() else None)
+        built[name] = ObjectMesh(name, V, F, old.edges, old.config, uv)
     d = {"type": "scene", "integrator": {"type": "path", "max_depth": cfg.max_depth}}
     for i, cam in enumerate(cameras or cfg.cameras):
         d[f"sensor_{i:03d}"] = sensor_dict(cam, cfg.width, cfg.height)
     for i, em in enumerate(cfg.emitters):
         d[f"emitter_{i:02d}"] = emitter_dict(em, str(exp.file))
     for name, om in built.items():
+        if om.uv is None and has_bitmap(om.config):
+            raise ConfigError(exp.file, om.config.key + ".bsdf", "a bitmap texture needs a mesh with UV "
+                              "coordinates (an OBJ with 'vt', a PLY with s/t, a plane, or 'shape: sphere, uv: true')")
         try:
-            d[name] = mitsuba_mesh(name, om.vertices, om.faces, bsdf_dict(om.config), om.config.smooth)
+            d[name] = mitsuba_mesh(name, om.vertices, om.faces, bsdf_dict(om.config, str(exp.file)),
+                                   om.config.smooth, om.uv)
+        except ConfigError:
+            raise
         except Exception as exc:  # noqa: BLE001 - Mitsuba rejects a BSDF parameter value
             raise ConfigError(exp.file, om.config.key + ".bsdf",
                               f"Mitsuba rejected the BSDF: {str(exc).splitlines()[0]}") from None
