@@ -156,3 +156,20 @@ def optimization_threads():
 def activate(exp) -> str:
     """Activate an experiment's Mitsuba variant (``variant: auto``: CUDA when present, else LLVM)."""
     return select_variant(exp.variant)
+
+
+@contextmanager
+def decoding_threads(minimum: int = 2):
+    """Run the block with at least ``minimum`` Dr.Jit CPU threads. Mitsuba decodes some image
+    files (EXR) on Dr.Jit's thread pool and deadlocks when the pool has a single thread, as it has
+    inside ``psdr optimize`` (:func:`optimization_threads`); file loading is no AD work, so the
+    extra thread does not affect reproducibility."""
+    import drjit as dr  # deferred on purpose: configure_environment() must run before drjit loads
+    before = dr.thread_count()
+    if before < minimum:
+        dr.set_thread_count(minimum)
+    try:
+        yield
+    finally:
+        if before < minimum:
+            dr.set_thread_count(before)

@@ -96,7 +96,8 @@ def load_xml(src, yaml_file: str | None = None) -> mi.Scene:
     """``mi.load_file(src.file, **src.params)``; any failure is one :class:`ConfigError` line (a
     ``params`` entry the XML does not use names the experiment file's key)."""
     try:
-        return mi.load_file(str(src.file), **src.params)
+        with backend.decoding_threads():  # the XML may name EXR files
+            return mi.load_file(str(src.file), **src.params)
     except Exception as exc:  # noqa: BLE001 - Mitsuba reports XML and plugin errors as RuntimeError
         unused = re.findall(r"\$(\S+?)=", str(exc)) if "unused parameters" in str(exc) else []
         if unused and yaml_file:

@@ -185,7 +185,7 @@ def emitter_dict(em: EmitterConfig, file: str) -> dict:
         if not em.file.exists():
             raise ConfigError(file, em.key + ".file", f"environment map not found: {em.file}")
         try:
-            bitmap = mi.Bitmap(str(em.file))
+            bitmap = mi.Bitmap(exr_texels(em.file)) if em.file.suffix.lower() == ".exr" else mi.Bitmap(str(em.file))
         except Exception as exc:  # noqa: BLE001
             raise ConfigError(file, em.key + ".file", f"cannot read environment map: {str(exc).splitlines()[0]}") from None
         return {"type": "envmap", "bitmap": bitmap, "scale": em.scale, "to_world": environment_to_world(em.rotate_deg)}

@@ -434,3 +434,16 @@ def test_redirected_output_gets_progress_lines_and_the_budget_stop_is_announced(
     assert lines and all("/400, loss " in l and "elapsed" in l and "ETA" in l for l in lines)
     assert lines[0].startswith("optimize: iteration 3/400")
     assert "the time budget (optimize.seconds) ended the run after" in r.stdout
+
+
+def test_optimize_under_an_exr_environment_map_does_not_hang(tmp_path):
+    """mi.Bitmap reading an EXR deadlocks while Dr.Jit runs one thread (as psdr optimize does by
+    default); environment maps are read with fileio instead."""
+    from psdr_cli import fileio
+    fileio.write_rgb_exr(tmp_path / "env.exr", np.full((8, 16, 3), 0.8, np.float32))
+    data = copy.deepcopy(TINY)
+    data["scene"]["emitters"] = [{"type": "envmap", "file": str(tmp_path / "env.exr")}]
+    data["optimize"].update(iterations=2, remesh={"method": "none"})
+    r = run_cli("optimize", write(tmp_path, data), timeout=240)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "runs" / "tiny" / "final.ply").exists()
