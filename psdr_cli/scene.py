@@ -124,17 +124,8 @@ def object_mesh_uv(obj: ObjectConfig, file: str):
 
 def mitsuba_mesh(name: str, V, F, bsdf: dict, smooth: bool = False, uv=None):
     """``mi.Mesh`` with the given triangles; flat-shaded unless ``smooth``; with per-vertex texture
-    coordinates ``uv`` (n, 2) when given."""
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict(bsdf)
-    mesh = mi.Mesh(name, len(V), len(F), props, smooth, uv is not None)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(np.ascontiguousarray(V, np.float32).ravel())
-    params["faces"] = mi.UInt32(np.ascontiguousarray(F, np.uint32).ravel())
-    if uv is not None:
-        params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
-    params.update()
-    return mesh
+    coordinates ``uv`` (n, 2) when given (:func:`psdr_cli.mitsuba_scene.mesh` with this BSDF)."""
+    return mitsuba_scene.mesh(name, V, F, mi.load_dict(bsdf), texcoords=uv, smooth=smooth)
 
 
 def look_at(origin, target, up):
