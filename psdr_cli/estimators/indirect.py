@@ -55,11 +55,11 @@ def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, hei
         si.wi = si.to_local(w_in)
         bs, weight = si.bsdf().sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
         d = si.to_world(bs.wo)
-        # The light side of this vertex is w_in, its viewer side d: the path tracer's factor T
-        side = mi.SurfaceInteraction3f(si)
-        side.wi = side.to_local(d)
-        side = interior.bend_shading_normal(side)
-        beta *= weight * interior.terminator_factor(side, d, w_in)
+        beta *= weight
+        if interior.SMOOTH_TERMINATOR:  # light side w_in, viewer side d: the path tracer's factor T
+            side = mi.SurfaceInteraction3f(si)
+            side.wi = side.to_local(d)
+            beta *= interior.terminator_factor(interior.bend_shading_normal(side), d, w_in)
         active &= (bs.pdf > 0) & (dr.max(beta) > 0)
         si = scene.ray_intersect(si.spawn_ray(d), active)
         active &= si.is_valid()

@@ -91,7 +91,10 @@ def terminator_factor(si: mi.SurfaceInteraction3f, view, w):
     and on misses. T depends on n_g, so it jumps across the mesh edges of the terminator region:
     the primary term then samples every non-flat edge of smooth meshes (docs/theory.md §8).
     Applied to the light side of every vertex: NEE and BSDF-sampled directions of the path tracer,
-    and the direction light arrives from in camera connections and light-tracing walks."""
+    and the direction light arrives from in camera connections and light-tracing walks. While
+    ``SMOOTH_TERMINATOR`` is off this is the constant 1 (nothing is traced into the kernels)."""
+    if not SMOOTH_TERMINATOR:
+        return 1.0
     n_g, n_s = si.n, si.sh_frame.n
     s = dr.select(dr.dot(n_g, view) < 0, -1.0, 1.0)
     b = s * dr.dot(n_s, w)
@@ -99,7 +102,7 @@ def terminator_factor(si: mi.SurfaceInteraction3f, view, w):
     a = sigma * s * dr.dot(n_g, w)
     c = dr.dot(n_g, n_s)
     G = dr.clip(a / dr.maximum(dr.abs(b) * dr.maximum(c, 1e-6), 1e-12), 0.0, 1.0)
-    smooth = si.is_valid() & (dr.norm(n_s - n_g) > 1e-6) & SMOOTH_TERMINATOR
+    smooth = si.is_valid() & (dr.norm(n_s - n_g) > 1e-6)
     return dr.select(smooth, G * (1.0 + G - G * G), 1.0)
 
 
