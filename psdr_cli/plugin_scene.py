@@ -24,6 +24,7 @@ import numpy as np
 
 from .estimators.boundary_sampling import TRANSMISSIVE
 from .scene import ObjectMesh
+from .shading import transmits
 
 #: Geometric parameters of non-mesh shapes (and of meshes, besides their vertex buffer).
 GEOMETRY_KEYS = ("to_world", "center", "radius")
@@ -78,9 +79,10 @@ def differentiable_meshes(scene: mi.Scene, sensor) -> dict:
     every = sensor_moves(sensor)
     out = {s.id(): object_mesh(s) for s in scene.shapes()
            if isinstance(s, mi.Mesh) and "vertex_positions" in mi.traverse(s) and (every or mesh_moves(s))}
-    smooth = [n for n, om in out.items() if om.config.smooth]
+    shapes = {s.id(): s for s in scene.shapes()}
+    smooth = [n for n, om in out.items() if om.config.smooth and transmits(shapes[n].bsdf())]
     if smooth:
-        warnings.warn(f"psdr integrator: mesh(es) {', '.join(repr(n) for n in smooth)} have vertex normals; the "
-                      "shadow-terminator discontinuity of smooth shading is not differentiated (psdr_cli.shading)",
+        warnings.warn(f"psdr integrator: mesh(es) {', '.join(repr(n) for n in smooth)} have vertex normals and a "
+                      "transmitting BSDF; the terminator term covers reflection only (psdr_cli.shading)",
                       stacklevel=3)
     return out

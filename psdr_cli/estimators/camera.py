@@ -12,7 +12,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .interior import bend_shading_normal, terminator_factor
+from .interior import bend_shading_normal
 
 
 def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int, spp: int):
@@ -78,9 +78,8 @@ def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int,
 def connect_camera(scene: mi.Scene, sensor: mi.Sensor, x, w_in, active, width: int, height: int):
     """Importance carried from the camera to a surface point x for light arriving from ``w_in``.
 
-    Value W_e · f_s(x; w_in → d0) |n·d0| · T(x; d0, w_in) with the shading-normal correction
-    |cos_sh(w_in)·(n·d0)| / |cos_sh(d0)·(n·w_in)| (light-tracing convention) and the smooth-shading
-    terminator factor T of :func:`interior.terminator_factor` for the light side w_in. Returns
+    Value W_e · f_s(x; w_in → d0) |n·d0| with the shading-normal correction
+    |cos_sh(w_in)·(n·d0)| / |cos_sh(d0)·(n·w_in)| (light-tracing convention). Returns
     (value, film position, pixel, mask, camera-ray hit)."""
     importance, d0, uv, siC, ok = camera_connection(scene, sensor, x, active, width, height)
     siC.wi = siC.to_local(d0)
@@ -89,5 +88,5 @@ def connect_camera(scene: mi.Scene, sensor: mi.Sensor, x, w_in, active, width: i
     wo = siC.to_local(d0)
     fs = siC.bsdf().eval(mi.BSDFContext(mi.TransportMode.Importance), siC, wo, ok)
     shading = dr.abs(siC.wi.z * dr.dot(d0, siC.n)) / dr.maximum(dr.abs(wo.z * dr.dot(w_in, siC.n)), 1e-12)
-    value = dr.select(ok, importance * fs * shading * dr.detach(terminator_factor(siC, d0, w_in)), 0.0)
+    value = dr.select(ok, importance * fs * shading, 0.0)
     return value, uv, dr.select(ok, film_pixel(uv, width), 0), ok, siC

@@ -56,10 +56,6 @@ def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, hei
         bs, weight = si.bsdf().sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
         d = si.to_world(bs.wo)
         beta *= weight
-        if interior.SMOOTH_TERMINATOR:  # light side w_in, viewer side d: the path tracer's factor T
-            side = mi.SurfaceInteraction3f(si)
-            side.wi = side.to_local(d)
-            beta *= interior.terminator_factor(interior.bend_shading_normal(side), d, w_in)
         active &= (bs.pdf > 0) & (dr.max(beta) > 0)
         si = scene.ray_intersect(si.spawn_ray(d), active)
         active &= si.is_valid()

@@ -23,15 +23,17 @@ product of these ratios carries dL/dθ. NEE towards an area-light point y uses
 f_s · Le · |n_y·ω| / |y − x|² the same way; environment directions are solid-angle samples and
 only f_s and Le(ω) (e.g. a rotating environment) carry derivatives.
 
-Smooth shading (experimental, ``SMOOTH_TERMINATOR``, off by default): f_s(x_k, ω) is multiplied
-by the terminator factor T(x_k; ω_i, ω) of :func:`terminator_factor` (1 on flat surfaces), in the
-primal value and in the carriers, so that the integrand is continuous where the facet of x_k
-starts to block ω (docs/theory.md §8).
+Smooth shading: at a vertex on a smooth-shaded face the next segment's integrand jumps where ω
+crosses the facet's plane (the facet blocks ω, the shading normal does not). Its boundary term is
+added at every such vertex by :func:`plane_boundary` (``terminator.py``, docs/theory.md §8); its
+primal value is 0.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+
+from .terminator import PlaneSample, has_smooth_meshes, terminator_term
 
 
 def mis_weight(pdf_a, pdf_b):
@@ -44,11 +46,6 @@ def ratio(x):
     xd = dr.detach(x)
     return dr.select(xd != 0, x / dr.select(xd != 0, xd, 1.0), 1.0)
 
-
-#: Whether smooth-shaded vertices use the terminator factor of :func:`terminator_factor`.
-#: Off: experimental, measured not yet unbiased (docs/gradients.md, "Smooth shading"); with it
-#: off every estimator is unchanged (T ≡ 1, smooth meshes keep silhouette-only primary edges).
-SMOOTH_TERMINATOR = False
 
 #: Smallest |cos| between a shading normal and the viewing direction (see ``bend_shading_normal``).
 MIN_SHADING_COS = 0.02
@@ -77,35 +74,6 @@ def bend_shading_normal(si: mi.SurfaceInteraction3f):
     return si
 
 
-def terminator_factor(si: mi.SurfaceInteraction3f, view, w):
-    """Smooth-shading terminator factor T(x; view, ω) ∈ [0, 1] for light leaving along ω (Chiang,
-    Li and Burley 2019, smoothed): with n_g and n_s the geometric and (bent) shading normals turned
-    to the ``view`` side, a = n_g·ω, b = n_s·ω, c = n_g·n_s and σ = sign(b),
-
-        G = clamp(σa / (|b| · max(c, 10⁻⁶)), 0, 1),   T = −G³ + G² + G.
-
-    A smooth-shaded triangle is a flat facet, so the mesh blocks ω as soon as σa < 0 while the
-    shading normal still sees it (|b| > 0): without T the contribution jumps to 0 across the curve
-    n_g·(y − x) = 0 inside faces. With T it goes to 0 continuously (T ≈ G ∝ a as a → 0⁺). T = 1
-    where the facet does not graze (G ≥ 1; T' = 0 there too), on flat-shaded surfaces (n_s = n_g)
-    and on misses. T depends on n_g, so it jumps across the mesh edges of the terminator region:
-    the primary term then samples every non-flat edge of smooth meshes (docs/theory.md §8).
-    Applied to the light side of every vertex: NEE and BSDF-sampled directions of the path tracer,
-    and the direction light arrives from in camera connections and light-tracing walks. While
-    ``SMOOTH_TERMINATOR`` is off this is the constant 1 (nothing is traced into the kernels)."""
-    if not SMOOTH_TERMINATOR:
-        return 1.0
-    n_g, n_s = si.n, si.sh_frame.n
-    s = dr.select(dr.dot(n_g, view) < 0, -1.0, 1.0)
-    b = s * dr.dot(n_s, w)
-    sigma = dr.select(b < 0, -1.0, 1.0)
-    a = sigma * s * dr.dot(n_g, w)
-    c = dr.dot(n_g, n_s)
-    G = dr.clip(a / dr.maximum(dr.abs(b) * dr.maximum(c, 1e-6), 1e-12), 0.0, 1.0)
-    smooth = si.is_valid() & (dr.norm(n_s - n_g) > 1e-6)
-    return dr.select(smooth, G * (1.0 + G - G * G), 1.0)
-
-
 def triangle_area(si: mi.SurfaceInteraction3f):
     """Area of the hit triangle, |dp_du × dp_dv| / 2 (meshes without UVs: edges of the triangle)."""
     return 0.5 * dr.norm(dr.cross(si.dp_du, si.dp_dv))
@@ -125,7 +93,6 @@ def segment_ratio(env_motion, prev_si, prev_bsdf, si, ray_d, active):
     w = dr.select(hit, d * dr.rsqrt(dr.select(hit, dist2, 1.0)), turn(env_motion, ray_d))
     si.wi = dr.select(hit, si.to_local(-w), si.wi)
     f = prev_bsdf.eval(mi.BSDFContext(), prev_si, prev_si.to_local(w), active)
-    f = f * terminator_factor(prev_si, prev_si.to_world(prev_si.wi), w)
     geom = dr.abs(dr.dot(si.n, w)) / dr.select(hit, dist2, 1.0) * triangle_area(si)
     return ratio(f) * dr.select(hit, ratio(geom), 1.0)
 
@@ -162,9 +129,20 @@ def emitter_ratio(env_motion, si, bsdf, ds, active):
     d = ds.p - si.p
     dist2 = dr.squared_norm(d)
     w = dr.select(finite, d * dr.rsqrt(dr.select(finite, dist2, 1.0)), turn(env_motion, ds.d))
-    f = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), active) * terminator_factor(si, si.to_world(si.wi), w)
+    f = bsdf.eval(mi.BSDFContext(), si, si.to_local(w), active)
     geom = dr.abs(dr.dot(ds.n, w)) / dr.select(finite, dist2, 1.0)
     return ratio(f) * dr.select(finite & ~ds.delta, ratio(geom), 1.0)
+
+
+def plane_boundary(scene, sampler, si, bsdf, depth_left: int, env_motion, active):
+    """The terminator term at vertex ``si`` (:func:`terminator.terminator_term`): one direction in
+    its facet's plane, the radiance read just above and just below that plane with ``depth_left``
+    more vertices, primal 0."""
+    sample = PlaneSample(si, bsdf, sampler.next_1d(), active)
+    with dr.suspend_grad():
+        L_above = radiance(scene, sampler, sample.above, depth_left, sample.active)
+        L_below = radiance(scene, sampler, sample.below, depth_left, sample.active)
+    return terminator_term(scene, si, sample, L_above, L_below, turn(env_motion, sample.w))
 
 
 def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True,
@@ -184,6 +162,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     prev_pdf = mi.Float(1.0)
     prev_delta = mi.Bool(True)  # the camera vertex: emission seen directly gets weight 1
     env_motion = environment_motion(scene) if ad else None
+    terminator = ad and has_smooth_meshes(scene)
     si = scene.ray_intersect(ray, active)
     for depth in range(max_depth):
         if ad and depth > 0:
@@ -211,17 +190,20 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
             active_em &= ds_em.pdf != 0.0
             wo = si.to_local(ds_em.d)
             f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo, active_em)
-            f_em *= terminator_factor(si, si.to_world(si.wi), ds_em.d)
             w_em = dr.select(ds_em.delta, 1.0, mis_weight(ds_em.pdf, pdf_bsdf))
         contrib = beta * carry * w_em * f_em * em_weight
         if ad:
             contrib *= emitter_ratio(env_motion, si, bsdf, ds_em, active_em)
         parts[depth + 1] += dr.select(active_em, contrib, 0.0)
 
+        if terminator:  # the boundary of this vertex's facet plane (terminator.py)
+            parts[depth + 1] += dr.detach(beta * carry) * plane_boundary(
+                scene, sampler, si, bsdf, max_depth - depth - 1, env_motion, active)
+
         # BSDF sampling to the next vertex
         with dr.suspend_grad():
             bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
-            beta *= bsdf_weight * terminator_factor(si, si.to_world(si.wi), si.to_world(bs.wo))
+            beta *= bsdf_weight
             active &= (bs.pdf > 0.0) & (dr.max(beta) > 0.0)
             prev_pdf = bs.pdf
             prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)

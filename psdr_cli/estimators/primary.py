@@ -23,39 +23,41 @@ from ..intersections import Segments, intersection_segments, segment_points
 from .boundary_sampling import BoundaryEdges
 from .camera import Projection, camera_ray, film_pixel
 
-#: Offset of the two radiance samples from the edge, in pixels.
-SIDE_EPS = 1e-3
+#: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
+#: (6.4e-5 px at 32 px, 1e-3 px at 512 px: ≥ 16 float32 ulps of the pixel coordinate). The
+#: difference of the two samples is the jump plus 2·offset·∂L/∂n, and next to a silhouette ∂L/∂n
+#: is steep (grazing faces): an offset of 10⁻³ px at 32 px inflated the image-edge sum of a lit
+#: smooth blob by 0.6 % and its inner-edge sum several times over (docs/gradients.md).
+SIDE_EPS = 2e-6
 #: Relative depth within which a foreign hit counts as "at the edge" (a neighbour face sharing an
 #: end point of the edge, hit by a side ray near that end point).
 DEPTH_TOL = 1e-3
 
 
 def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin):
-    """(v0, v1, face0, face1, mesh index) of the edges that can carry an image discontinuity for
-    this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on open edges).
+    """(v0, v1, face0, face1, mesh index, strict, inner) of the edges that can carry an image
+    discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on open
+    edges): every non-flat edge with at least one face towards the camera (an edge between two
+    back faces of a closed mesh is never seen, and near a silhouette it projects just behind a
+    grazing front face).
 
-    Smooth-shaded meshes: silhouette and open edges (with the experimental terminator factor,
-    ``interior.SMOOTH_TERMINATOR``, every non-flat edge too: the factor depends on the face
-    normal and jumps across edges); flat-shaded meshes: every non-flat edge with
-    at least one face towards the camera (an edge between two back faces of a closed mesh is never
-    seen, and near a silhouette it projects just behind a grazing front face)."""
-    cols = [[] for _ in range(6)]
+    Smooth-shaded meshes need their inner edges too: the pixel value is continuous in the shading
+    normal, but the light a vertex receives is cut at its facet's plane (the terminator), and that
+    plane turns from face to face, so near the terminator the image jumps across every edge.
+    ``strict`` (both sides must see the edge) holds for all but smooth silhouettes (see
+    docs/gradients.md); ``inner`` marks edges whose two faces both face the camera."""
+    cols = [[] for _ in range(7)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
         sel = topo.creases(Vo, camera_origin)
-        strict = np.ones(len(sel), bool)
-        if smooth:  # silhouettes keep the one-side visibility rule (see docs/gradients.md)
-            silhouette = topo.primary(Vo, camera_origin)
-            if not interior.SMOOTH_TERMINATOR:
-                sel = silhouette
-            sel = np.union1d(sel, silhouette)
-            strict = ~np.isin(sel, silhouette)
+        inner = ~np.isin(sel, topo.primary(Vo, camera_origin))
+        strict = inner if smooth else np.ones(len(sel), bool)
         f1 = np.where(topo.open, topo.face0, topo.face1)
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
-                                 np.full(len(sel), m), strict)):
+                                 np.full(len(sel), m), strict, inner)):
             c.append(arr)
     if not cols[0]:
-        return [np.zeros(0, np.int64)] * 6
+        return [np.zeros(0, np.int64)] * 7
     return [np.concatenate(c).astype(np.int64) for c in cols]
 
 
@@ -70,6 +72,7 @@ class Curves:
     shape1: np.ndarray
     face1: np.ndarray
     strict: np.ndarray  # visibility needs both sides (flat creases, intersections), else one side
+    inner: np.ndarray  # both faces face the camera: each side must land on the curve's surface
 
     def __len__(self):
         return len(self.face0)
@@ -91,11 +94,11 @@ def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
 def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
     V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
-    v0, v1, f0, f1, m, strict = primary_edge_ids(edges, V, camera_origin)
+    v0, v1, f0, f1, m, strict, inner = primary_edge_ids(edges, V, camera_origin)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
     gather = lambda i: dr.gather(mi.Point3f, P, mi.UInt32(i.astype(np.uint32)))  # noqa: E731
-    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool))
+    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool))
 
 
 def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
@@ -123,13 +126,13 @@ def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
     keep = (seg.mesh < n_moving).any(1)
     empty = np.zeros(0, np.int64)
     if not keep.any():
-        return Curves(mi.Point3f(), mi.Point3f(), empty, empty, empty, empty, empty.astype(bool))
+        return Curves(mi.Point3f(), mi.Point3f(), empty, empty, empty, empty, empty.astype(bool), empty.astype(bool))
     seg = Segments(seg.ends[keep], seg.mesh[keep], seg.face[keep])
     _, buf, _ = scene_meshes(scene, edges, P)
     p0, p1 = segment_points(buf, seg)
     ids = np.array([shape_id(s) for s, _, _ in meshes], np.int64)
     return Curves(p0, p1, ids[seg.mesh[:, 0]], seg.face[:, 0], ids[seg.mesh[:, 1]], seg.face[:, 1],
-                  np.ones(len(seg), bool))
+                  np.ones(len(seg), bool), np.zeros(len(seg), bool))
 
 
 def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
@@ -139,7 +142,7 @@ def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> C
     if len(b) == 0:
         return a
     return Curves(concat_points(a.p0, b.p0), concat_points(a.p1, b.p1),
-                  *(np.concatenate([getattr(a, k), getattr(b, k)]) for k in ("shape0", "face0", "shape1", "face1", "strict")))
+                  *(np.concatenate([getattr(a, k), getattr(b, k)]) for k in ("shape0", "face0", "shape1", "face1", "strict", "inner")))
 
 
 def edge_depth(ray, p0, p1):
@@ -152,10 +155,14 @@ def edge_depth(ray, p0, p1):
     return (b * dr.dot(w, e) - c * dr.dot(ray.d, w)) / dr.select(denom > 0, denom, 1.0)
 
 
-def edge_visible(scene, rays, p0, p1, own, strict, active):
+def edge_visible(scene, rays, p0, p1, own, strict, inner, active):
     """Whether the camera sees the curve point under q: on *both* sides of it (``strict``: flat
     creases and intersection curves; otherwise — smooth silhouettes — on at least one side) the
-    first hit is one of the curve's own faces, or lies behind the curve (or is a miss).
+    first hit is one of the curve's own faces, or lies behind the curve (or is a miss). On an
+    ``inner`` edge (both faces towards the camera) a side must hit the surface at the edge: one of
+    its faces or a face at its depth (a neighbour sharing an end point). A miss or a farther hit
+    there means the face on that side is thinner than the side offset, next to a silhouette edge
+    that already carries this discontinuity (accepting it counted the silhouette twice).
 
     A point counts as hidden as soon as one side hits a foreign surface in front of it. (The
     former rule, "one side suffices", let through hidden edges next to a silhouette, just behind
@@ -167,7 +174,9 @@ def edge_visible(scene, rays, p0, p1, own, strict, active):
         si = scene.ray_intersect(ray, active)
         sid = dr.reinterpret_array(mi.UInt32, si.shape)
         mine = ((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3]))
-        side = ~si.is_valid() | mine | (si.t > t_edge * (1.0 - DEPTH_TOL))
+        at_edge = si.is_valid() & (dr.abs(si.t - t_edge) <= t_edge * DEPTH_TOL)
+        behind = ~si.is_valid() | (si.t > t_edge * (1.0 - DEPTH_TOL))
+        side = mine | dr.select(inner, at_edge, behind)
         every &= side
         some |= side
     return active & dr.select(strict, every, some)
@@ -202,13 +211,18 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         t = dr.normalize(dr.detach(qb - qa))
         n_s = mi.Vector2f(-t.y, t.x)
         ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height)
-        rays = [camera_ray(sensor, qd + sign * SIDE_EPS * n_s, width, height, ok) for sign in (-1.0, 1.0)]
+        eps = SIDE_EPS * max(width, height)
+        rays = [camera_ray(sensor, qd + sign * eps * n_s, width, height, ok) for sign in (-1.0, 1.0)]
         own = [dr.gather(mi.UInt32, mi.UInt32(getattr(curves, a).astype(np.uint32)), k)
                for a in ("shape0", "face0", "shape1", "face1")]
         strict = dr.gather(mi.Bool, mi.Bool(curves.strict), k)
+        inner = dr.gather(mi.Bool, mi.Bool(curves.inner), k)
         ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
-                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, ok)
-        sides = [interior.radiance(scene, sampler, ray, max_depth, ok) for ray in rays]
+                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok)
+        # common random numbers: both sides trace the same samples, so their difference keeps
+        # the jump and loses most of the noise (each side alone stays unbiased)
+        twin = sampler.clone()
+        sides = [interior.radiance(scene, s, ray, max_depth, ok) for s, ray in zip((sampler, twin), rays)]
         # opaque: the edge length sum changes with the geometry and must not be baked into the kernel
         delta = dr.select(ok, (sides[0] - sides[1]) * dr.opaque(mi.Float, total / n_samples), 0.0)
         pixel = dr.select(ok, film_pixel(qd, width), 0)
