@@ -156,6 +156,15 @@ def test_camera_translation_matches_finite_differences(tmp_path):
     assert agrees(stats), describe(stats)
 
 
+@pytest.mark.slow
+def test_camera_rotation_matches_finite_differences(tmp_path):
+    """The same camera turned about the world z axis (through its own position): every silhouette,
+    crease and shadow boundary sweeps across the image, the static floor's included."""
+    exp = load(camera_cfg("rotate"), tmp_path)
+    stats, _, _ = fd_agreement(exp, 0.003, 16384)
+    assert agrees(stats), describe(stats)
+
+
 def test_camera_motion_refuses_a_visible_area_light(tmp_path):
     cfg = camera_cfg()
     cfg["scene"]["emitters"][0].update(center=[0.0, 0.0, 0.9], normal=[0, -1, 0])
