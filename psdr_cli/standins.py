@@ -50,13 +50,13 @@ def scene_cfg(name, objects, emitters, camera, parameter, spp=(64, 256, 256), ma
             "estimator": {"spp": spp[0], "primary_spp": spp[1], "boundary_spp": spp[2]}}
 
 
-def blob_cfg(smooth: bool) -> dict:
+def blob_cfg(smooth: bool, spp=(64, 256, 256)) -> dict:
     """The bumpy blob (mesh ``blob``: give it :func:`bumpy_blob`) over a floor, translated in x."""
     return scene_cfg("blob", [{"name": "blob", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.6]},
                                "smooth": smooth, "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}},
                               copy.deepcopy(FLOOR)],
                      [copy.deepcopy(LIGHT_SIDE)], {"origin": [0, -2.4, 1.2], "target": [0, 0, 0.45], "fov": 40},
-                     {"object": "blob", "kind": "translate", "axis": [1, 0, 0]})
+                     {"object": "blob", "kind": "translate", "axis": [1, 0, 0]}, spp=spp)
 
 
 def eye_cfg() -> dict:
