@@ -27,6 +27,15 @@ Outputs (written atomically, refreshed after every scene): ``<out>/gradients.jso
     .venv/bin/python benchmarks/gradients.py --quick    # smoke run (≈ 1 min)
     .venv/bin/python benchmarks/gradients.py --wait-idle 120   # wait out other jobs before timing
 
+Real-mesh stand-ins (``psdr_cli.standins``, the scenes of ``tests/test_real_mesh_gradients.py``):
+
+    .venv/bin/python benchmarks/gradients.py --standins              # every stand-in, ≈ 5 min
+    .venv/bin/python benchmarks/gradients.py --standins eyes camera_rotate
+    .venv/bin/python benchmarks/gradients.py --smooth-cost           # smooth vs flat blob timing
+
+give the FD verdict (sum z, tiles) of ours and of ``prb_projective`` and the time of a gradient,
+in ``<out>/gradients_real_meshes.{json,md}`` (a run with some scenes keeps the others' rows).
+
 Timings are only meaningful on an otherwise idle machine: every equal-time row records the CPU
 that other processes used meanwhile ("other processes (cores)").
 """
@@ -40,6 +49,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -52,11 +62,13 @@ sys.path.insert(0, str(REPO))
 import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
+from psdr_cli import api, standins  # noqa: E402
 from psdr_cli.compare import rel_mse  # noqa: E402
 from psdr_cli.config import TERMS, load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.gradient import forward_gradient, prepare  # noqa: E402
-from psdr_cli.reference import block_sums, finite_difference, mitsuba_projective  # noqa: E402
+from psdr_cli.reference import agreement, block_sums, finite_difference, mitsuba_projective  # noqa: E402
+from psdr_cli.verdict import agrees, checks  # noqa: E402
 
 SCENES = ("silhouette", "shadow", "bunny", "cornell")
 FD_BATCHES = 8
@@ -539,6 +551,172 @@ def markdown(report: dict) -> str:
     return "\n".join(L)
 
 # --------------------------------------------------------------------------------------------
+# Real-mesh stand-ins: FD verdict of ours and prb_projective, time of a gradient
+# --------------------------------------------------------------------------------------------
+#: name: (experiment dictionary, procedural meshes, FD step, FD spp in 8 batches)
+STANDINS = {
+    "flat_blob": (lambda: standins.blob_cfg(False), lambda: {"blob": standins.bumpy_blob()}, 0.005, 16384),
+    # at the counts of the flat blob the interior's noise hides the terminator bias: those of its test
+    "smooth_blob": (lambda: standins.blob_cfg(True, spp=(512, 2048, 2048)), lambda: {"blob": standins.bumpy_blob()},
+                    0.005, 65536),
+    "eyes": (standins.eye_cfg, lambda: {"head": standins.head_with_eye()}, 0.005, 32768),
+    "camera_translate": (lambda: standins.camera_cfg("translate"), dict, 0.003, 16384),
+    "camera_rotate": (lambda: standins.camera_cfg("rotate"), dict, 0.003, 16384),
+}
+#: Mitsuba's samples per pixel per batch (8 batches) on the stand-ins.
+STANDIN_MI_SPP = 256
+
+
+def standin_experiment(name: str, folder: Path):
+    cfg, mesh_arrays, _, _ = STANDINS[name]
+    return standins.load(cfg(), folder, mesh_arrays())
+
+
+def verdict_row(stats: dict) -> dict:
+    """Sum z and the tile criteria of the shared verdict, flattened for the report."""
+    row = {"sum": stats["sum"], "agrees": agrees(stats)}
+    row.update({name: value for name, value, _, _ in checks(stats)})
+    return row
+
+
+def standin_row(name: str, folder: Path) -> dict:
+    """FD verdict of ours (every term, 8 passes) and of prb_projective (8 batches), with times."""
+    exp = standin_experiment(name, folder)
+    _, _, h, fd_spp = STANDINS[name]
+    with ForeignLoad() as load:
+        t0 = time.perf_counter()
+        est = api.gradient_images(exp, min_passes=8)
+        ours_s = time.perf_counter() - t0
+    scene, parameter, _, _ = prepare(exp)
+    fd = finite_difference(scene, parameter, 0, h, fd_spp, seed=exp.seed, batches=FD_BATCHES)
+    row = {"parameter": parameter.name, "fd": {"h": h, "spp": fd_spp},
+           "ours": verdict_row(agreement([(e.passes, e.weights) for e in est.values()], fd)),
+           "ours_seconds": ours_s, "ours_other_processes_cores": load.cores,
+           "ours_spp": {"interior": exp.estimator.spp, "primary": exp.estimator.primary_spp,
+                        "boundary": exp.estimator.boundary_spp, "passes": len(next(iter(est.values())).passes)}}
+    log(f"{name}: ours sum z {row['ours']['sum']['z']:+.2f}, agrees {row['ours']['agrees']} ({ours_s:.1f} s)")
+    try:
+        t0 = time.perf_counter()
+        batches = mitsuba_projective(scene, parameter, 0, STANDIN_MI_SPP, seed=5, batches=FD_BATCHES)
+        row["mitsuba"] = verdict_row(agreement([(batches, None)], fd))
+        row["mitsuba_seconds"] = time.perf_counter() - t0
+        log(f"{name}: prb_projective sum z {row['mitsuba']['sum']['z']:+.2f}, agrees {row['mitsuba']['agrees']}")
+    except RuntimeError as exc:
+        cause = exc.__cause__ or exc  # dr.while_loop() wraps the integrator's own exception
+        row["mitsuba_error"] = f"{type(cause).__name__}: {str(cause).splitlines()[0]}"
+        log(f"{name}: prb_projective failed: {row['mitsuba_error']}")
+    return row
+
+
+def gradient_seconds(exp, runs: int = 3) -> dict:
+    """Median wall time per term of one forward-mode gradient at the experiment's sample counts
+    (one pass, after an untimed warm-up call)."""
+    scene, parameter, edges, settings = prepare(exp)
+    settings = settings.with_estimator(passes=1)
+    out = {}
+    for term in TERMS:
+        forward_gradient(scene, edges, parameter, 0, term, settings)
+        times = []
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            forward_gradient(scene, edges, parameter, 0, term, settings)
+            times.append(time.perf_counter() - t0)
+        out[term] = float(np.median(times))
+    out["total"] = sum(out[t] for t in TERMS)
+    return out
+
+
+def smooth_cost(folder: Path) -> dict:
+    """Time of a gradient of the bumpy blob smooth-shaded vs the same mesh flat-shaded (the flat
+    blob's sample counts for both)."""
+    out = {}
+    with ForeignLoad() as load:
+        for shading in ("flat", "smooth"):
+            exp = standins.load(standins.blob_cfg(shading == "smooth"), folder, {"blob": standins.bumpy_blob()})
+            out[shading] = gradient_seconds(exp)
+            log(f"smooth cost: {shading} blob {out[shading]['total']:.2f} s per gradient")
+    out["ratio"] = out["smooth"]["total"] / out["flat"]["total"]
+    out["other_processes_cores"] = load.cores
+    return out
+
+
+def z_cell(row: dict, key: str) -> str:
+    if key not in row:
+        return f"raises `{row.get(key + '_error', 'not run')[:110]}`"
+    r = row[key]
+    s = r["sum"]
+    return f"{s['estimate']:+.4g} ± {s['estimate_se']:.2g} (z {s['z']:+.2f})"
+
+
+def tiles_cell(row: dict, key: str) -> str:
+    if key not in row:
+        return "–"
+    r = row[key]
+    return (f"{100 * r['tiles within 3 SE']:.0f} %, max {r['max |z| (signal tiles)']:.1f}, "
+            f"z² {r['mean z²']:.2f}, corr {r['correlation']:.2f}: **{'agrees' if r['agrees'] else 'disagrees'}**")
+
+
+def standin_markdown(report: dict) -> str:
+    mach = report["machine"]
+    L = ["# Real-mesh stand-ins: ours and `prb_projective` vs finite differences", "",
+         f"Generated by `benchmarks/gradients.py --standins` (last run {report['date']}). Machine: "
+         f"{mach['cpu_count']} CPU cores ({mach['cpu_model']}), variant `{mach['variant']}`, Mitsuba {mach['mitsuba']}, "
+         f"Dr.Jit {mach['drjit']}. Commit `{report['git']['commit'][:10]}`"
+         f"{' (uncommitted changes)' if report['git']['dirty'] else ''}. All numbers are in "
+         "`gradients_real_meshes.json`.", "",
+         "Scenes: `psdr_cli/standins.py` (those of `tests/test_real_mesh_gradients.py`), 32×32 px, 4×4 tiles. "
+         "Ours: every term at the experiment's sample counts, 8 passes. Mitsuba: `prb_projective` (guiding off) at "
+         f"{STANDIN_MI_SPP} spp in 8 batches, same scene, same `max_depth`. FD: central differences with "
+         "common random numbers in 8 batches. Verdict: `psdr_cli.verdict` (sum |z| < 3, ≥ 90 % tiles within "
+         "3 SE, mean z² < 2.5, max |z| on signal tiles < 5, correlation > 0.85).", "",
+         "| scene | parameter | FD sum (h, spp) | ours spp (interior/primary/boundary × passes) | ours sum (z) "
+         "| ours tiles | ours s (all passes) | prb_projective sum (z) | prb_projective tiles | other processes (cores) |",
+         "|---|---|---:|---:|---:|---|---:|---:|---|---:|"]
+    for name in [n for n in STANDINS if n in report["scenes"]]:
+        row = report["scenes"][name]
+        s, n = row["ours"]["sum"], row["ours_spp"]
+        L.append(f"| {name} | {row['parameter']} | {s['fd']:+.4g} ± {s['fd_se']:.2g} ({row['fd']['h']:g}, "
+                 f"{row['fd']['spp']}) | {n['interior']}/{n['primary']}/{n['boundary']} × {n['passes']} | "
+                 f"{z_cell(row, 'ours')} | {tiles_cell(row, 'ours')} | "
+                 f"{row['ours_seconds']:.1f} | {z_cell(row, 'mitsuba')} | {tiles_cell(row, 'mitsuba')} | "
+                 f"{row['ours_other_processes_cores']:.2f} |")
+    cost = report.get("smooth_cost")
+    if cost:
+        L += ["", "## Cost of smooth shading", "",
+              "Median wall time of one forward-mode gradient (one pass, each term at the blob's sample "
+              "counts, after a warm-up call) of the bumpy blob, flat-shaded vs the same mesh smooth-shaded:", "",
+              "| shading | " + " | ".join(TERMS) + " | total |", "|---|" + "---:|" * (len(TERMS) + 1)]
+        for shading in ("flat", "smooth"):
+            L.append(f"| {shading} | " + " | ".join(f"{cost[shading][t]:.2f}" for t in TERMS)
+                     + f" | {cost[shading]['total']:.2f} |")
+        L += ["", f"Smooth / flat: **{cost['ratio']:.2f}×** (other processes used "
+              f"{cost['other_processes_cores']:.2f} cores meanwhile; run `--smooth-cost` again after a change "
+              "to the smooth-shading terms)."]
+    L += ["", "The machine was shared with other jobs while these ran (column 'other processes'); the seconds "
+          "are indicative only, the z values are not affected.", ""]
+    return "\n".join(L)
+
+
+def run_standins(args):
+    """``--standins`` / ``--smooth-cost``: update ``<out>/gradients_real_meshes.{json,md}``."""
+    path = args.out / "gradients_real_meshes.json"
+    report = json.loads(path.read_text()) if path.exists() else {"scenes": {}}
+    report.update(date=datetime.datetime.now().isoformat(timespec="seconds"), git=git_state())
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.standins or ():
+            report["scenes"][name] = standin_row(name, Path(tmp))
+            report["machine"] = machine_info(mi.variant())
+            write_atomic(path, json.dumps(report, indent=1))
+            write_atomic(args.out / "gradients_real_meshes.md", standin_markdown(report))
+        if args.smooth_cost:
+            report["smooth_cost"] = smooth_cost(Path(tmp))
+            report["machine"] = machine_info(mi.variant())
+    write_atomic(path, json.dumps(report, indent=1))
+    write_atomic(args.out / "gradients_real_meshes.md", standin_markdown(report))
+    log(f"wrote {path} and {args.out / 'gradients_real_meshes.md'}")
+
+
+# --------------------------------------------------------------------------------------------
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -561,10 +739,17 @@ def parse_args(argv=None):
     ap.add_argument("--retries", type=int, default=2,
                     help="with --wait-idle: repeat an equal-time block this often while other processes "
                          f"used more than {PERTURBED} cores during it")
+    ap.add_argument("--standins", nargs="*", choices=list(STANDINS), metavar="NAME",
+                    help=f"real-mesh stand-ins instead of the validation scenes (none named: all of "
+                         f"{', '.join(STANDINS)})")
+    ap.add_argument("--smooth-cost", action="store_true",
+                    help="time a gradient of the smooth-shaded blob vs the same mesh flat-shaded")
     ap.add_argument("--render-only", action="store_true",
                     help="only rewrite <out>/gradients.md from an existing <out>/gradients.json")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks", help="output folder")
     args = ap.parse_args(argv)
+    if args.standins == []:
+        args.standins = list(STANDINS)
     full = dict(spp=[16, 64, 256], trials=8, ref_spp=1024, ref_seeds=8, mi_ref_spp=1024, mi_ref_seeds=8, fd_spp=16384)
     quick = dict(spp=[16], trials=3, ref_spp=256, ref_seeds=4, mi_ref_spp=256, mi_ref_seeds=4, fd_spp=2048)
     for k, v in (quick if args.quick else full).items():
@@ -582,6 +767,9 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
+    if args.standins or args.smooth_cost:
+        run_standins(args)
+        return
     if args.render_only:
         report = json.loads((args.out / "gradients.json").read_text())
         write_atomic(args.out / "gradients.md", markdown(report))

@@ -355,12 +355,14 @@ def object_geometry(obj: ObjectConfig):
 # --------------------------------------------------------------------------------------------
 # Building the Mitsuba scene
 # --------------------------------------------------------------------------------------------
-def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = False):
-    """``mi.Mesh`` from arrays with a BSDF instance; ``normals`` (or ``smooth``: normals computed
-    by Mitsuba) and ``texcoords`` as given."""
+def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = False, emitter=None):
+    """``mi.Mesh`` from arrays with a BSDF instance (and optionally an area ``emitter`` instance);
+    ``normals`` (or ``smooth``: normals computed by Mitsuba) and ``texcoords`` as given."""
     props = mi.Properties()
     if bsdf is not None:
         props["bsdf"] = bsdf
+    if emitter is not None:
+        props["emitter"] = emitter
     m = mi.Mesh(name, len(V), len(F), props, normals is not None or smooth, texcoords is not None)
     params = mi.traverse(m)
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(V, np.float32).ravel())

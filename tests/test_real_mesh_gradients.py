@@ -10,94 +10,19 @@ procedural stand-in checked against central finite differences (sum and 4×4 til
 - smooth shading (the facet-plane terminator and the image edges it adds inside smooth meshes),
   with an open smooth mesh and a smooth blob resting on the floor.
 """
-import copy
-import warnings
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-import yaml
 
-from psdr_cli import api, meshes
+from psdr_cli import api
 from psdr_cli.gradient import prepare
 from psdr_cli.config import load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.intersections import intersection_segments
 from psdr_cli.reference import agreement, block_sums, finite_difference, mean_and_error
+from psdr_cli.standins import blob_cfg, bumpy_blob, camera_cfg, eye_cfg, head_with_eye, load
 from psdr_cli.verdict import agrees, describe
-
-LIGHT_SIDE = {"type": "area", "center": [1.6, 0.3, 1.2], "normal": [-0.8, -0.1, -0.3], "size": [0.5, 0.5],
-              "radiance": 20}
-FLOOR = {"name": "floor", "mesh": {"shape": "plane", "size": 4}, "edges": False}
-
-
-def bumpy_blob(subdivisions=3, radius=0.45, amplitude=0.08):
-    """An icosphere with smooth radial bumps (642 vertices at 3 subdivisions): concave and convex
-    edges, a fine silhouette."""
-    V, F = meshes.sphere(radius, subdivisions)
-    u = V / np.linalg.norm(V, axis=1, keepdims=True)
-    bump = amplitude * (np.sin(3 * u[:, 0] + 1) * np.cos(2 * u[:, 1]) + 0.5 * np.sin(4 * u[:, 2]))
-    return V + u * bump[:, None], F
-
-
-def head_with_eye():
-    """One mesh, two shells: a sphere and a smaller one piercing it towards the camera."""
-    V1, F1 = meshes.sphere(0.45, 2)
-    V2, F2 = meshes.sphere(0.2, 2)
-    V2 = V2 + np.array([0.12, -0.38, 0.12])
-    return np.vstack([V1, V2]), np.vstack([F1, F2 + len(V1)])
-
-
-def scene_cfg(name, objects, emitters, camera, parameter, spp=(64, 256, 256), max_depth=2):
-    return {"name": name, "output": "runs", "seed": 3,
-            "scene": {"film": {"width": 32, "height": 32}, "max_depth": max_depth, "cameras": [camera],
-                      "emitters": emitters, "objects": objects},
-            "parameter": parameter,
-            "estimator": {"spp": spp[0], "primary_spp": spp[1], "boundary_spp": spp[2]}}
-
-
-def blob_cfg(smooth):
-    return scene_cfg("blob", [{"name": "blob", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.6]},
-                               "smooth": smooth, "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}},
-                              copy.deepcopy(FLOOR)],
-                     [LIGHT_SIDE], {"origin": [0, -2.4, 1.2], "target": [0, 0, 0.45], "fov": 40},
-                     {"object": "blob", "kind": "translate", "axis": [1, 0, 0]})
-
-
-def eye_cfg():
-    return scene_cfg("eyes", [{"name": "head", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.5]},
-                               "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}}, copy.deepcopy(FLOOR)],
-                     [{"type": "area", "center": [-0.8, -1.2, 2.0], "normal": [0.3, 0.5, -0.8], "size": [0.8, 0.8],
-                       "radiance": 12}, {"type": "constant", "radiance": 0.3}],
-                     {"origin": [0, -2.4, 1.0], "target": [0, 0, 0.45], "fov": 40},
-                     {"object": "head", "kind": "translate", "axis": [1, 0, 0]}, spp=(1024, 256, 256))
-
-
-def camera_cfg(kind="translate"):
-    return scene_cfg("camera", [
-        {"name": "box", "mesh": {"shape": "cube", "size": [0.5, 0.5, 0.5]},
-         "transform": {"translate": [-0.3, 0.1, 0.25], "rotate": {"axis": [0, 0, 1], "angle_deg": 30}},
-         "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
-        {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.25, "subdivisions": 2},
-         "transform": {"translate": [0.4, -0.2, 0.25]}, "bsdf": {"type": "diffuse", "reflectance": [0.3, 0.5, 0.7]}},
-        {"name": "floor", "mesh": {"shape": "plane", "size": 2.4}, "edges": False,
-         "bsdf": {"type": "diffuse", "reflectance": 0.6}}],
-        [{"type": "area", "center": [-0.6, 0.4, 2.2], "normal": [0.3, 0, -1], "size": [0.6, 0.6], "radiance": 15},
-         {"type": "constant", "radiance": 0.2}],
-        {"origin": [0.2, -2.4, 1.3], "target": [0, 0, 0.3], "fov": 40},
-        {"camera": 0, "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]}, spp=(256, 256, 256))
-
-
-def load(cfg, tmp_path, mesh_arrays=None):
-    """Experiment from ``cfg`` with procedural meshes written next to it as PLY files."""
-    for name, (V, F) in (mesh_arrays or {}).items():
-        path = tmp_path / f"{name}.ply"
-        meshes.write_ply(path, V, F)
-        next(o for o in cfg["scene"]["objects"] if o["name"] == name)["mesh"] = {"file": str(path)}
-    path = tmp_path / f"{cfg['name']}.yaml"
-    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
-    return load_experiment(path)
 
 
 def fd_agreement(exp, h, fd_spp):
@@ -153,6 +78,15 @@ def test_camera_translation_matches_finite_differences(tmp_path):
     """A camera translated sideways over a box, a ball and a floor under an area light: silhouettes,
     creases and shadows all move in the image (before: not a parameter)."""
     exp = load(camera_cfg(), tmp_path)
+    stats, _, _ = fd_agreement(exp, 0.003, 16384)
+    assert agrees(stats), describe(stats)
+
+
+@pytest.mark.slow
+def test_camera_rotation_matches_finite_differences(tmp_path):
+    """The same camera turned about the world z axis (through its own position): every silhouette,
+    crease and shadow boundary sweeps across the image, the static floor's included."""
+    exp = load(camera_cfg("rotate"), tmp_path)
     stats, _, _ = fd_agreement(exp, 0.003, 16384)
     assert agrees(stats), describe(stats)
 

@@ -1,0 +1,98 @@
+"""Procedural stand-ins for the published meshes on which gradients were wrong without warning
+(issue 13), shared by ``tests/test_real_mesh_gradients.py`` and ``benchmarks/gradients.py``:
+
+- a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side;
+- a head with an eye: one mesh of two intersecting shells;
+- a moving camera over a box, a ball and a floor.
+
+Each ``*_cfg`` returns an experiment dictionary (32×32 px); :func:`load` writes it, with any
+procedural meshes as PLY files, into a folder and loads it as an :class:`Experiment`.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from . import meshes
+from .config import Experiment, load_experiment
+
+LIGHT_SIDE = {"type": "area", "center": [1.6, 0.3, 1.2], "normal": [-0.8, -0.1, -0.3], "size": [0.5, 0.5],
+              "radiance": 20}
+FLOOR = {"name": "floor", "mesh": {"shape": "plane", "size": 4}, "edges": False}
+
+
+def bumpy_blob(subdivisions=3, radius=0.45, amplitude=0.08):
+    """An icosphere with smooth radial bumps (642 vertices at 3 subdivisions): concave and convex
+    edges, a fine silhouette."""
+    V, F = meshes.sphere(radius, subdivisions)
+    u = V / np.linalg.norm(V, axis=1, keepdims=True)
+    bump = amplitude * (np.sin(3 * u[:, 0] + 1) * np.cos(2 * u[:, 1]) + 0.5 * np.sin(4 * u[:, 2]))
+    return V + u * bump[:, None], F
+
+
+def head_with_eye():
+    """One mesh, two shells: a sphere and a smaller one piercing it towards the camera."""
+    V1, F1 = meshes.sphere(0.45, 2)
+    V2, F2 = meshes.sphere(0.2, 2)
+    V2 = V2 + np.array([0.12, -0.38, 0.12])
+    return np.vstack([V1, V2]), np.vstack([F1, F2 + len(V1)])
+
+
+def scene_cfg(name, objects, emitters, camera, parameter, spp=(64, 256, 256), max_depth=2) -> dict:
+    """An experiment dictionary at 32×32 px with (interior, primary, boundary) sample counts."""
+    return {"name": name, "output": "runs", "seed": 3,
+            "scene": {"film": {"width": 32, "height": 32}, "max_depth": max_depth, "cameras": [camera],
+                      "emitters": emitters, "objects": objects},
+            "parameter": parameter,
+            "estimator": {"spp": spp[0], "primary_spp": spp[1], "boundary_spp": spp[2]}}
+
+
+def blob_cfg(smooth: bool, spp=(64, 256, 256)) -> dict:
+    """The bumpy blob (mesh ``blob``: give it :func:`bumpy_blob`) over a floor, translated in x."""
+    return scene_cfg("blob", [{"name": "blob", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.6]},
+                               "smooth": smooth, "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}},
+                              copy.deepcopy(FLOOR)],
+                     [copy.deepcopy(LIGHT_SIDE)], {"origin": [0, -2.4, 1.2], "target": [0, 0, 0.45], "fov": 40},
+                     {"object": "blob", "kind": "translate", "axis": [1, 0, 0]}, spp=spp)
+
+
+def eye_cfg() -> dict:
+    """The head (mesh ``head``: give it :func:`head_with_eye`) over a floor, translated in x."""
+    return scene_cfg("eyes", [{"name": "head", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.5]},
+                               "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}}, copy.deepcopy(FLOOR)],
+                     [{"type": "area", "center": [-0.8, -1.2, 2.0], "normal": [0.3, 0.5, -0.8], "size": [0.8, 0.8],
+                       "radiance": 12}, {"type": "constant", "radiance": 0.3}],
+                     {"origin": [0, -2.4, 1.0], "target": [0, 0, 0.45], "fov": 40},
+                     {"object": "head", "kind": "translate", "axis": [1, 0, 0]}, spp=(1024, 256, 256))
+
+
+def camera_cfg(kind: str = "translate") -> dict:
+    """A camera translated in x or rotated about z over a box, a ball and a floor."""
+    return scene_cfg("camera", [
+        {"name": "box", "mesh": {"shape": "cube", "size": [0.5, 0.5, 0.5]},
+         "transform": {"translate": [-0.3, 0.1, 0.25], "rotate": {"axis": [0, 0, 1], "angle_deg": 30}},
+         "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
+        {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.25, "subdivisions": 2},
+         "transform": {"translate": [0.4, -0.2, 0.25]}, "bsdf": {"type": "diffuse", "reflectance": [0.3, 0.5, 0.7]}},
+        {"name": "floor", "mesh": {"shape": "plane", "size": 2.4}, "edges": False,
+         "bsdf": {"type": "diffuse", "reflectance": 0.6}}],
+        [{"type": "area", "center": [-0.6, 0.4, 2.2], "normal": [0.3, 0, -1], "size": [0.6, 0.6], "radiance": 15},
+         {"type": "constant", "radiance": 0.2}],
+        {"origin": [0.2, -2.4, 1.3], "target": [0, 0, 0.3], "fov": 40},
+        {"camera": 0, "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]}, spp=(256, 256, 256))
+
+
+def load(cfg: dict, folder: Path, mesh_arrays: dict | None = None) -> Experiment:
+    """Experiment from ``cfg`` with procedural meshes {object name: (V, F)} written next to it as
+    PLY files in ``folder``."""
+    folder = Path(folder)
+    for name, (V, F) in (mesh_arrays or {}).items():
+        path = folder / f"{cfg['name']}_{name}.ply"
+        meshes.write_ply(path, V, F)
+        next(o for o in cfg["scene"]["objects"] if o["name"] == name)["mesh"] = {"file": str(path)}
+    path = folder / f"{cfg['name']}.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return load_experiment(path)
