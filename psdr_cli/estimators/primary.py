@@ -34,23 +34,27 @@ SIDE_EPS = 2e-6
 DEPTH_TOL = 1e-3
 
 
-def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin):
-    """(v0, v1, face0, face1, mesh index, strict, inner) of the edges that can carry an image
-    discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on open
-    edges): every non-flat edge with at least one face towards the camera (an edge between two
-    back faces of a closed mesh is never seen, and near a silhouette it projects just behind a
-    grazing front face).
+def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scattering: bool = True):
+    """(v0, v1, face0, face1, mesh index, strict, inner) of the edges that can carry an
+    image discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on
+    open edges): every non-flat edge with at least one face towards the camera (an edge between
+    two back faces of a closed mesh is never seen, and near a silhouette it projects just behind
+    a grazing front face).
 
-    Smooth-shaded meshes need their inner edges too: the pixel value is continuous in the shading
-    normal, but the light a vertex receives is cut at its facet's plane (the terminator), and that
-    plane turns from face to face, so near the terminator the image jumps across every edge.
-    ``strict`` (both sides must see the edge) holds for all but smooth silhouettes (see
-    docs/gradients.md); ``inner`` marks edges whose two faces both face the camera."""
+    Smooth-shaded meshes need their inner edges too when light scatters at the camera vertex
+    (``scattering``: max_depth ≥ 2): the pixel value is continuous in the shading normal, but the
+    light a vertex receives is cut at its facet's plane (the terminator), and that plane turns
+    from face to face, so near the terminator the image jumps across every edge. ``strict`` (both sides must see the edge)
+    holds for all but smooth silhouettes (see docs/gradients.md); ``inner`` marks edges whose two
+    faces both face the camera."""
     cols = [[] for _ in range(7)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
         sel = topo.creases(Vo, camera_origin)
-        inner = ~np.isin(sel, topo.primary(Vo, camera_origin))
+        silhouette = topo.primary(Vo, camera_origin)
+        if smooth and not scattering:
+            sel = silhouette
+        inner = ~np.isin(sel, silhouette)
         strict = inner if smooth else np.ones(len(sel), bool)
         f1 = np.where(topo.open, topo.face0, topo.face1)
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
@@ -91,10 +95,10 @@ def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
     return mi.Point3f(*(dr.concat([a[i], b[i]]) for i in range(3)))
 
 
-def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
+def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool) -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
     V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
-    v0, v1, f0, f1, m, strict, inner = primary_edge_ids(edges, V, camera_origin)
+    v0, v1, f0, f1, m, strict, inner = primary_edge_ids(edges, V, camera_origin, scattering)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
     gather = lambda i: dr.gather(mi.Point3f, P, mi.UInt32(i.astype(np.uint32)))  # noqa: E731
@@ -135,9 +139,9 @@ def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
                   np.ones(len(seg), bool), np.zeros(len(seg), bool))
 
 
-def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin) -> Curves:
+def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool = True) -> Curves:
     """Mesh edges and intersection curves, concatenated."""
-    a = mesh_edge_curves(scene, edges, P, camera_origin)
+    a = mesh_edge_curves(scene, edges, P, camera_origin, scattering)
     b = intersection_curves(scene, edges, P)
     if len(b) == 0:
         return a
@@ -191,7 +195,8 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
     img = dr.zeros(mi.Float, width * height * 3)
     if edges.count == 0 and not edges.meshes:
         return img
-    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3])
+    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
+                            max_depth >= 2)
     if len(curves) == 0:
         return img
     q0, z0 = proj(curves.p0)
