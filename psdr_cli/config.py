@@ -543,6 +543,11 @@ SHAPE_PARAMS = {
               "minor_radius": number(positive=True, maximum=MAX_COORD),
               "major_sections": integer(3, 4096), "minor_sections": integer(3, 4096)},
     "bunny": {"size": number(positive=True, maximum=MAX_COORD), "faces": integer(100, 1_000_000)},
+    "eared_blob": {"radius": number(positive=True, maximum=MAX_COORD),
+                   "ear_length": number(minimum=0, maximum=MAX_COORD), "ear_width": number(positive=True, maximum=1),
+                   "ear_tilt_deg": number(minimum=-80, maximum=80), "subdivisions": integer(2, 7)},
+    "grooved_block": {"size": None, "groove_radius": number(positive=True, maximum=MAX_COORD),
+                      "segments": integer(2, 4096)},
 }
 #: Physical range of the numeric BSDF parameters (per channel); the others only need to be finite.
 BSDF_RANGES = {name: (0.0, 1.0) for name in (
@@ -636,8 +641,8 @@ def parse_mesh(base: Path) -> Parser:
             raise where.fail("expected 'file: <path.ply|.obj>' or 'shape: " + "|".join(SHAPE_PARAMS) + "'")
         params = {}
         for name, parser in SHAPE_PARAMS[shape].items():
-            if parser is None:  # size of a plane (w, h) or a cube (x, y, z)
-                parser = scale3 if shape == "cube" else _plane_size
+            if parser is None:  # size of a plane (w, h), a cube or a grooved block (x, y, z)
+                parser = _plane_size if shape == "plane" else scale3
             v = sec.get(name, parser, None)
             if v is not None:
                 params[name] = v
