@@ -31,6 +31,10 @@ GUIDINGS = ("none", "grid", "kdtree")
 SAMPLINGS = ("dir", "light", "mis")
 #: Remeshers (``none``: keep the mesh; a scheduled remesh then uses ``isotropic``).
 REMESH_METHODS = ("instant", "isotropic", "none")
+#: Renderers of an optimisation's gradient images (``mitsuba``: Mitsuba's projective integrators).
+ENGINES = ("psdr", "mitsuba")
+#: Mitsuba's projective integrators (``estimator.mitsuba_integrator``).
+MITSUBA_INTEGRATORS = ("direct_projective", "prb_projective")
 #: Mitsuba variants (``auto``: CUDA when present, else LLVM).
 VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
 
@@ -412,6 +416,10 @@ class EstimatorConfig:
     passes: int = 1
     guide_epsilon: float = 0.05
     edge_sort: bool = False
+    engine: str = "psdr"                   # psdr | mitsuba (optimize only)
+    mitsuba_integrator: str | None = None  # default: direct_projective, prb_projective when max_depth > 2
+    mitsuba_spp: int = 16                  # samples per pixel of Mitsuba's render (the tutorial's 16)
+    mitsuba_shadows: bool = False          # Mitsuba's indirect-visibility term (sppi); the recipe turns it off
     chains: ChainConfig = field(default_factory=ChainConfig)
     grid: GridConfig = field(default_factory=GridConfig)
     kdtree: KdTreeConfig = field(default_factory=KdTreeConfig)
@@ -466,6 +474,7 @@ class Variant:
     edge_sort: bool | None = None
     seed: int | None = None
     passes: int | None = None
+    engine: str | None = None
 
 
 @dataclass
@@ -534,6 +543,11 @@ SHAPE_PARAMS = {
               "minor_radius": number(positive=True, maximum=MAX_COORD),
               "major_sections": integer(3, 4096), "minor_sections": integer(3, 4096)},
     "bunny": {"size": number(positive=True, maximum=MAX_COORD), "faces": integer(100, 1_000_000)},
+    "eared_blob": {"radius": number(positive=True, maximum=MAX_COORD),
+                   "ear_length": number(minimum=0, maximum=MAX_COORD), "ear_width": number(positive=True, maximum=1),
+                   "ear_tilt_deg": number(minimum=-80, maximum=80), "subdivisions": integer(2, 7)},
+    "grooved_block": {"size": None, "groove_radius": number(positive=True, maximum=MAX_COORD),
+                      "segments": integer(2, 4096)},
 }
 #: Physical range of the numeric BSDF parameters (per channel); the others only need to be finite.
 BSDF_RANGES = {name: (0.0, 1.0) for name in (
@@ -627,8 +641,8 @@ def parse_mesh(base: Path) -> Parser:
             raise where.fail("expected 'file: <path.ply|.obj>' or 'shape: " + "|".join(SHAPE_PARAMS) + "'")
         params = {}
         for name, parser in SHAPE_PARAMS[shape].items():
-            if parser is None:  # size of a plane (w, h) or a cube (x, y, z)
-                parser = scale3 if shape == "cube" else _plane_size
+            if parser is None:  # size of a plane (w, h), a cube or a grooved block (x, y, z)
+                parser = _plane_size if shape == "plane" else scale3
             v = sec.get(name, parser, None)
             if v is not None:
                 params[name] = v
@@ -974,8 +988,9 @@ def parse_terms(terms) -> tuple | None:
 
 def with_estimator(exp: "Experiment", **overrides) -> "Experiment":
     """The experiment with estimator keys replaced (``None`` values are ignored); values are
-    checked like the YAML keys: ``sampling`` in :data:`SAMPLINGS`, ``guiding`` in :data:`GUIDINGS`."""
-    allowed = {"sampling": SAMPLINGS, "guiding": GUIDINGS}
+    checked like the YAML keys: ``sampling`` in :data:`SAMPLINGS`, ``guiding`` in :data:`GUIDINGS`,
+    ``engine`` in :data:`ENGINES`."""
+    allowed = {"sampling": SAMPLINGS, "guiding": GUIDINGS, "engine": ENGINES}
     changes = {k: v for k, v in overrides.items() if v is not None}
     for key, value in changes.items():
         if key.endswith("spp"):
@@ -1004,6 +1019,13 @@ def parse_estimator(value, where) -> EstimatorConfig:
     est.passes = sec.get("passes", integer(1, MAX_PASSES), est.passes)
     est.guide_epsilon = sec.get("guide_epsilon", number(minimum=0, maximum=1), est.guide_epsilon)
     est.edge_sort = sec.get("edge_sort", boolean, est.edge_sort)
+    est.engine = sec.get("engine", choice(*ENGINES), est.engine)
+    for key in ("mitsuba_integrator", "mitsuba_spp", "mitsuba_shadows"):
+        if sec.has(key) and est.engine != "mitsuba":
+            raise where.child(key).fail("only used with 'engine: mitsuba' (add it, or remove this key)")
+    est.mitsuba_integrator = sec.get("mitsuba_integrator", choice(*MITSUBA_INTEGRATORS), None)
+    est.mitsuba_spp = sec.get("mitsuba_spp", integer(1, MAX_SPP), est.mitsuba_spp)
+    est.mitsuba_shadows = sec.get("mitsuba_shadows", boolean, est.mitsuba_shadows)
     if sec.has("grid"):
         g = Section(sec.get("grid", lambda v, _: v), where.child("grid"))
         est.grid = GridConfig(
@@ -1143,6 +1165,7 @@ def parse_run_variant(value, where) -> Variant:
     if v.label == "reference":
         raise where.child("label").fail("'reference' is taken (the report's reference.ply); choose another label")
     v.seed = sec.get("seed", integer(0), None)
+    v.engine = sec.get("engine", choice(*ENGINES), None)
     sec.done()
     return v
 

@@ -74,6 +74,71 @@ def torus(major_radius: float = 1.0, minor_radius: float = 0.3, major_sections: 
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
+def eared_blob(radius: float = 0.3, ear_length: float = 0.45, ear_width: float = 0.12,
+               ear_tilt_deg: float = 25.0, subdivisions: int = 5):
+    """A stand-in for thin protrusions: a sphere with two thin, flat ears.
+
+    Every icosphere vertex in direction u is pushed out radially, r(u) = radius + ear_length ·
+    Σ_k g(p_k / ear_width, q_k / (2.5·ear_width)), where (p_k, q_k) are u's components across
+    ear k's axis a_k (unit vectors tilted ±``ear_tilt_deg`` from +z in the x–z plane; only the
+    hemisphere u·a_k > 0) and g(p, q) = exp(−(p² + q²)²) is a flat-topped bump: each ear is a
+    finger ≈ 2·ear_width·radius thin (y), 2.5× as wide (x–z) and ``ear_length`` long, with a
+    rounded tip. Star-shaped, hence closed and 2-manifold. Centred on the sphere's centre."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    U = np.asarray(m.vertices, float)
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    r = np.full(len(U), float(radius))
+    for sign in (-1.0, 1.0):
+        t = math.radians(ear_tilt_deg) * sign
+        axis = np.array([math.sin(t), 0.0, math.cos(t)])
+        across = np.array([math.cos(t), 0.0, -math.sin(t)])  # the ear's wide direction
+        p = U @ np.array([0.0, 1.0, 0.0]) / ear_width
+        q = U @ across / (2.5 * ear_width)
+        r += ear_length * np.exp(-(p * p + q * q) ** 2) * (U @ axis > 0)
+    return U * r[:, None], np.asarray(m.faces, np.int64)
+
+
+def groove_profile(depth: float, height: float, groove_radius: float, segments: int):
+    """(y, z_top) of the top edge of a grooved block's cross-section, y from −depth/2 to depth/2:
+    z_top = height except over |y| < groove_radius, where a half-cylinder of that radius is cut
+    in, z_top = height − √(groove_radius² − y²) (``segments`` points on the arc)."""
+    arc = np.linspace(-groove_radius, groove_radius, segments + 1)
+    y = np.concatenate([[-depth / 2], arc, [depth / 2]])
+    z = np.full(len(y), float(height))
+    z[1:-1] = height - np.sqrt(np.maximum(groove_radius ** 2 - arc ** 2, 0.0))
+    z[1], z[-2] = height, height  # the rim: sharp creases where the cut meets the top face
+    return y, z
+
+
+def grooved_block(size=(0.9, 0.7, 0.45), groove_radius: float = 0.16, segments: int = 24):
+    """A stand-in for a machined part: a box ``size`` = (w, d, h) with a half-cylindrical groove
+    of ``groove_radius`` cut along x across its top face, built without booleans.
+
+    The cross-section {(y, z): 0 ≤ z ≤ z_top(y)} (:func:`groove_profile`) is extruded along x
+    from −w/2 to w/2. Each end cap is the strip of quads between consecutive profile columns
+    (y_i, 0)–(y_i, z_top(y_i)), so all its vertices lie on its boundary loop, which the side
+    walls share: the mesh is closed, with sharp creases at the box edges and the groove's rims
+    and a concave groove. Centred on the origin in x/y, resting on z = 0."""
+    w, d, h = (float(x) for x in size)
+    y, z = groove_profile(d, h, groove_radius, segments)
+    n = len(y)
+    # profile loop: bottom points left→right, then top points right→left
+    loop = np.concatenate([np.stack([y, np.zeros(n)], -1), np.stack([y, z], -1)[::-1]])
+    m = len(loop)
+    V = np.concatenate([np.column_stack([np.full(m, -w / 2), loop]), np.column_stack([np.full(m, w / 2), loop])])
+    faces = []
+    for i in range(m):  # side walls between the two copies of the loop
+        j = (i + 1) % m
+        faces += [[i, j, m + j], [i, m + j, m + i]]
+    for i in range(n - 1):  # end caps: quad (bottom_i, bottom_i+1, top_i+1, top_i)
+        b0, b1, t1, t0 = i, i + 1, 2 * n - 2 - i, 2 * n - 1 - i
+        faces += [[b0, t0, t1], [b0, t1, b1]]
+        faces += [[m + b0, m + b1, m + t1], [m + b0, m + t1, m + t0]]
+    mesh = trimesh.Trimesh(V, np.asarray(faces, np.int64), process=True)
+    mesh.fix_normals()
+    return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+
+
 def bunny_path() -> Path:
     """The Stanford-bunny sample shipped inside the installed pymeshlab wheel."""
     path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / "bunny.obj"
@@ -133,6 +198,10 @@ def _procedural(shape: str, params: dict):
         return torus(**params)
     if shape == "bunny":
         return bunny(**params)
+    if shape == "eared_blob":
+        return eared_blob(**params)
+    if shape == "grooved_block":
+        return grooved_block(**params)
     raise ValueError(shape)
 
 

@@ -34,8 +34,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import backend, fileio, gradient, meshes, mitsuba_scene, plots
+from . import backend, fileio, meshes, mitsuba_scene, plots
 from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, ParameterConfig
+from .engines import Engine
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
 from .gradient import Settings, make_guides
@@ -466,6 +467,9 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     write_log(files.log, rows)
     settings = Settings.from_experiment(exp)
     terms = exp.estimator.terms
+    engine = Engine(settings, terms)
+    if not engine.needs_edges:
+        settings = settings.with_estimator(guiding="none")  # Mitsuba's integrators have their own
     target_arrays = [mi.Float(np.asarray(t, np.float32).ravel()) for t in targets]
     if progress:
         progress.start(total, start)
@@ -492,7 +496,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             problem.apply()
             problem.scene.objects[cfg.object].vertices = problem.vertices()
             problem.scene.objects[cfg.object].faces = problem.F
-            edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
+            edges = edge_list(problem.scene, exp.estimator, settings.edge_sort) if engine.needs_edges else None
             t_guide = time.perf_counter()
             anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
             if settings.guiding != "none" and (guides is None or (it - anchor) % cfg.guide_every == 0):
@@ -503,7 +507,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             views = batch_views(exp.seed, it, n_views, cfg.batch_size)
             loss = mi.Float(0.0)
             for v in views:
-                img = gradient.ad_image(problem.scene, edges, v, terms, settings, pass_index=it, guides=guides)
+                img = engine.image(problem, edges, v, it, guides)
                 loss += dr.mean(dr.abs(img - target_arrays[v])) / len(views)
             dr.backward(loss)
             loss_value = float(loss[0])

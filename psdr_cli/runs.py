@@ -121,7 +121,8 @@ def variant_experiments(exp: Experiment, labels=None) -> list:
     unknown = [l for l in labels or () if l not in known]
     if unknown:
         raise PsdrError(f"--variant: unknown variant '{unknown[0]}' (variants of {exp.file.name}: {', '.join(known)})")
-    return [(v.label, replace(with_estimator(exp, guiding=v.guiding, sampling=v.sampling, edge_sort=v.edge_sort),
+    return [(v.label, replace(with_estimator(exp, guiding=v.guiding, sampling=v.sampling, edge_sort=v.edge_sort,
+                                                     engine=v.engine),
                               output=exp.run_dir, name=v.label, seed=exp.seed if v.seed is None else v.seed,
                               optimize=replace(exp.optimize, target_seed=exp.seed)))
             for v in variants if not labels or v.label in labels]
@@ -149,16 +150,27 @@ def write_mesh(path: Path, V, F):
 def run_fingerprint(exp: Experiment) -> str:
     """Hash of what a run's result depends on: scene, estimator, seed and the optimize section
     except the keys that only extend or observe it (iterations, seconds, checkpoint_every,
-    preview_views), with paths relative to the experiment's folder. ``--resume`` continues a
+    preview_views) and the Mitsuba-engine keys of a psdr-engine run (which it never reads), with
+    paths relative to the experiment's folder. ``--resume`` continues a
     run only while this is unchanged (runs saved before fingerprints existed are continued and
     get one). The contents of mesh and image files are not part of it."""
     opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
     h = hashlib.sha256()
-    for part in (exp.scene, exp.estimator, opt):
-        text = json.dumps(asdict(part), default=str, sort_keys=True)
+    for part in (asdict(exp.scene), estimator_identity(exp.estimator), asdict(opt)):
+        text = json.dumps(part, default=str, sort_keys=True)
         h.update(text.replace(str(exp.base_dir), "<experiment folder>").encode())  # the checkout may move
     h.update(str(exp.seed).encode())
     return h.hexdigest()[:16]
+
+
+def estimator_identity(est) -> dict:
+    """The estimator keys a run depends on: all of them with ``engine: mitsuba``; without the
+    engine keys otherwise (a psdr run's fingerprint is what it was before engines existed)."""
+    d = asdict(est)
+    if est.engine == "psdr":
+        for key in ("engine", "mitsuba_integrator", "mitsuba_spp", "mitsuba_shadows"):
+            d.pop(key)
+    return d
 
 
 def saved_fingerprint(files: RunFiles) -> str | None:

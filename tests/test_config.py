@@ -137,6 +137,13 @@ def test_every_emitter_type(tmp_path):
     (lambda d: d.update(estimator={"terms": ["direct", "primery"]}), "estimator.terms[1]", "unknown 'primery'"),
     (lambda d: d.update(estimator={"grid": {"resolution": [4, 4]}}), "estimator.grid.resolution", "3 integers"),
     (lambda d: d["scene"]["objects"][0]["mesh"].update(file="x.ply"), "scene.objects[0].mesh", "not both"),
+    (lambda d: d.update(estimator={"engine": "mitsuba3"}), "estimator.engine", "unknown 'mitsuba3' (expected psdr, mitsuba)"),
+    (lambda d: d.update(estimator={"engine": "mitsuba", "mitsuba_integrator": "prb"}), "estimator.mitsuba_integrator",
+     "expected direct_projective, prb_projective"),
+    (lambda d: d.update(estimator={"mitsuba_spp": 16}), "estimator.mitsuba_spp", "only used with 'engine: mitsuba'"),
+    (lambda d: d.update(estimator={"engine": "mitsuba", "mitsuba_spp": 0}), "estimator.mitsuba_spp", "integer >= 1"),
+    (lambda d: d.update(estimator={"engine": "mitsuba", "mitsuba_shadows": "yes"}), "estimator.mitsuba_shadows",
+     "expected true or false"),
     (lambda d: d["scene"]["emitters"][0].update(radiance=-1), "scene.emitters[0].radiance", "non-negative"),
 ])
 def test_invalid_values_name_the_key(tmp_path, mutate, key, words):
@@ -147,6 +154,16 @@ def test_invalid_values_name_the_key(tmp_path, mutate, key, words):
     msg = str(info.value)
     assert msg.startswith(f"{tmp_path / 'exp.yaml'}: {key}"), msg
     assert words in msg and "\n" not in msg
+
+
+def test_engine_defaults_to_psdr_and_mitsuba_keys_parse(tmp_path):
+    assert parse(experiment(), tmp_path).estimator.engine == "psdr"
+    d = experiment()
+    d["estimator"] = {"engine": "mitsuba", "mitsuba_integrator": "prb_projective", "mitsuba_spp": 8,
+                      "mitsuba_shadows": True}
+    est = parse(d, tmp_path).estimator
+    assert (est.engine, est.mitsuba_integrator, est.mitsuba_spp, est.mitsuba_shadows) == \
+        ("mitsuba", "prb_projective", 8, True)
 
 
 def test_yaml_error_reports_line(tmp_path):

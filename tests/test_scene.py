@@ -68,6 +68,23 @@ def test_procedural_shapes_are_closed_and_valid():
         assert not meshes.degenerate_faces(V, F).any()
 
 
+def test_stand_ins_have_ears_and_a_groove():
+    """eared_blob: closed, outward, two thin ears reaching ear_length above the sphere;
+    grooved_block: closed, outward, the box volume less the half-cylinder groove."""
+    import trimesh
+    V, F = meshes.eared_blob(radius=0.3, ear_length=0.45, ear_width=0.12, subdivisions=4)
+    m = trimesh.Trimesh(V, F, process=False)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+    assert V[:, 2].max() > 0.3 + 0.8 * 0.45 * np.cos(np.radians(25))
+    tips = V[V[:, 2] > 0.6]
+    assert (tips[:, 0] > 0).any() and (tips[:, 0] < 0).any() and np.ptp(tips[:, 1]) < 0.2  # two thin ears
+    V, F = meshes.grooved_block((0.9, 0.7, 0.45), groove_radius=0.16, segments=64)
+    m = trimesh.Trimesh(V, F, process=False)
+    assert m.is_watertight and m.is_winding_consistent and not meshes.degenerate_faces(V, F).any()
+    assert m.volume == pytest.approx(0.9 * 0.7 * 0.45 - 0.9 * np.pi * 0.16 ** 2 / 2, rel=1e-3)
+    assert V[:, 2].min() == pytest.approx(0.0) and V[:, 2].max() == pytest.approx(0.45)
+
+
 def floor_brightness(exp_of, normal):
     d = experiment()
     d["scene"]["objects"] = [{"name": "floor", "mesh": {"shape": "plane", "size": 4}}]

@@ -1,0 +1,215 @@
+#!/usr/bin/env python
+"""Equal-time shape reconstruction: psdr's estimators vs Mitsuba's own recipe, in one loop.
+
+For every scene (the bunny of ``configs/reconstruct_bunny.yaml`` and the stand-ins
+``reconstruct_ears.yaml`` (thin ears) and ``reconstruct_groove.yaml`` (creases, concave groove))
+and every seed, two runs of ``psdr optimize`` fit the same targets from the same initial sphere
+with the same batches, L1 loss, LargeSteps, Adam and remeshing; they differ only in
+``estimator.engine``:
+
+- **psdr**: the experiment's own estimator (interior + primary + direct terms);
+- **mitsuba**: Mitsuba's ``direct_projective`` as its shape-optimisation tutorial sets it up
+  (shadow term off, 16 spp; :mod:`psdr_cli.engines`).
+
+**Load sharing.** All runs live in one process and advance in rounds: in round k every run is
+resumed until its optimisation time reaches k·``--chunk`` seconds (``optimize.seconds`` and
+``--resume``; a resumed run is bit-identical to an uninterrupted one), the engine that goes first
+alternating between rounds. Whatever else the machine runs then slows both engines alike. The
+1-minute load average is sampled after every chunk and reported.
+
+**Shape error** of every checkpoint (every ``checkpoint_every`` iterations, and the final mesh)
+against the ground truth, both normalised with the ground truth's bounding box (longest side 1):
+Chamfer-L1 = ½(mean_P d(p, Q) + mean_Q d(q, P)) and Hausdorff = max(max_P d, max_Q d)
+(:func:`psdr_cli.evaluate.distance`), plotted against the run's optimisation seconds.
+
+Outputs: ``<out>/reconstruction.md`` (table), ``reconstruction.png`` (Chamfer-L1 and Hausdorff
+against seconds, one panel per scene), ``reconstruction.json``.
+
+    .venv/bin/python benchmarks/reconstruction.py                  # 3 scenes × 2 seeds × 300 s each
+    .venv/bin/python benchmarks/reconstruction.py --quick          # 32², 90 s, one scene (bunny)
+    .venv/bin/python benchmarks/reconstruction.py --quick --scenes bunny ears groove
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
+from psdr_cli import evaluate as ev  # noqa: E402
+from psdr_cli.config import RemeshConfig, load_experiment, with_estimator  # noqa: E402
+from psdr_cli.fileio import atomic_path  # noqa: E402
+from psdr_cli.optimize import optimize  # noqa: E402
+from psdr_cli.plots import plt, save  # noqa: E402
+from psdr_cli.runs import RunFiles, read_log  # noqa: E402
+
+SCENES = {"bunny": "configs/reconstruct_bunny.yaml", "ears": "configs/reconstruct_ears.yaml",
+          "groove": "configs/reconstruct_groove.yaml"}
+ENGINES = ("psdr", "mitsuba")
+
+
+def quick_experiment(exp):
+    """The experiment at CPU-smoke scale: 32² film, 500 → 1000 vertices (remesh at 40)."""
+    scene = replace(exp.scene, width=32, height=32)
+    opt = replace(exp.optimize, remesh=RemeshConfig(exp.optimize.remesh.method, 500, (40,), (1000,)),
+                  target_spp=64, checkpoint_every=10)
+    return replace(exp, scene=scene, optimize=opt)
+
+
+def run_experiment(base, engine: str, seed: int, root: Path):
+    """One run: ``base`` with ``estimator.engine`` and ``seed`` replaced, the targets of the
+    base seed, a folder ``<root>/<engine>_s<seed>``, no iteration limit (the time decides)."""
+    exp = with_estimator(base, engine=engine)
+    opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,))
+    return replace(exp, seed=seed, name=f"{engine}_s{seed}", output=root, optimize=opt)
+
+
+def advance(exp, seconds: float, first: bool):
+    """Continue ``exp`` until its optimisation time reaches ``seconds``."""
+    run = replace(exp, optimize=replace(exp.optimize, seconds=seconds))
+    return optimize(run, resume=not first, warn=lambda m: None)
+
+
+def errors(exp, samples: int) -> list:
+    """[(iteration, seconds, Chamfer-L1, Hausdorff)] of every checkpoint of a run."""
+    files = RunFiles(exp.run_dir)
+    reference = ev.load(files.reference)
+    rows = read_log(files.log)
+    seconds = {int(r["iteration"]) + 1: float(r["seconds_total"]) for r in rows}
+    seconds[0] = 0.0
+    out = []
+    for path in sorted(files.checkpoints.glob("iter_*.ply")):
+        it = int(path.stem.split("_")[1])
+        if it in seconds:
+            d = ev.distance(ev.load(path), reference, samples)
+            out.append((it, seconds[it], d.chamfer_l1, d.hausdorff))
+    return out
+
+
+def at_time(curve: list, t: float):
+    """(Chamfer-L1, Hausdorff) when the run's time reached ``t`` seconds: the checkpoint written
+    by the iteration that crossed it (a round's time budget ends a run there)."""
+    done = [c for c in curve if c[1] >= t - 1e-9] or curve[-1:]
+    return done[0][2], done[0][3]
+
+
+def table(results: dict, times: list) -> str:
+    """Markdown: per scene, engine and time, mean ± half-range over seeds of Chamfer-L1 and
+    Hausdorff, and the ratio psdr / Mitsuba of the means."""
+    lines = ["| scene | seconds | psdr Chamfer-L1 | Mitsuba Chamfer-L1 | ratio | psdr Hausdorff | Mitsuba Hausdorff | ratio |",
+             "|---|---|---|---|---|---|---|---|"]
+    for scene, runs in results.items():
+        for t in times:
+            cells, means = [], {}
+            for metric in (0, 1):
+                for engine in ENGINES:
+                    v = np.array([at_time(c, t)[metric] for (e, _), c in runs.items() if e == engine])
+                    means[engine] = float(np.mean(v))
+                    cells.append(f"{np.mean(v):.4f} ± {(v.max() - v.min()) / 2:.4f}")
+                cells.append(f"{means['psdr'] / means['mitsuba']:.2f}")
+            lines.append(f"| {scene} | {t:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(path: Path, results: dict):
+    """Chamfer-L1 (top) and Hausdorff (bottom) against optimisation seconds, a column per scene."""
+    fig, axes = plt.subplots(2, len(results), figsize=(4.2 * len(results), 6.5), squeeze=False)
+    colours = {"psdr": "tab:blue", "mitsuba": "tab:orange"}
+    for col, (scene, runs) in enumerate(results.items()):
+        for (engine, seed), curve in runs.items():
+            t = [c[1] for c in curve]
+            for row, metric in ((0, 2), (1, 3)):
+                axes[row][col].plot(t, [c[metric] for c in curve], "o-", ms=2, color=colours[engine],
+                                    alpha=0.9 if seed == 0 else 0.55,
+                                    label=f"{engine} (seed {seed})")
+        axes[0][col].set_title(scene)
+        for row, name in ((0, "Chamfer-L1"), (1, "Hausdorff")):
+            axes[row][col].set_yscale("log")
+            axes[row][col].set_xlabel("optimisation seconds")
+            axes[row][col].set_ylabel(f"{name} (reference bbox = 1)")
+        axes[0][col].legend(fontsize=7)
+    fig.tight_layout()
+    save(fig, path)
+
+
+def write_report(out: Path, args, results: dict, loads: list, wall: float, times: list):
+    md = [f"# Shape reconstruction at equal time: psdr vs Mitsuba's recipe",
+          "",
+          f"`benchmarks/reconstruction.py {' '.join(sys.argv[1:])}` — {time.strftime('%Y-%m-%d %H:%M')}, "
+          f"{platform.machine()}, {os.cpu_count()} cores, Dr.Jit threads per optimisation: "
+          f"{os.environ.get('PSDR_OPTIMIZE_THREADS', '1')}.",
+          f"Machine load while it ran (1-minute load average after each chunk, this benchmark included): "
+          f"mean {np.mean(loads):.2f}, min {np.min(loads):.2f}, max {np.max(loads):.2f}; wall time {wall / 60:.1f} min.",
+          "",
+          "Same loop, targets, initial sphere, batches, L1 loss, LargeSteps λ, Adam, remeshing; "
+          "`psdr`: the experiment's estimator; `mitsuba`: `direct_projective`, shadow term off, 16 spp. "
+          "Runs advance in alternating chunks of "
+          f"{args.chunk:g} s so that load is shared. Errors are normalised by the ground truth's bounding box; "
+          "mean ± half-range over seeds; ratio = psdr / Mitsuba (< 1: psdr better).",
+          "",
+          table(results, times),
+          "",
+          "![Chamfer-L1 and Hausdorff against optimisation seconds](reconstruction.png)",
+          ""]
+    with atomic_path(out / "reconstruction.md") as tmp:
+        Path(tmp).write_text("\n".join(md))
+    data = {scene: {f"{e}_s{s}": c for (e, s), c in runs.items()} for scene, runs in results.items()}
+    with atomic_path(out / "reconstruction.json") as tmp:
+        Path(tmp).write_text(json.dumps({"args": vars(args) | {"out": str(args.out), "runs": str(args.runs)},
+                                         "loads": loads, "curves": data}, indent=1))
+    plot(out / "reconstruction.png", results)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="32² film, 90 s per run, bunny only (unless --scenes)")
+    ap.add_argument("--scenes", nargs="+", choices=list(SCENES), help="scenes (default: all; quick: bunny)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds per engine")
+    ap.add_argument("--seconds", type=float, help="optimisation seconds per run (default 300; quick: 90)")
+    ap.add_argument("--chunk", type=float, help="seconds per run and round (default 50; quick: 30)")
+    ap.add_argument("--samples", type=int, default=50_000, help="surface points per mesh for the distances")
+    ap.add_argument("--runs", type=Path, default=REPO / "runs" / "benchmarks" / "reconstruction", help="run folders")
+    ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks", help="output folder")
+    args = ap.parse_args(argv)
+    scenes = args.scenes or (["bunny"] if args.quick else list(SCENES))
+    seconds = args.seconds or (90.0 if args.quick else 300.0)
+    args.chunk = args.chunk or (30.0 if args.quick else 50.0)
+    rounds = int(np.ceil(seconds / args.chunk))
+    runs = {}
+    for scene in scenes:
+        base = load_experiment(REPO / SCENES[scene])
+        base = quick_experiment(base) if args.quick else base
+        for seed in args.seeds:
+            for engine in ENGINES:
+                runs[(scene, engine, seed)] = run_experiment(base, engine, seed, args.runs / ("quick" if args.quick else "full") / scene)
+    loads, t0 = [], time.time()
+    for k in range(1, rounds + 1):
+        budget = min(k * args.chunk, seconds)
+        first = ENGINES if k % 2 else ENGINES[::-1]  # the engines take turns going first
+        for key, exp in sorted(runs.items(), key=lambda kv: (kv[0][0], kv[0][2], first.index(kv[0][1]))):
+            advance(exp, budget, first=k == 1)
+            loads.append(os.getloadavg()[0])
+            print(f"round {k}/{rounds}: {key[0]} {key[1]} seed {key[2]} at {budget:g} s "
+                  f"(load {loads[-1]:.2f}, {(time.time() - t0) / 60:.1f} min)", flush=True)
+    results = {}
+    for (scene, engine, seed), exp in runs.items():
+        results.setdefault(scene, {})[(engine, seed)] = errors(exp, args.samples)
+    times = sorted({min(k * args.chunk, seconds) for k in (max(rounds // 3, 1), max(2 * rounds // 3, 1), rounds)})
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_report(args.out, args, results, loads, time.time() - t0, times)
+    print((args.out / "reconstruction.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
