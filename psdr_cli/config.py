@@ -388,7 +388,8 @@ class GridConfig:
 @dataclass
 class KdTreeConfig:
     samples_per_node: int = 32
-    initial_samples: int = 262144
+    initial_samples: int = 32768
+    refine_ratio: float = 2.0        # second batch (drawn from the first tree) / initial_samples
     interval_share: float = 0.1
     threshold: float = 0.002
     max_depth: int = 24
@@ -1031,7 +1032,8 @@ def parse_estimator(value, where) -> EstimatorConfig:
         d = KdTreeConfig()
         est.kdtree = KdTreeConfig(
             samples_per_node=k.get("samples_per_node", integer(4, 1 << 16), d.samples_per_node),
-            initial_samples=k.get("initial_samples", integer(0, 1 << 26), d.initial_samples),
+            initial_samples=k.get("initial_samples", integer(1, 1 << 22), d.initial_samples),
+            refine_ratio=k.get("refine_ratio", number(minimum=0, maximum=16), d.refine_ratio),
             interval_share=k.get("interval_share", number(minimum=0, maximum=1), d.interval_share),
             threshold=k.get("threshold", number(minimum=0), d.threshold),
             max_depth=k.get("max_depth", integer(1, 64), d.max_depth),

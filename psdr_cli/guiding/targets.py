@@ -61,14 +61,16 @@ class Guides:
         return out + ([("indirect/dir", self.indirect)] if self.indirect is not None else [])
 
 
-def build_guide(kind: str, target, breaks, estimator, seed: int):
-    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings."""
+def build_guide(kind: str, target, breaks, estimator, seed: int, prior=None):
+    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings; a
+    Kd-tree ``prior`` (the previous guide of the same target) makes the build a one-batch refresh."""
     if kind == "grid":
         g = estimator.grid
         return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
     k = estimator.kdtree
     return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, k.initial_samples, k.interval_share)
+                        estimator.guide_epsilon, seed, k.initial_samples, k.interval_share,
+                        k.refine_ratio, prior=prior if getattr(prior, "kind", None) == "kdtree" else None)
 
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
