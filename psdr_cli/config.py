@@ -26,7 +26,7 @@ REQUIRED = object()
 #: Terms of dI/dθ = interior + primary + direct + indirect (in this order).
 TERMS = ("interior", "primary", "direct", "indirect")
 #: Boundary guides over the primary samples u.
-GUIDINGS = ("none", "grid", "kdtree")
+GUIDINGS = ("auto", "none", "grid", "kdtree")
 #: Direction techniques of the boundary terms (``mis``: both, balance heuristic).
 SAMPLINGS = ("dir", "light", "mis")
 #: Remeshers (``none``: keep the mesh; a scheduled remesh then uses ``isotropic``).
@@ -388,7 +388,7 @@ class GridConfig:
 @dataclass
 class KdTreeConfig:
     samples_per_node: int = 32
-    initial_samples: int = 32768
+    initial_samples: int = 0         # 0: auto, 1/16 of one boundary pass's lanes in [4096, 32768]
     refine_ratio: float = 2.0        # second batch (drawn from the first tree) / initial_samples
     interval_share: float = 0.1
     threshold: float = 0.002
@@ -409,7 +409,7 @@ class EstimatorConfig:
     boundary_spp: int = 16
     terms: tuple = ("interior", "primary", "direct", "indirect")
     sampling: str = "mis"
-    guiding: str = "none"
+    guiding: str = "auto"
     passes: int = 1
     guide_epsilon: float = 0.05
     edge_sort: bool = False
@@ -1032,7 +1032,7 @@ def parse_estimator(value, where) -> EstimatorConfig:
         d = KdTreeConfig()
         est.kdtree = KdTreeConfig(
             samples_per_node=k.get("samples_per_node", integer(4, 1 << 16), d.samples_per_node),
-            initial_samples=k.get("initial_samples", integer(1, 1 << 22), d.initial_samples),
+            initial_samples=k.get("initial_samples", integer(0, 1 << 22), d.initial_samples),
             refine_ratio=k.get("refine_ratio", number(minimum=0, maximum=16), d.refine_ratio),
             interval_share=k.get("interval_share", number(minimum=0, maximum=1), d.interval_share),
             threshold=k.get("threshold", number(minimum=0), d.threshold),

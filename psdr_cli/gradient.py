@@ -27,6 +27,7 @@ from .estimators.direct import direct_boundary
 from .estimators.indirect import indirect_boundary
 from .estimators.passes import AD_LANES, make_sampler, pass_seed, passes_for
 from .estimators.primary import primary_boundary
+from .guiding import auto
 from .guiding.targets import Guides, build_guides
 from .parameters import Parameter
 from .reference import agreement, finite_difference
@@ -135,11 +136,23 @@ def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
 
 
 def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings) -> Guides:
-    """Guides of the direct and indirect terms for ``views`` (empty when guiding is off)."""
-    if settings.guiding == "none":
-        return Guides()
+    """Guides of the direct and indirect terms for ``views`` (empty when no term is guided;
+    ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`)."""
     return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth,
                         settings.estimator, settings.seed)
+
+
+def uses_guides(settings: Settings, terms, pixels: int) -> bool:
+    """Whether any of ``terms`` is guided for images of ``pixels`` pixels."""
+    kinds = auto.resolve(settings.guiding, terms, pixels, settings.boundary_spp)
+    return any(k != "none" for k in kinds.values())
+
+
+def guiding_line(exp: Experiment, terms=None) -> str:
+    """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved)."""
+    e = exp.estimator
+    return auto.describe(e.guiding, parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
+                         e.boundary_spp)
 
 
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
@@ -296,7 +309,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
                 channels[f"{name}.{ch}"] = g[..., c]
         header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.parameter": parameter.name,
                   "psdr.terms": ",".join(terms), "psdr.sampling": settings.sampling,
-                  "psdr.guiding": settings.guiding, "psdr.edge_sort": str(settings.edge_sort),
+                  "psdr.guiding": guiding_line(exp, terms), "psdr.edge_sort": str(settings.edge_sort),
                   "psdr.guide_seconds": f"{guide_seconds:.3f}",
                   "psdr.spp": {t: str(settings.samples(t)) for t in terms},
                   "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}

@@ -9,7 +9,7 @@ import pytest
 from psdr_cli import api
 from psdr_cli.config import parse_experiment, with_estimator
 from psdr_cli.gradient import forward_gradient, make_guides, prepare
-from psdr_cli.guiding import build_grid, build_kdtree
+from psdr_cli.guiding import auto, build_grid, build_kdtree
 from psdr_cli.guiding.kdtree import KdTreeGuide
 from psdr_cli.guiding.guide import GuideStats, trilinear_weights
 
@@ -284,3 +284,34 @@ def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatc
     monkeypatch.setattr(gradient, "forward_gradient", fake)
     Comparison(exp, ("direct", "indirect")).passes(Variant("none"), 1, 8, None)
     assert asked == {"direct": (128, 8), "indirect": (128, 8)}
+
+
+def test_auto_guiding_rule():
+    """auto: the direct term gets a Kd-tree from DIRECT_MIN_LANES lanes per pass on, the indirect
+    term none; explicit kinds apply to every term; the line names each term's choice."""
+    big, small = auto.DIRECT_MIN_LANES, auto.DIRECT_MIN_LANES - 1
+    assert auto.choose("direct", big) == "kdtree" and auto.choose("direct", small) == "none"
+    assert auto.choose("indirect", 1 << 30) == "none"
+    assert auto.resolve("auto", ("interior", "direct", "indirect"), 128 * 128, 16) == \
+        {"direct": "kdtree", "indirect": "none"}
+    assert auto.resolve("auto", ("direct",), 48 * 48, 64) == {"direct": "none"}
+    assert auto.resolve("grid", ("direct", "indirect"), 4, 1) == {"direct": "grid", "indirect": "grid"}
+    assert auto.resolve("auto", ("interior", "primary"), 4, 1) == {}
+    line = auto.describe("auto", ("direct", "indirect"), 128 * 128, 16)
+    assert line.startswith("guiding auto: direct kdtree, indirect none")
+
+
+def test_kdtree_refresh_from_a_prior_guide(variant):
+    """A refresh draws one batch from the previous guide: still a normalised density that
+    estimates ∫F̃ without bias, built from (1 + refine_ratio) × initial_samples evaluations."""
+    first = build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=1, initial_samples=4096)
+    guide = build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=2, initial_samples=4096,
+                         prior=first)
+    assert guide.stats.evaluations == 3 * 4096 and guide.stats.leaves > 1
+    rng = np.random.default_rng(4)
+    p = guide.pdf_np(rng.random((200_000, 3)))
+    assert abs(p.mean() - 1.0) < 4 * p.std() / np.sqrt(len(p))
+    s, ps = guide.sample_np(200_000, rng)
+    f = peaked(s) / ps
+    truth = 0.2 * 0.1 + 0.6 * np.pi * 0.005 * 0.998
+    assert abs(f.mean() - truth) < 4 * f.std() / np.sqrt(len(f))

@@ -17,11 +17,15 @@ import numpy as np
 from ..estimators.direct import direct_target
 from ..estimators.indirect import indirect_target
 from ..estimators.passes import make_sampler
+from . import auto
 from .grid import build_grid
 from .kdtree import build_kdtree
 
 #: lanes per batched target evaluation
 CHUNK = 1 << 19
+#: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
+AUTO_SHARE = 16
+AUTO_RANGE = (4096, 32768)
 
 
 def target_function(scene, edges, views: list, term: str, technique: str, mis: bool,
@@ -61,7 +65,15 @@ class Guides:
         return out + ([("indirect/dir", self.indirect)] if self.indirect is not None else [])
 
 
-def build_guide(kind: str, target, breaks, estimator, seed: int, prior=None):
+def initial_samples(estimator, pixels: int) -> int:
+    """The Kd-tree's first batch: ``kdtree.initial_samples``, or when it is 0 (auto)
+    pixels · boundary_spp / AUTO_SHARE clamped to AUTO_RANGE, so that both batches together
+    ((1 + refine_ratio) × this) cost a fixed share of one boundary pass."""
+    n = estimator.kdtree.initial_samples
+    return n if n > 0 else int(np.clip(pixels * estimator.boundary_spp // AUTO_SHARE, *AUTO_RANGE))
+
+
+def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int, prior=None):
     """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings; a
     Kd-tree ``prior`` (the previous guide of the same target) makes the build a one-batch refresh."""
     if kind == "grid":
@@ -69,23 +81,29 @@ def build_guide(kind: str, target, breaks, estimator, seed: int, prior=None):
         return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
     k = estimator.kdtree
     return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, k.initial_samples, k.interval_share,
+                        estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
                         k.refine_ratio, prior=prior if getattr(prior, "kind", None) == "kdtree" else None)
 
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
-                 seed: int = 0) -> Guides:
-    """Guides for the direct and indirect terms among ``terms`` (``estimator.guiding`` ≠ none)."""
+                 seed: int = 0, prior: Guides | None = None) -> Guides:
+    """Guides for the direct and indirect terms among ``terms``, each of the kind
+    :func:`auto.resolve` gives for ``estimator.guiding``; ``prior`` (the previous guides of an
+    optimisation) turns Kd-tree builds into one-batch refreshes."""
     guides = Guides()
-    if estimator.guiding == "none" or edges.count == 0:
+    pixels = int(np.prod(scene.resolution))
+    kinds = auto.resolve(estimator.guiding, terms, pixels, estimator.boundary_spp)
+    if edges.count == 0 or all(k == "none" for k in kinds.values()):
         return guides
+    prior = prior or Guides()
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
     mis = sampling == "mis"
-    if "direct" in terms:
+    if kinds.get("direct", "none") != "none":
         for i, t in enumerate(("light", "dir") if mis else (sampling,)):
             f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed)
-            guides.direct[t] = build_guide(estimator.guiding, f, breaks, estimator, seed + i)
-    if "indirect" in terms and max_depth >= 3:
+            guides.direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
+                                           prior.direct.get(t))
+    if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
-        guides.indirect = build_guide(estimator.guiding, f, breaks, estimator, seed + 2)
+        guides.indirect = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels, prior.indirect)
     return guides
