@@ -389,8 +389,9 @@ class GridConfig:
 class KdTreeConfig:
     samples_per_node: int = 32
     initial_samples: int = 0         # 0: auto, 1/16 of one boundary pass's lanes in [4096, 32768]
-    refine_ratio: float = 2.0        # second batch (drawn from the first tree) / initial_samples
+    refine_ratio: float = 0.0        # second batch (drawn from the first tree) / initial_samples
     interval_share: float = 0.1
+    technique_share: float = 0.3     # MIS: share of the techniques' common u1 (edge) profile
     threshold: float = 0.002
     max_depth: int = 24
     max_leaves: int = 65536
@@ -1035,6 +1036,7 @@ def parse_estimator(value, where) -> EstimatorConfig:
             initial_samples=k.get("initial_samples", integer(0, 1 << 22), d.initial_samples),
             refine_ratio=k.get("refine_ratio", number(minimum=0, maximum=16), d.refine_ratio),
             interval_share=k.get("interval_share", number(minimum=0, maximum=1), d.interval_share),
+            technique_share=k.get("technique_share", number(minimum=0, maximum=1), d.technique_share),
             threshold=k.get("threshold", number(minimum=0), d.threshold),
             max_depth=k.get("max_depth", integer(1, 64), d.max_depth),
             max_leaves=k.get("max_leaves", integer(1, 1 << 22), d.max_leaves))

@@ -135,11 +135,12 @@ def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
 
 
-def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings) -> Guides:
+def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings, parameter=None) -> Guides:
     """Guides of the direct and indirect terms for ``views`` (empty when no term is guided;
-    ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`)."""
+    ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`). With the scalar
+    ``parameter`` θ (forward mode) the direct term's guides follow dv/dθ, velocity included."""
     return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth,
-                        settings.estimator, settings.seed)
+                        settings.estimator, settings.seed, parameter=parameter)
 
 
 def uses_guides(settings: Settings, terms, pixels: int) -> bool:
@@ -248,7 +249,7 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
     each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
     scene, parameter, edges, settings = prepare(exp, spp, scene)
     terms = parse_terms(terms) or exp.estimator.terms
-    guides = make_guides(scene, edges, [view], terms, settings)
+    guides = make_guides(scene, edges, [view], terms, settings, parameter)
     return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress, guides)
             for t in terms}
 
@@ -296,7 +297,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
         progress.start(len(views) * per_view)
     for v in views:
         t0 = time.perf_counter()
-        guides = make_guides(scene, edges, [v], terms, settings)
+        guides = make_guides(scene, edges, [v], terms, settings, parameter)
         guide_seconds = time.perf_counter() - t0
         estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes,
                                          progress.advance if progress else None, guides) for t in terms}

@@ -144,6 +144,34 @@ def blend_interval_mean(lo, hi, corners, breaks, share: float):
 
 
 
+def interval_profile(guide, breaks) -> tuple:
+    """(share of the guide's mass M in each u1 interval of ``breaks`` (sums to 1), interval of
+    each leaf)."""
+    k = np.clip(np.searchsorted(breaks, 0.5 * (guide.lo[:, 0] + guide.hi[:, 0]), side="right") - 1,
+                0, len(breaks) - 2)
+    mass = np.bincount(k, guide.mass, minlength=len(breaks) - 1)
+    return mass / max(mass.sum(), 1e-300), k
+
+
+def share_profiles(guides: dict, breaks, share: float) -> dict:
+    """MIS guides over the same u1 with a common edge profile: each technique's leaf values
+    become (1 − share) f + share · M · p̄_k / |interval k|, p̄ the mean of the techniques' interval
+    mass shares. u1 (the edge point) means the same for every technique, so an edge that one
+    technique's samples found (e.g. light sampling towards a small emitter) is not left to the
+    uniform share ε by another (wedge sampling, whose non-zero directions there are rare)."""
+    trees = {t: g for t, g in guides.items() if g.kind == "kdtree" and g.total > 0}
+    if share <= 0 or len(trees) < 2:
+        return guides
+    breaks = np.unique(np.clip(np.r_[0.0, np.asarray(breaks, np.float64), 1.0], 0.0, 1.0))
+    profiles = {t: interval_profile(g, breaks) for t, g in trees.items()}
+    mean = np.mean([p for p, _ in profiles.values()], axis=0) / np.diff(breaks)
+    out = dict(guides)
+    for t, g in trees.items():
+        corners = (1.0 - share) * g.corners + share * g.total * mean[profiles[t][1]][:, None]
+        out[t] = KdTreeGuide(g.lo, g.hi, corners, g.epsilon, g.stats, g.axis, g.split, g.child, g.node_leaf)
+    return out
+
+
 def interval_counts(breaks, n: int, minimum: int) -> np.ndarray:
     """Uniform samples per u1 interval: ∝ its length, at least ``minimum``."""
     return np.maximum(minimum, np.round(n * np.diff(breaks)).astype(np.int64))

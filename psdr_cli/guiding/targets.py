@@ -14,23 +14,43 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..estimators.direct import direct_target
+from ..estimators.direct import direct_motion_target, direct_target
 from ..estimators.indirect import indirect_target
 from ..estimators.passes import make_sampler
 from . import auto
 from .grid import build_grid
-from .kdtree import build_kdtree
+from .kdtree import build_kdtree, share_profiles
 
 #: lanes per batched target evaluation
 CHUNK = 1 << 19
 #: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
-AUTO_SHARE = 16
-AUTO_RANGE = (4096, 32768)
+AUTO_SHARE = 1
+AUTO_RANGE = (65536, 262144)
+
+
+def motion_target(scene, sensors, edges, parameter, technique: str, mis: bool, u) -> mi.Float:
+    """F̃(u) = Σ_views max_RGB |dv/dθ| of the direct term's samples (forward mode in θ): the
+    integrand itself, velocity included."""
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    parameter.apply(theta)
+    P = edges.positions(mi.traverse(scene.mi_scene))
+    vs = direct_motion_target(scene.mi_scene, sensors, edges, P, technique, mis, u)
+    dr.forward(theta)
+    total = mi.Float(0.0)
+    for v in vs:
+        total += dr.max(dr.abs(dr.grad(v)))
+    dr.eval(total)
+    parameter.reset()
+    return total
 
 
 def target_function(scene, edges, views: list, term: str, technique: str, mis: bool,
-                    max_depth: int, seed: int):
-    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``."""
+                    max_depth: int, seed: int, parameter=None):
+    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``. With the scalar
+    ``parameter`` θ (forward mode) the direct term's target includes the velocity,
+    F̃ = max_RGB |dv/dθ| (:func:`motion_target`); without it (optimisation: many parameters)
+    F̃ = max_RGB |F| without the velocity factor."""
     sensors = [scene.sensors[v] for v in views]
     mi_scene = scene.mi_scene
     calls = [0]
@@ -41,7 +61,9 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
         for a in range(0, len(u), CHUNK):
             chunk = u[a:a + CHUNK].astype(np.float32)
             pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(chunk[:, i])) for i in range(3)))
-            if term == "direct":
+            if term == "direct" and parameter is not None:
+                val = motion_target(scene, sensors, edges, parameter, technique, mis, pt)
+            elif term == "direct":
                 val = direct_target(mi_scene, sensors, edges, P, technique, mis, pt)
             else:
                 calls[0] += 1
@@ -86,10 +108,11 @@ def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int, pr
 
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
-                 seed: int = 0, prior: Guides | None = None) -> Guides:
+                 seed: int = 0, prior: Guides | None = None, parameter=None) -> Guides:
     """Guides for the direct and indirect terms among ``terms``, each of the kind
     :func:`auto.resolve` gives for ``estimator.guiding``; ``prior`` (the previous guides of an
-    optimisation) turns Kd-tree builds into one-batch refreshes."""
+    optimisation) turns Kd-tree builds into one-batch refreshes; ``parameter`` (the scalar θ of
+    a forward-mode gradient) puts the velocity into the direct term's target."""
     guides = Guides()
     pixels = int(np.prod(scene.resolution))
     kinds = auto.resolve(estimator.guiding, terms, pixels, estimator.boundary_spp)
@@ -100,9 +123,10 @@ def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int
     mis = sampling == "mis"
     if kinds.get("direct", "none") != "none":
         for i, t in enumerate(("light", "dir") if mis else (sampling,)):
-            f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed)
+            f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, parameter)
             guides.direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
                                            prior.direct.get(t))
+        guides.direct = share_profiles(guides.direct, breaks, estimator.kdtree.technique_share)
     if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
         guides.indirect = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels, prior.indirect)
