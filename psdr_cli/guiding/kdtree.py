@@ -47,6 +47,8 @@ from .guide import CORNERS, Guide, GuideStats
 RIDGE = 1e-6
 #: smallest uniform share of the guide that places the refinement samples
 EXPLORE = 0.25
+#: zero-valued samples kept for the fits, per non-zero sample (:func:`thin_zeros`)
+ZERO_KEEP = 4.0
 
 
 class KdTreeGuide(Guide):
@@ -102,13 +104,13 @@ def _node_sums(q, starts, M):
 TRIU = np.triu_indices(4)
 
 
-def _statistics(x, f, w):
+def _statistics(x, f, w, n):
     """Per-sample sufficient statistics of a weighted linear fit f ≈ A·c with A = (1, x − ½):
-    columns w·A_iA_j (i ≤ j, 10), w·A_i f (4), w f², 1 → (M, 16)."""
+    columns w·A_iA_j (i ≤ j, 10), w·A_i f (4), w f², n (samples represented) → (M, 16)."""
     A = np.concatenate([np.ones((len(x), 1)), x - 0.5], axis=1)
     wA = w[:, None] * A
     return np.concatenate([wA[:, TRIU[0]] * A[:, TRIU[1]], wA * f[:, None], (w * f * f)[:, None],
-                           np.ones((len(x), 1))], axis=1)
+                           n[:, None]], axis=1)
 
 
 def _solve(sums):
@@ -263,13 +265,14 @@ def regroup(group, keep_nodes, child_side=None):
     return sel, new[sel]
 
 
-def grow(top, breaks, u, f, w, samples_per_node, threshold, max_depth, max_leaves):
+def grow(top, breaks, u, f, w, n, samples_per_node, threshold, max_depth, max_leaves):
     """Grow the tree below the u1 intervals (``top``: :func:`interval_tree`) from fixed weighted
-    samples (step 3 of the module docstring). Returns the :class:`Growth`."""
+    samples, each standing for n samples (step 3 of the module docstring). Returns the
+    :class:`Growth`."""
     nodes, ids, lo, hi = top
     tree = Growth(nodes)
     sg = np.clip(np.searchsorted(breaks, u[:, 0], side="right") - 1, 0, len(ids) - 1)
-    su, sf, sw = u, f, w
+    su, sf, sw, sn = u, f, w, n
     depth = np.zeros(len(ids), np.int64)
     total = None
     while len(ids):
@@ -278,16 +281,16 @@ def grow(top, breaks, u, f, w, samples_per_node, threshold, max_depth, max_leave
         if zero.any():
             tree.add_leaves(ids[zero], lo[zero], hi[zero], np.zeros((int(zero.sum()), 8)), depth[zero])
             sel, sg = regroup(sg, ~zero)
-            su, sf, sw = su[sel], sf[sel], sw[sel]
+            su, sf, sw, sn = su[sel], sf[sel], sw[sel], sn[sel]
             ids, lo, hi, depth = ids[~zero], lo[~zero], hi[~zero], depth[~zero]
             if not len(ids):
                 break
         order = np.argsort(sg, kind="stable")
-        su, sf, sw, sg = su[order], sf[order], sw[order], sg[order]
+        su, sf, sw, sn, sg = su[order], sf[order], sw[order], sn[order], sg[order]
         K, M = len(ids), len(sg)
         starts = np.searchsorted(sg, np.arange(K))
         x = (su - lo[sg]) / (hi - lo)[sg]
-        q = _statistics(x, sf, sw)
+        q = _statistics(x, sf, sw, sn)
         sums = _node_sums(q, starts, M)
         coef, _ = _solve(sums)
         wsum, count = sums[:, 0], sums[:, 15]
@@ -311,7 +314,7 @@ def grow(top, breaks, u, f, w, samples_per_node, threshold, max_depth, max_leave
         best = split_axes(q, x, sg, want, sums)
         ids, lo, hi = tree.split_nodes(ids[want], lo[want], hi[want], best[want])
         sel, sg = regroup(sg, want, x[np.arange(M), best[sg]] >= 0.5)
-        su, sf, sw = su[sel], sf[sel], sw[sel]
+        su, sf, sw, sn = su[sel], sf[sel], sw[sel], sn[sel]
         depth = np.repeat(depth[want] + 1, 2)
     return tree
 
@@ -330,10 +333,23 @@ def split_axes(q, x, group, want, sums):
     return best
 
 
-def make_tree(top, breaks, u, f, w, epsilon, interval_share, growth):
+def thin_zeros(rng, f, keep: float):
+    """Zero-valued samples kept at random: (selection, n) with n = 1/q for a kept zero, q =
+    min(1, keep · #non-zero / #zero), n = 1 for non-zero samples. Weighting kept zeros by n keeps
+    every per-node sum unbiased while a sparse target's fits run on ~(1 + keep) × #non-zero
+    samples instead of all of them."""
+    nonzero = f > 0
+    q = min(1.0, keep * nonzero.sum() / max((~nonzero).sum(), 1))
+    sel = nonzero | (rng.random(len(f)) < q)
+    return sel, np.where(nonzero[sel], 1.0, 1.0 / q)
+
+
+def make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, keep: float = 0.0):
     """KdTreeGuide grown from weighted samples (``growth``: samples_per_node, threshold,
-    max_depth, max_leaves), leaves blended with their interval's mean."""
-    t = grow(top, breaks, u, f, w, *growth)
+    max_depth, max_leaves) with zeros thinned to ``keep`` × the non-zero count (0: all kept),
+    leaves blended with their interval's mean."""
+    sel, n = thin_zeros(rng, f, keep) if keep > 0 else (slice(None), np.ones(len(f)))
+    t = grow(top, breaks, u[sel], f[sel], w[sel] * n, n, *growth)
     lo, hi = np.array(t.lo), np.array(t.hi)
     corners = blend_interval_mean(lo, hi, np.array(t.corners), breaks, interval_share)
     stats = GuideStats("kdtree", max_depth=t.deepest, intervals=len(breaks) - 1)
@@ -370,12 +386,12 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
         f = evaluate(target, u)
         w = 1.0 / d0
         if n1 > 0 and f.any():
-            first = explorer(make_tree(top, breaks, u, f, w, epsilon, interval_share, growth))
+            first = explorer(make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, ZERO_KEEP))
             u2, g2 = first.sample_np(n1, rng)
             f = np.r_[f, evaluate(target, u2)]
             w = 1.0 / np.r_[d0 + n1 * first.pdf_batch(u), uniform_density(u2, breaks, counts) + n1 * g2]
             u = np.r_[u, u2]
-    guide = make_tree(top, breaks, u, f, w, epsilon, interval_share, growth)
+    guide = make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, ZERO_KEEP)
     stats = guide.stats
     stats.evaluations = len(f)
     stats.memory_bytes = guide.memory_bytes()

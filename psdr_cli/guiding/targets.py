@@ -24,33 +24,30 @@ from .kdtree import build_kdtree, share_profiles
 #: lanes per batched target evaluation
 CHUNK = 1 << 19
 #: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
-AUTO_SHARE = 1
+AUTO_SHARE = 2
 AUTO_RANGE = (65536, 262144)
 
 
-def motion_target(scene, sensors, edges, parameter, technique: str, mis: bool, u) -> mi.Float:
-    """F̃(u) = Σ_views max_RGB |dv/dθ| of the direct term's samples (forward mode in θ): the
-    integrand itself, velocity included."""
-    theta = mi.Float(0.0)
-    dr.enable_grad(theta)
-    parameter.apply(theta)
+def motion_target(scene, sensors, edges, theta, technique: str, mis: bool, u) -> mi.Float:
+    """F̃(u) = Σ_views max_RGB |dv/dθ| of the direct term's samples (forward mode from ``theta``,
+    already applied to the scene with AD): the integrand itself, velocity included. The AD
+    graph from θ is kept, so one application of θ serves every target of a build."""
     P = edges.positions(mi.traverse(scene.mi_scene))
     vs = direct_motion_target(scene.mi_scene, sensors, edges, P, technique, mis, u)
-    dr.forward(theta)
+    dr.forward(theta, dr.ADFlag.ClearInput | dr.ADFlag.ClearInterior)
     total = mi.Float(0.0)
     for v in vs:
         total += dr.max(dr.abs(dr.grad(v)))
     dr.eval(total)
-    parameter.reset()
     return total
 
 
 def target_function(scene, edges, views: list, term: str, technique: str, mis: bool,
-                    max_depth: int, seed: int, parameter=None):
-    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``. With the scalar
-    ``parameter`` θ (forward mode) the direct term's target includes the velocity,
-    F̃ = max_RGB |dv/dθ| (:func:`motion_target`); without it (optimisation: many parameters)
-    F̃ = max_RGB |F| without the velocity factor."""
+                    max_depth: int, seed: int, theta=None):
+    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``. With ``theta``
+    (the scalar parameter, applied with AD: forward mode) the direct term's target includes the
+    velocity, F̃ = max_RGB |dv/dθ| (:func:`motion_target`); without it (optimisation: many
+    parameters) F̃ = max_RGB |F| without the velocity factor."""
     sensors = [scene.sensors[v] for v in views]
     mi_scene = scene.mi_scene
     calls = [0]
@@ -61,8 +58,8 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
         for a in range(0, len(u), CHUNK):
             chunk = u[a:a + CHUNK].astype(np.float32)
             pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(chunk[:, i])) for i in range(3)))
-            if term == "direct" and parameter is not None:
-                val = motion_target(scene, sensors, edges, parameter, technique, mis, pt)
+            if term == "direct" and theta is not None:
+                val = motion_target(scene, sensors, edges, theta, technique, mis, pt)
             elif term == "direct":
                 val = direct_target(mi_scene, sensors, edges, P, technique, mis, pt)
             else:
@@ -107,6 +104,16 @@ def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int, pr
                         k.refine_ratio, prior=prior if getattr(prior, "kind", None) == "kdtree" else None)
 
 
+def applied_theta(parameter):
+    """θ = 0 with AD enabled, applied to the scene (None without a parameter); the caller resets."""
+    if parameter is None:
+        return None
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    parameter.apply(theta)
+    return theta
+
+
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
                  seed: int = 0, prior: Guides | None = None, parameter=None) -> Guides:
     """Guides for the direct and indirect terms among ``terms``, each of the kind
@@ -122,10 +129,15 @@ def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
     mis = sampling == "mis"
     if kinds.get("direct", "none") != "none":
-        for i, t in enumerate(("light", "dir") if mis else (sampling,)):
-            f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, parameter)
-            guides.direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
-                                           prior.direct.get(t))
+        theta = applied_theta(parameter)
+        try:
+            for i, t in enumerate(("light", "dir") if mis else (sampling,)):
+                f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, theta)
+                guides.direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
+                                               prior.direct.get(t))
+        finally:
+            if parameter is not None:
+                parameter.reset()
         guides.direct = share_profiles(guides.direct, breaks, estimator.kdtree.technique_share)
     if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
