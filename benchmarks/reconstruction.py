@@ -80,6 +80,17 @@ def advance(exp, seconds: float, first: bool):
     return optimize(run, resume=not first, warn=lambda m: None)
 
 
+def record_load(folder: Path, load: float):
+    """Append a load sample to ``<folder>/loads.json`` (a scene's runs' folder)."""
+    with atomic_path(folder / "loads.json") as tmp:
+        Path(tmp).write_text(json.dumps(recorded_loads(folder) + [load]))
+
+
+def recorded_loads(folder: Path) -> list:
+    path = folder / "loads.json"
+    return json.loads(path.read_text()) if path.exists() else []
+
+
 def errors(exp, samples: int) -> list:
     """[(iteration, seconds, Chamfer-L1, Hausdorff)] of every checkpoint of a run."""
     files = RunFiles(exp.run_dir)
@@ -97,20 +108,22 @@ def errors(exp, samples: int) -> list:
 
 
 def at_time(curve: list, t: float):
-    """(Chamfer-L1, Hausdorff) when the run's time reached ``t`` seconds: the checkpoint written
+    """(Chamfer-L1, Hausdorff, iteration) when the run's time reached ``t`` seconds: the checkpoint written
     by the iteration that crossed it (a round's time budget ends a run there)."""
     done = [c for c in curve if c[1] >= t - 1e-9] or curve[-1:]
-    return done[0][2], done[0][3]
+    return done[0][2], done[0][3], done[0][0]
 
 
 def table(results: dict, times: list) -> str:
     """Markdown: per scene, engine and time, mean ± half-range over seeds of Chamfer-L1 and
-    Hausdorff, and the ratio psdr / Mitsuba of the means."""
-    lines = ["| scene | seconds | psdr Chamfer-L1 | Mitsuba Chamfer-L1 | ratio | psdr Hausdorff | Mitsuba Hausdorff | ratio |",
-             "|---|---|---|---|---|---|---|---|"]
+    Hausdorff, the ratio psdr / Mitsuba of the means, and each seed's iterations done by then."""
+    lines = ["| scene | seconds | iterations psdr / Mitsuba | psdr Chamfer-L1 | Mitsuba Chamfer-L1 | ratio "
+             "| psdr Hausdorff | Mitsuba Hausdorff | ratio |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for scene, runs in results.items():
         for t in times:
-            cells, means = [], {}
+            its = {e: "+".join(str(at_time(c, t)[2]) for (e2, _), c in runs.items() if e2 == e) for e in ENGINES}
+            cells, means = [f"{its['psdr']} / {its['mitsuba']}"], {}
             for metric in (0, 1):
                 for engine in ENGINES:
                     v = np.array([at_time(c, t)[metric] for (e, _), c in runs.items() if e == engine])
@@ -179,6 +192,8 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, help="optimisation seconds per run (default 300; quick: 90)")
     ap.add_argument("--chunk", type=float, help="seconds per run and round (default 50; quick: 30)")
     ap.add_argument("--samples", type=int, default=50_000, help="surface points per mesh for the distances")
+    ap.add_argument("--evaluate-only", action="store_true",
+                    help="no optimisation: evaluate the runs already in --runs (e.g. scenes run separately)")
     ap.add_argument("--runs", type=Path, default=REPO / "runs" / "benchmarks" / "reconstruction", help="run folders")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks", help="output folder")
     args = ap.parse_args(argv)
@@ -194,14 +209,19 @@ def main(argv=None):
             for engine in ENGINES:
                 runs[(scene, engine, seed)] = run_experiment(base, engine, seed, args.runs / ("quick" if args.quick else "full") / scene)
     loads, t0 = [], time.time()
-    for k in range(1, rounds + 1):
+    for folder in {exp.output for exp in runs.values()} if not args.evaluate_only else ():
+        (folder / "loads.json").unlink(missing_ok=True)  # a fresh benchmark of this scene
+    for k in range(1, 0 if args.evaluate_only else rounds + 1):
         budget = min(k * args.chunk, seconds)
         first = ENGINES if k % 2 else ENGINES[::-1]  # the engines take turns going first
         for key, exp in sorted(runs.items(), key=lambda kv: (kv[0][0], kv[0][2], first.index(kv[0][1]))):
             advance(exp, budget, first=k == 1)
             loads.append(os.getloadavg()[0])
+            record_load(exp.output, loads[-1])
             print(f"round {k}/{rounds}: {key[0]} {key[1]} seed {key[2]} at {budget:g} s "
                   f"(load {loads[-1]:.2f}, {(time.time() - t0) / 60:.1f} min)", flush=True)
+    if args.evaluate_only:
+        loads = [x for exp in {e.output: e for e in runs.values()}.values() for x in recorded_loads(exp.output)]
     results = {}
     for (scene, engine, seed), exp in runs.items():
         results.setdefault(scene, {})[(engine, seed)] = errors(exp, args.samples)

@@ -444,7 +444,7 @@ class OptimizeConfig:
     remesh: RemeshConfig = field(default_factory=RemeshConfig)
     iterations: int = 200
     batch_size: int = 4
-    learning_rate: float = 0.01
+    learning_rate: float = 0.1             # Adam step on the large-steps latent (docs/optimize.md, "Defaults")
     lambda_: float = 20.0
     guide_every: int = 10
     checkpoint_every: int = 50

@@ -18,9 +18,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import gradient
 from .config import EstimatorConfig
 from .estimators.passes import pass_seed
-from .gradient import Settings, ad_image
+from .gradient import Settings
 
 #: Random-number stream of Mitsuba's renders (distinct from psdr's terms' streams 1..4).
 MITSUBA_STREAM = 9
@@ -75,4 +76,5 @@ class Engine:
             seed = pass_seed(self.settings.seed, view, iteration, MITSUBA_STREAM)
             return mitsuba_image(problem.scene, problem.params, self.integrator, view,
                                  self.settings.estimator.mitsuba_spp, seed)
-        return ad_image(problem.scene, edges, view, self.terms, self.settings, pass_index=iteration, guides=guides)
+        return gradient.ad_image(problem.scene, edges, view, self.terms, self.settings, pass_index=iteration,
+                                 guides=guides)

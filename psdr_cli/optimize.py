@@ -1,7 +1,8 @@
 """Inverse rendering (``psdr optimize``): reconstruct an object's shape from images.
 
-Each iteration renders a mini-batch of views with the psdr estimator in reverse mode and takes
-one step on the L1 image loss
+Each iteration renders a mini-batch of views with the psdr estimator in reverse mode (or with
+Mitsuba's projective integrators: ``estimator.engine``, :mod:`psdr_cli.engines`) and takes one
+step on the L1 image loss
 
     L = (1/|B|) Σ_{v ∈ B} mean |I_v(x) − T_v|,
 

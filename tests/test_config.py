@@ -164,6 +164,12 @@ def test_engine_defaults_to_psdr_and_mitsuba_keys_parse(tmp_path):
     est = parse(d, tmp_path).estimator
     assert (est.engine, est.mitsuba_integrator, est.mitsuba_spp, est.mitsuba_shadows) == \
         ("mitsuba", "prb_projective", 8, True)
+    d = experiment()
+    d["optimize"] = {"object": "ball", "variants": [{"label": "psdr"}, {"label": "mi", "engine": "mitsuba"}]}
+    assert [v.engine for v in parse(d, tmp_path).optimize.variants] == [None, "mitsuba"]
+    d["optimize"]["variants"][1]["engine"] = "redner"
+    with pytest.raises(ConfigError, match=r"optimize\.variants\[1\]\.engine: unknown 'redner'"):
+        parse(d, tmp_path)
 
 
 def test_yaml_error_reports_line(tmp_path):
