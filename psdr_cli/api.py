@@ -23,6 +23,7 @@ from . import gradient
 from . import mitsuba_scene
 from . import optimize as optimization
 from . import render as rendering
+from . import runs
 from . import sweep
 from .config import Experiment
 from .guiding import stats
@@ -62,6 +63,14 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
     ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings."""
     return gradient.grad_experiment(resolved(exp), spp, terms, views, out, fd, fd_spp, progress, warn)
+
+
+def guiding_lines(exp: Experiment, labels=None, terms=None) -> list:
+    """What ``psdr grad`` / ``optimize`` guide each boundary term with (``guiding: auto``
+    resolved): one line per run (the experiment, or each selected optimisation variant)."""
+    if labels is None and not (exp.optimize and exp.optimize.variants):
+        return [gradient.guiding_line(exp, terms)]
+    return [f"{label}: {gradient.guiding_line(run, terms)}" for label, run in runs.variant_experiments(exp, labels)]
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):

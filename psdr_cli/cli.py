@@ -162,6 +162,8 @@ def grad(config: Path = ConfigArg,
     """Gradient image dI/dθ per term (interior, primary, direct, indirect) and their total."""
     exp = with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort,
                          spp=spp, primary_spp=spp, boundary_spp=spp)
+    for line in api.guiding_lines(exp, terms=terms):
+        out.print(line)
     with Bar("grad") as bar:
         res = api.grad(exp, spp=interior_spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar,
                        warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
@@ -196,12 +198,13 @@ def guide_stats(config: Path = ConfigArg,
     with Bar("guide-stats") as bar:
         res = api.guide_stats(exp, kinds=guides, views=views, out=out_dir, progress=bar)
     table = Table(title=f"psdr guide-stats: {exp.name}")
-    for col in ("sorted", "guide", "leaves", "depth", "KiB", "build s", "evals", "norm"):
+    for col in ("sorted", "guide", "leaves", "depth", "KiB", "build s", "build / pass", "evals", "norm"):
         table.add_column(col, justify="left" if col in ("sorted", "guide") else "right", no_wrap=True)
     for key, stats in res.guides.items():
         for label, s in stats.items():
             table.add_row("yes" if key == "sorted" else "no", label, str(s["leaves"]), str(s["max_depth"]), f"{s['memory_bytes'] / 1024:.1f}",
-                          f"{s['build_seconds']:.2f}", str(s["evaluations"]), f"{s['normalization']:.3g}")
+                          f"{s['build_seconds']:.2f}", f"{s['build_over_pass']:.2f}", str(s["evaluations"]),
+                          f"{s['normalization']:.3g}")
     out.print(table)
     for key, c in res.chains.items():
         out.print(f"{key}: {c['edges']} edges in {c['chains']} chains (mean length {c['mean_chain_length']:.1f}); "
@@ -313,6 +316,8 @@ def optimize(config: Path = ConfigArg,
     warn = lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False)  # noqa: E731
     opts = ray_options(ray, ray_cpus, ray_files)
     label_of = lambda label: f"optimize {label}" if label else "optimize"  # noqa: E731
+    for line in api.guiding_lines(exp, variant or None):
+        out.print(line)
     if opts is None:
         runs = api.optimize_variants(exp, variant, iterations, resume, warn=warn,
                                      progress=lambda label: LossBar(label_of(label), log_every))

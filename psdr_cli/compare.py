@@ -68,7 +68,7 @@ class Comparison:
         """(guides, build seconds) for the variant (empty and 0 without guiding)."""
         t0 = time.perf_counter()
         st = self.settings(variant, seed)
-        g = make_guides(self.scene, self.edges[st.edge_sort], [self.view], self.terms, st)
+        g = make_guides(self.scene, self.edges[st.edge_sort], [self.view], self.terms, st, self.parameter)
         return g, time.perf_counter() - t0
 
     def pass_settings(self, variant: Variant, seed: int, term: str, n: int):

@@ -26,7 +26,7 @@ REQUIRED = object()
 #: Terms of dI/dθ = interior + primary + direct + indirect (in this order).
 TERMS = ("interior", "primary", "direct", "indirect")
 #: Boundary guides over the primary samples u.
-GUIDINGS = ("none", "grid", "kdtree")
+GUIDINGS = ("auto", "none", "grid", "kdtree")
 #: Direction techniques of the boundary terms (``mis``: both, balance heuristic).
 SAMPLINGS = ("dir", "light", "mis")
 #: Remeshers (``none``: keep the mesh; a scheduled remesh then uses ``isotropic``).
@@ -392,8 +392,10 @@ class GridConfig:
 @dataclass
 class KdTreeConfig:
     samples_per_node: int = 32
-    initial_samples: int = 262144
+    initial_samples: int = 0         # 0: auto, 1/16 of one boundary pass's lanes in [4096, 32768]
+    refine_ratio: float = 0.0        # second batch (drawn from the first tree) / initial_samples
     interval_share: float = 0.1
+    technique_share: float = 0.3     # MIS: share of the techniques' common u1 (edge) profile
     threshold: float = 0.002
     max_depth: int = 24
     max_leaves: int = 65536
@@ -412,7 +414,7 @@ class EstimatorConfig:
     boundary_spp: int = 16
     terms: tuple = ("interior", "primary", "direct", "indirect")
     sampling: str = "mis"
-    guiding: str = "none"
+    guiding: str = "auto"
     passes: int = 1
     guide_epsilon: float = 0.05
     edge_sort: bool = False
@@ -1053,8 +1055,10 @@ def parse_estimator(value, where) -> EstimatorConfig:
         d = KdTreeConfig()
         est.kdtree = KdTreeConfig(
             samples_per_node=k.get("samples_per_node", integer(4, 1 << 16), d.samples_per_node),
-            initial_samples=k.get("initial_samples", integer(0, 1 << 26), d.initial_samples),
+            initial_samples=k.get("initial_samples", integer(0, 1 << 22), d.initial_samples),
+            refine_ratio=k.get("refine_ratio", number(minimum=0, maximum=16), d.refine_ratio),
             interval_share=k.get("interval_share", number(minimum=0, maximum=1), d.interval_share),
+            technique_share=k.get("technique_share", number(minimum=0, maximum=1), d.technique_share),
             threshold=k.get("threshold", number(minimum=0), d.threshold),
             max_depth=k.get("max_depth", integer(1, 64), d.max_depth),
             max_leaves=k.get("max_leaves", integer(1, 1 << 22), d.max_leaves))

@@ -27,6 +27,7 @@ from .estimators.direct import direct_boundary
 from .estimators.indirect import indirect_boundary
 from .estimators.passes import AD_LANES, make_sampler, pass_seed, passes_for
 from .estimators.primary import primary_boundary
+from .guiding import auto
 from .guiding.targets import Guides, build_guides
 from .parameters import Parameter
 from .reference import agreement, finite_difference
@@ -134,12 +135,25 @@ def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
 
 
-def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings) -> Guides:
-    """Guides of the direct and indirect terms for ``views`` (empty when guiding is off)."""
-    if settings.guiding == "none":
-        return Guides()
+def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings, parameter=None) -> Guides:
+    """Guides of the direct and indirect terms for ``views`` (empty when no term is guided;
+    ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`). With the scalar
+    ``parameter`` θ (forward mode) the direct term's guides follow dv/dθ, velocity included."""
     return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth,
-                        settings.estimator, settings.seed)
+                        settings.estimator, settings.seed, parameter=parameter)
+
+
+def uses_guides(settings: Settings, terms, pixels: int) -> bool:
+    """Whether any of ``terms`` is guided for images of ``pixels`` pixels."""
+    kinds = auto.resolve(settings.guiding, terms, pixels, settings.boundary_spp)
+    return any(k != "none" for k in kinds.values())
+
+
+def guiding_line(exp: Experiment, terms=None) -> str:
+    """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved)."""
+    e = exp.estimator
+    return auto.describe(e.guiding, parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
+                         e.boundary_spp)
 
 
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
@@ -235,7 +249,7 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
     each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
     scene, parameter, edges, settings = prepare(exp, spp, scene)
     terms = parse_terms(terms) or exp.estimator.terms
-    guides = make_guides(scene, edges, [view], terms, settings)
+    guides = make_guides(scene, edges, [view], terms, settings, parameter)
     return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress, guides)
             for t in terms}
 
@@ -283,7 +297,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
         progress.start(len(views) * per_view)
     for v in views:
         t0 = time.perf_counter()
-        guides = make_guides(scene, edges, [v], terms, settings)
+        guides = make_guides(scene, edges, [v], terms, settings, parameter)
         guide_seconds = time.perf_counter() - t0
         estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes,
                                          progress.advance if progress else None, guides) for t in terms}
@@ -296,7 +310,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
                 channels[f"{name}.{ch}"] = g[..., c]
         header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.parameter": parameter.name,
                   "psdr.terms": ",".join(terms), "psdr.sampling": settings.sampling,
-                  "psdr.guiding": settings.guiding, "psdr.edge_sort": str(settings.edge_sort),
+                  "psdr.guiding": guiding_line(exp, terms), "psdr.edge_sort": str(settings.edge_sort),
                   "psdr.guide_seconds": f"{guide_seconds:.3f}",
                   "psdr.spp": {t: str(settings.samples(t)) for t in terms},
                   "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}

@@ -40,7 +40,7 @@ from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, Paramete
 from .engines import Engine
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
-from .gradient import Settings, make_guides
+from .gradient import Settings, make_guides, uses_guides
 from .parameters import Parameter
 from .remesh import remesh
 from .render import render_view
@@ -475,7 +475,8 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     if progress:
         progress.start(total, start)
     guides = guide_snapshot = None
-    if state is not None and state.guide_V is not None and settings.guiding != "none":
+    guided = uses_guides(settings, terms, exp.scene.width * exp.scene.height)
+    if state is not None and state.guide_V is not None and guided:
         # the guides in use when the run stopped, rebuilt from the shape they were built from
         guide_snapshot = (state.guide_V, state.guide_values)
         guides = rebuild_guides(problem, exp, settings, state.guide_V, state.guide_values, n_views, terms)
@@ -500,7 +501,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             edges = edge_list(problem.scene, exp.estimator, settings.edge_sort) if engine.needs_edges else None
             t_guide = time.perf_counter()
             anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
-            if settings.guiding != "none" and (guides is None or (it - anchor) % cfg.guide_every == 0):
+            if guided and (guides is None or (it - anchor) % cfg.guide_every == 0):
                 with dr.suspend_grad():
                     guides = make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
                 guide_snapshot = (problem.vertices(), problem.values())

@@ -29,7 +29,7 @@ def test_full_experiment_parses_with_defaults(tmp_path):
     assert floor.mesh.params["size"] == (4.0, 4.0)
     assert exp.parameter is None
     est = exp.estimator
-    assert est.spp == 4 and est.terms == TERMS and est.sampling == "mis" and est.guiding == "none"
+    assert est.spp == 4 and est.terms == TERMS and est.sampling == "mis" and est.guiding == "auto"
 
 
 def test_name_defaults_to_file_stem_and_output_to_runs(tmp_path):
@@ -108,6 +108,15 @@ def test_parameter_and_guiding_sections(tmp_path):
     assert exp.parameter.axis == (0.0, 0.0, 1.0)  # normalised
     assert exp.estimator.kdtree.samples_per_node == 64 and exp.estimator.kdtree.max_depth == 24
     assert exp.estimator.grid.resolution == (8, 4, 4) and exp.estimator.edge_sort
+
+
+def test_guiding_auto_parses_and_is_the_default(tmp_path):
+    exp = parse(experiment(estimator={"guiding": "auto", "kdtree": {"initial_samples": 0, "refine_ratio": 1.5}}),
+                tmp_path)
+    assert exp.estimator.guiding == "auto" and exp.estimator.kdtree.refine_ratio == 1.5
+    assert parse(experiment(), tmp_path).estimator.guiding == "auto"
+    with pytest.raises(ConfigError, match="guiding"):
+        parse(experiment(estimator={"guiding": "automatic"}), tmp_path)
 
 
 def test_every_emitter_type(tmp_path):

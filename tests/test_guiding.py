@@ -9,7 +9,7 @@ import pytest
 from psdr_cli import api
 from psdr_cli.config import parse_experiment, with_estimator
 from psdr_cli.gradient import forward_gradient, make_guides, prepare
-from psdr_cli.guiding import build_grid, build_kdtree
+from psdr_cli.guiding import auto, build_grid, build_kdtree
 from psdr_cli.guiding.kdtree import KdTreeGuide
 from psdr_cli.guiding.guide import GuideStats, trilinear_weights
 
@@ -83,7 +83,7 @@ def shadow_scene():
     data["seed"] = 5
     data["scene"]["film"] = {"width": R, "height": R}
     data["parameter"] = {"object": "occ", "kind": "translate", "axis": [1, 0, 0]}
-    data["estimator"] = {"spp": 4, "boundary_spp": 256, "kdtree": {"initial_samples": 16384}}
+    data["estimator"] = {"spp": 4, "boundary_spp": 256, "kdtree": {"initial_samples": 49152}}
     return data
 
 
@@ -103,7 +103,7 @@ ENVMAP = {
                     {"name": "floor", "mesh": {"shape": "plane", "size": 6},
                      "bsdf": {"type": "diffuse", "reflectance": 0.5}, "edges": False}]},
     "parameter": {"object": "bunny", "kind": "rotate", "axis": [0, 0, 1]},
-    "estimator": {"spp": 4, "boundary_spp": 1024, "kdtree": {"initial_samples": 16384}}}
+    "estimator": {"spp": 4, "boundary_spp": 1024, "kdtree": {"initial_samples": 49152}}}
 
 PASSES = 16
 
@@ -117,12 +117,13 @@ def block_sums(image):
     return image.sum(-1).reshape(BLOCKS, b, BLOCKS, b).sum(axis=(1, 3)).ravel()
 
 
-def direct_sums(tmp_path, data, passes, term="direct", **overrides):
-    """Block sums of ``term`` per pass, shape (passes, BLOCKS²)."""
+def direct_sums(tmp_path, data, passes, term="direct", motion=False, **overrides):
+    """Block sums of ``term`` per pass, shape (passes, BLOCKS²); ``motion``: the guides' direct
+    target includes the velocity (built with the scalar θ, as ``psdr grad`` does)."""
     exp = parse_experiment(copy.deepcopy(data), tmp_path / f"{data['name']}.yaml", cwd=tmp_path)
     exp = with_estimator(exp, **overrides)
     scene, parameter, edges, settings = prepare(exp)
-    guides = make_guides(scene, edges, [0], (term,), settings)
+    guides = make_guides(scene, edges, [0], (term,), settings, parameter if motion else None)
     est = forward_gradient(scene, edges, parameter, 0, term, settings, passes, guides=guides)
     scale = len(est.passes) * np.array(est.weights)[:, None]
     return np.array([block_sums(p) for p in est.passes]) * scale, guides
@@ -164,6 +165,22 @@ def test_guided_agrees_with_unguided(tmp_path, scene):
         if np.abs(z).max() >= 4.5:
             failures.append((guiding, sampling, sort, m.round(3), s.round(3), z.round(2)))
     assert not failures, failures
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", [SHADOW, ENVMAP], ids=["shadow", "envmap"])
+def test_motion_guided_agrees_with_unguided(tmp_path, scene):
+    """Kd-tree guides whose target includes the velocity (forward mode, max_RGB |dv/dθ|) and, for
+    MIS, the techniques' shared edge profile, estimate the same direct-term image as unguided MIS
+    (3 × 3 tile sums, |z| < 4.5)."""
+    m0, s0 = mean_se(direct_sums(tmp_path, scene, 2 * PASSES, sampling="mis", guiding="none")[0])
+    for sampling, sort in itertools.product(["dir", "mis"], [False, True]):
+        sums, guides = direct_sums(tmp_path, scene, PASSES, motion=True, sampling=sampling, guiding="kdtree",
+                                   edge_sort=sort)
+        assert guides.direct and all(g.total > 0 for g in guides.direct.values())
+        m, s = mean_se(sums)
+        z = (m - m0) / np.maximum(np.hypot(s, s0), 1e-12)
+        assert np.abs(z).max() < 4.5, (sampling, sort, m.round(3), s.round(3), z.round(2))
 
 
 def cornell_box():
@@ -284,3 +301,34 @@ def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatc
     monkeypatch.setattr(gradient, "forward_gradient", fake)
     Comparison(exp, ("direct", "indirect")).passes(Variant("none"), 1, 8, None)
     assert asked == {"direct": (128, 8), "indirect": (128, 8)}
+
+
+def test_auto_guiding_rule():
+    """auto: the direct term gets a Kd-tree from DIRECT_MIN_LANES lanes per pass on, the indirect
+    term none; explicit kinds apply to every term; the line names each term's choice."""
+    big, small = auto.DIRECT_MIN_LANES, auto.DIRECT_MIN_LANES - 1
+    assert auto.choose("direct", big) == "kdtree" and auto.choose("direct", small) == "none"
+    assert auto.choose("indirect", 1 << 30) == "none"
+    assert auto.resolve("auto", ("interior", "direct", "indirect"), 128 * 128, 16) == \
+        {"direct": "kdtree", "indirect": "none"}
+    assert auto.resolve("auto", ("direct",), 48 * 48, 64) == {"direct": "none"}
+    assert auto.resolve("grid", ("direct", "indirect"), 4, 1) == {"direct": "grid", "indirect": "grid"}
+    assert auto.resolve("auto", ("interior", "primary"), 4, 1) == {}
+    line = auto.describe("auto", ("direct", "indirect"), 128 * 128, 16)
+    assert line.startswith("guiding auto: direct kdtree, indirect none")
+
+
+def test_kdtree_refresh_from_a_prior_guide(variant):
+    """A refresh draws one batch from the previous guide: still a normalised density that
+    estimates ∫F̃ without bias, built from (1 + refine_ratio) × initial_samples evaluations."""
+    first = build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=1, initial_samples=4096)
+    guide = build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=2, initial_samples=4096,
+                         prior=first)
+    assert guide.stats.evaluations == 3 * 4096 and guide.stats.leaves > 1
+    rng = np.random.default_rng(4)
+    p = guide.pdf_np(rng.random((200_000, 3)))
+    assert abs(p.mean() - 1.0) < 4 * p.std() / np.sqrt(len(p))
+    s, ps = guide.sample_np(200_000, rng)
+    f = peaked(s) / ps
+    truth = 0.2 * 0.1 + 0.6 * np.pi * 0.005 * 0.998
+    assert abs(f.mean() - truth) < 4 * f.std() / np.sqrt(len(f))

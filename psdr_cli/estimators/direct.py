@@ -134,6 +134,34 @@ def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: 
         return total
 
 
+def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
+                  mis: bool, u1, u2, weight, env_motion):
+    """(v, pixel, mask) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
+    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ."""
+    width, height = sensor.film().size()
+    edge, w, coef, mhat, uv, pixel, ok, xD, env = direct_segments(scene, sensor, edges, P, distr, technique,
+                                                                  mis, u1, u2)
+    with dr.suspend_grad():
+        coef *= weight
+        dr.eval(coef, mhat, uv, pixel, ok, xD, env)  # evaluate once: forward mode would re-trace otherwise
+    # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
+    ray = camera_ray(sensor, uv, width, height, ok)
+    xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
+    rel = normalize(edge.xB - xD_t)
+    if env_motion is not None:  # a rotating environment moves the source end of the segment
+        rel = rel - dr.select(env, turn(env_motion, w), mi.Vector3f(0.0))
+    return coef * dr.dot(mhat, rel), pixel, ok
+
+
+def direct_motion_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
+    """[v per view] of :func:`direct_motion` at primary samples u (mi.Point3f), weight 1: with θ's
+    gradient propagated, Σ_views max_RGB |dv/dθ| is the guide target including the velocity."""
+    distr = edge_distribution(edges, P)
+    env_motion = environment_motion(scene)
+    return [direct_motion(scene, sensor, edges, P, distr, technique, mis, u.x, mi.Point2f(u.y, u.z), 1.0,
+                          env_motion)[0] for sensor in sensors]
+
+
 def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
                     sampler: mi.Sampler, technique: str = "mis", guides=None):
     """Direct boundary contribution (flat W·H·3 image whose primal value is 0) from ``n_samples``
@@ -148,18 +176,8 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
     scale = dr.opaque(mi.Float, (width * height) / n_samples)
     for t in (("light", "dir") if technique == "mis" else (technique,)):
         u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
-        edge, w, coef, mhat, uv, pixel, ok, xD, env = direct_segments(scene, sensor, edges, P, distr, t,
-                                                                      technique == "mis", u1, u2)
-        with dr.suspend_grad():
-            coef *= scale / g
-            dr.eval(coef, mhat, uv, pixel, ok, xD, env)  # evaluate once: forward mode would re-trace otherwise
-        # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
-        ray = camera_ray(sensor, uv, width, height, ok)
-        xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
-        rel = normalize(edge.xB - xD_t)
-        if env_motion is not None:  # a rotating environment moves the source end of the segment
-            rel = rel - dr.select(env, turn(env_motion, w), mi.Vector3f(0.0))
-        v = coef * dr.dot(mhat, rel)
+        v, pixel, ok = direct_motion(scene, sensor, edges, P, distr, t, technique == "mis", u1, u2,
+                                     dr.detach(scale / g), env_motion)
         v = v - dr.detach(v)
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)

@@ -111,6 +111,11 @@ class Guide:
         ext = dr.gather(mi.Vector3f, self._ext, leaf)
         return self._leaf_density(leaf, (u - lo) / ext)
 
+    def pdf_batch(self, u: np.ndarray) -> np.ndarray:
+        """g(u) at numpy points u (N,3), evaluated by :meth:`pdf` (Dr.Jit)."""
+        pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(u[:, i], np.float32)) for i in range(3)))
+        return np.asarray(self.pdf(pt), np.float64)
+
     def pdf_np(self, u: np.ndarray) -> np.ndarray:
         """g(u) (numpy, for tests and plots)."""
         u = np.atleast_2d(np.asarray(u, np.float64))

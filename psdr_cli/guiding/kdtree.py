@@ -1,23 +1,35 @@
-"""Adaptive Kd-tree guide (paper §4.1, Algorithm 1), built breadth-first.
+"""Adaptive Kd-tree guide (paper §4.1, Algorithm 1), built from two batches of target samples.
 
 u1 is first cut at the given breakpoints (edge or chain boundaries), so that x^B(u1) is
 continuous inside each interval; a balanced binary tree over those cuts forms the top of the
-tree. Below, every node r with box B_r is processed level by level, all active nodes at once:
+tree. The target F̃ is evaluated in two batches only (each one Dr.Jit kernel launch, so the
+build costs about as much as F̃ at its samples, not a kernel trace per tree level):
 
-1. draw new uniform points in each active box (``initial_samples`` spread over the first level,
-   ``samples_per_node`` per node below) and evaluate F̃ at all of them in one batch; a node also
-   keeps the earlier samples of its ancestors that fall inside it;
-2. fit F̃ ≈ a + b·(x − ½) by least squares in the box's local coordinates x ∈ [0,1)³; the fit
-   error is err_r = |B_r| · mean |F̃ − fit|;
-3. if err_r > threshold · Î (Î = ∫F̃ estimated from the first level), the node is split in half
-   along the axis whose two half-box fits (from the same samples) leave the smallest total error,
-   i.e. the axis along which the parent's single fit is worst. Otherwise, or at ``max_depth``, or
-   when ``max_leaves`` is reached (largest errors split first), it becomes a leaf whose corner
-   values are the fit at the 8 corners, clamped at 0 and rescaled to the sample mean.
+1. ``initial_samples`` uniform points, spread over the u1 intervals ∝ their length (at least
+   ``min_interval_samples`` each), sample density d₀(u) = n_k / |interval k| per unit volume;
+   a first tree T₁ is grown from them (step 3);
+2. ``refine_ratio · initial_samples`` points drawn from T₁ (as a guide whose uniform share is at
+   least ``EXPLORE``), density N₁ g₁(u). Every sample of both batches gets the weight of the
+   combined sample set, w(u) = 1 / (d₀(u) + N₁ g₁(u)), so that Σ_{u ∈ B} w F̃(u) ≈ ∫_B F̃ for
+   any box B (deterministic-mixture / balance-heuristic weights);
+3. the final tree is grown level by level from the fixed weighted samples, all nodes of a level
+   at once: fit F̃ ≈ a + b·(x − ½) by weighted least squares in the box's local coordinates
+   x ∈ [0,1)³ (per-node sums of per-sample statistics, no per-node loop); err_r = |B_r| ·
+   Σw|F̃ − fit| / Σw. If err_r > threshold · Î (Î = Σ w F̃) and the node holds at least
+   ``samples_per_node`` samples, it is split in half along the axis whose two half-box fits leave
+   the smallest weighted residual sum of squares (computed from the same sums: a fit in the
+   parent's coordinates restricted to a half spans the same functions as one in the child's).
+   Otherwise, or at ``max_depth``, or when ``max_leaves`` is reached (largest errors split first),
+   it becomes a leaf whose corner values are the fit at the 8 corners, clamped at 0 and rescaled
+   to the weighted sample mean.
 4. Every leaf's function is blended with the mean of F̃ over its u1 interval,
    f ← (1 − β) f + β · mass_interval / width_interval (β = ``interval_share``): inside an edge
    (or chain) that carries mass, a sub-region the samples missed keeps a density of at least β
    times the interval's average instead of only the global uniform share ε.
+
+A ``prior`` guide (the previous guide of an optimisation) replaces batch 1 and T₁: all
+``(1 + refine_ratio) · initial_samples`` points are drawn from it (uniform share ≥ ``EXPLORE``),
+w = 1 / (N g_prior(u)), so a refresh costs one batch.
 
 Lookups walk the stored split planes from the root (``dr.while_loop``).
 """
@@ -33,6 +45,10 @@ from .guide import CORNERS, Guide, GuideStats
 
 #: relative ridge keeping the small least-squares systems well posed
 RIDGE = 1e-6
+#: smallest uniform share of the guide that places the refinement samples
+EXPLORE = 0.25
+#: zero-valued samples kept for the fits, per non-zero sample (:func:`thin_zeros`)
+ZERO_KEEP = 4.0
 
 
 class KdTreeGuide(Guide):
@@ -73,25 +89,41 @@ class KdTreeGuide(Guide):
         return super().memory_bytes() + 4 * 4 * len(self.axis)
 
 
-def _fit(x, f, w, group, K):
-    """Weighted least-squares fits f ≈ a + b·(x − ½), one per group: x (M,3) local positions,
-    f, w (M,), group (M,) in [0, K) → coefficients (K,4) and |residual| per sample (M,)."""
+def _node_sums(q, starts, M):
+    """Per-node sums of the per-sample statistics q (M, S) for samples sorted by node, node k
+    holding q[starts[k]:starts[k+1]] (empty nodes give 0)."""
+    K = len(starts)
+    if M == 0:
+        return np.zeros((K, q.shape[1]))
+    sums = np.add.reduceat(q, np.minimum(starts, M - 1), axis=0)
+    ends = np.r_[starts[1:], M]
+    return np.where((ends > starts)[:, None], sums, 0.0)
+
+
+#: upper-triangle index pairs (i ≤ j) of the 4×4 normal matrix
+TRIU = np.triu_indices(4)
+
+
+def _statistics(x, f, w, n):
+    """Per-sample sufficient statistics of a weighted linear fit f ≈ A·c with A = (1, x − ½):
+    columns w·A_iA_j (i ≤ j, 10), w·A_i f (4), w f², n (samples represented) → (M, 16)."""
     A = np.concatenate([np.ones((len(x), 1)), x - 0.5], axis=1)
-    AtA = np.empty((K, 4, 4))
-    Atf = np.empty((K, 4))
-    for i in range(4):
-        Atf[:, i] = np.bincount(group, w * A[:, i] * f, minlength=K)
-        for j in range(i, 4):
-            AtA[:, i, j] = AtA[:, j, i] = np.bincount(group, w * A[:, i] * A[:, j], minlength=K)
+    wA = w[:, None] * A
+    return np.concatenate([wA[:, TRIU[0]] * A[:, TRIU[1]], wA * f[:, None], (w * f * f)[:, None],
+                           n[:, None]], axis=1)
+
+
+def _solve(sums):
+    """Least-squares coefficients c (K, 4) and residual sum of squares Σw(f − A·c)² (K,) from
+    node sums of :func:`_statistics`."""
+    AtA = np.empty((len(sums), 4, 4))
+    AtA[:, TRIU[0], TRIU[1]] = sums[:, :10]
+    AtA[:, TRIU[1], TRIU[0]] = sums[:, :10]
+    Atf, ff = sums[:, 10:14], sums[:, 14]
     ridge = RIDGE * (np.trace(AtA, axis1=1, axis2=2)[:, None, None] + 1e-30) * np.eye(4)
     coef = np.linalg.solve(AtA + ridge, Atf[..., None])[..., 0]
-    resid = np.abs(f - np.einsum("mi,mi->m", A, coef[group]))
-    return coef, resid
-
-
-def _group_mean(values, group, K, w=None):
-    w = np.ones_like(values) if w is None else w
-    return np.bincount(group, values * w, minlength=K) / np.maximum(np.bincount(group, w, minlength=K), 1e-30)
+    rss = ff - 2 * np.einsum("ki,ki->k", coef, Atf) + np.einsum("ki,kij,kj->k", coef, AtA, coef)
+    return coef, np.maximum(rss, 0.0)
 
 
 def _corner_values(coef, mean):
@@ -113,117 +145,255 @@ def blend_interval_mean(lo, hi, corners, breaks, share: float):
     return (1.0 - share) * corners + share * mean[k][:, None]
 
 
-def _new_samples(rng, lo, hi, counts):
-    """counts[k] uniform points in box k: (u (M,3), group (M,))."""
-    group = np.repeat(np.arange(len(counts)), counts)
-    return lo[group] + rng.random((len(group), 3)) * (hi - lo)[group], group
+
+def interval_profile(guide, breaks) -> tuple:
+    """(share of the guide's mass M in each u1 interval of ``breaks`` (sums to 1), interval of
+    each leaf)."""
+    k = np.clip(np.searchsorted(breaks, 0.5 * (guide.lo[:, 0] + guide.hi[:, 0]), side="right") - 1,
+                0, len(breaks) - 2)
+    mass = np.bincount(k, guide.mass, minlength=len(breaks) - 1)
+    return mass / max(mass.sum(), 1e-300), k
 
 
-def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
-                 max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
-                 seed: int = 0, initial_samples: int = 0, interval_share: float = 0.1) -> KdTreeGuide:
-    """Kd-tree guide of ``target`` (numpy u (N,3) → F̃ ≥ 0 (N,)), u1 pre-split at ``breaks``.
-
-    The first level spends ``initial_samples`` evaluations (spread over the intervals ∝ their
-    length, at least ``samples_per_node`` each); every later node adds ``samples_per_node`` new
-    ones. A node also keeps the samples of its ancestors that fall inside it, so structure seen
-    once is never forgotten by a child that happens to draw only zeros."""
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(seed)
+def share_profiles(guides: dict, breaks, share: float) -> dict:
+    """MIS guides over the same u1 with a common edge profile: each technique's leaf values
+    become (1 − share) f + share · M · p̄_k / |interval k|, p̄ the mean of the techniques' interval
+    mass shares. u1 (the edge point) means the same for every technique, so an edge that one
+    technique's samples found (e.g. light sampling towards a small emitter) is not left to the
+    uniform share ε by another (wedge sampling, whose non-zero directions there are rare)."""
+    trees = {t: g for t, g in guides.items() if g.kind == "kdtree" and g.total > 0}
+    if share <= 0 or len(trees) < 2:
+        return guides
     breaks = np.unique(np.clip(np.r_[0.0, np.asarray(breaks, np.float64), 1.0], 0.0, 1.0))
-    if len(breaks) - 1 > max_leaves // 2:  # too many intervals: merge neighbours, keep the budget
-        breaks = breaks[np.unique(np.linspace(0, len(breaks) - 1, max_leaves // 2 + 1).round().astype(int))]
-    axis, split, child, leaf = [-1], [0.0], [-1], [-1]
-    # Top of the tree: balanced cuts of u1 at the breakpoints; each interval becomes an active node
-    active_id, active_lo, active_hi = [], [], []
+    profiles = {t: interval_profile(g, breaks) for t, g in trees.items()}
+    mean = np.mean([p for p, _ in profiles.values()], axis=0) / np.diff(breaks)
+    out = dict(guides)
+    for t, g in trees.items():
+        corners = (1.0 - share) * g.corners + share * g.total * mean[profiles[t][1]][:, None]
+        out[t] = KdTreeGuide(g.lo, g.hi, corners, g.epsilon, g.stats, g.axis, g.split, g.child, g.node_leaf)
+    return out
+
+
+def interval_counts(breaks, n: int, minimum: int) -> np.ndarray:
+    """Uniform samples per u1 interval: ∝ its length, at least ``minimum``."""
+    return np.maximum(minimum, np.round(n * np.diff(breaks)).astype(np.int64))
+
+
+def uniform_batch(rng, breaks, counts):
+    """counts[k] uniform points in the slab of interval k: (u (M,3), density d₀ (M,))."""
+    k = np.repeat(np.arange(len(counts)), counts)
+    width = np.diff(breaks)
+    u = rng.random((len(k), 3))
+    u[:, 0] = breaks[k] + u[:, 0] * width[k]
+    return u, (counts / width)[k]
+
+
+def uniform_density(u, breaks, counts):
+    """d₀(u) = n_k / |interval k| of the uniform batch at arbitrary points u."""
+    k = np.clip(np.searchsorted(breaks, u[:, 0], side="right") - 1, 0, len(counts) - 1)
+    return (counts / np.diff(breaks))[k]
+
+
+def evaluate(target, u):
+    """F̃(u) ≥ 0 as float64, non-finite values set to 0."""
+    f = np.asarray(target(u), np.float64)
+    return np.where(np.isfinite(f), np.abs(f), 0.0)
+
+
+def interval_tree(breaks):
+    """Top of the tree: balanced cuts of u1 at ``breaks``. Returns the node arrays (axis, split,
+    child, leaf) and the interval nodes (ids, lo, hi) the growth starts from."""
+    axis, split, child = [-1], [0.0], [-1]
+    ids, lo, hi = [], [], []
     queue = [(0, 0, len(breaks) - 1)]
     while queue:
         node, i0, i1 = queue.pop()
         if i1 - i0 == 1:
-            active_id.append(node)
-            active_lo.append([breaks[i0], 0.0, 0.0])
-            active_hi.append([breaks[i1], 1.0, 1.0])
+            ids.append(node)
+            lo.append([breaks[i0], 0.0, 0.0])
+            hi.append([breaks[i1], 1.0, 1.0])
             continue
         mid = (i0 + i1) // 2
         c = len(axis)
         axis[node], split[node], child[node] = 0, breaks[mid], c
-        axis += [-1, -1]; split += [0.0, 0.0]; child += [-1, -1]; leaf += [-1, -1]
+        axis += [-1, -1]; split += [0.0, 0.0]; child += [-1, -1]
         queue += [(c, i0, mid), (c + 1, mid, i1)]
-    axis, split, child, leaf = (np.array(axis), np.array(split, np.float64), np.array(child), np.array(leaf))
-    ids, lo, hi = np.array(active_id), np.array(active_lo), np.array(active_hi)
+    nodes = (np.array(axis), np.array(split, np.float64), np.array(child), np.full(len(axis), -1))
+    order = np.argsort(np.array(lo)[:, 0], kind="stable")
+    return nodes, np.array(ids)[order], np.array(lo)[order], np.array(hi)[order]
+
+
+class Growth:
+    """The tree under construction: node arrays (axis, split, child, leaf; −1 = none) and the
+    leaves found so far (boxes, corner values)."""
+
+    def __init__(self, nodes):
+        self.axis, self.split, self.child, self.leaf = (a.copy() for a in nodes)
+        self.lo, self.hi, self.corners, self.deepest = [], [], [], 0
+
+    def add_leaves(self, ids, lo, hi, corners, depth):
+        self.leaf[ids] = np.arange(len(self.lo), len(self.lo) + len(ids))
+        self.lo += list(lo); self.hi += list(hi); self.corners += list(corners)
+        if len(depth):
+            self.deepest = max(self.deepest, int(depth.max()))
+
+    def split_nodes(self, parents, lo, hi, axis):
+        """Split ``parents`` (boxes lo, hi) in half along ``axis``: the children's (ids, lo, hi),
+        the two children of parent i at 2i (low half) and 2i + 1."""
+        rows = np.arange(len(parents))
+        mid = 0.5 * (lo[rows, axis] + hi[rows, axis])
+        first = len(self.axis) + 2 * rows
+        self.axis[parents], self.split[parents], self.child[parents] = axis, mid, first
+        n = 2 * len(parents)
+        self.axis = np.r_[self.axis, np.full(n, -1)]
+        self.split = np.r_[self.split, np.zeros(n)]
+        self.child = np.r_[self.child, np.full(n, -1)]
+        self.leaf = np.r_[self.leaf, np.full(n, -1)]
+        h_left, l_right = hi.copy(), lo.copy()
+        h_left[rows, axis] = mid
+        l_right[rows, axis] = mid
+        return (np.stack([first, first + 1], 1).ravel(), np.stack([lo, l_right], 1).reshape(-1, 3),
+                np.stack([h_left, hi], 1).reshape(-1, 3))
+
+
+def regroup(group, keep_nodes, child_side=None):
+    """Sample selection and new node index after keeping the nodes ``keep_nodes`` (K,) of a
+    level; with ``child_side`` (per sample) node k's samples go to child 2·rank(k) + side."""
+    rank = np.cumsum(keep_nodes) - 1
+    sel = keep_nodes[group]
+    new = rank[group] if child_side is None else 2 * rank[group] + child_side
+    return sel, new[sel]
+
+
+def grow(top, breaks, u, f, w, n, samples_per_node, threshold, max_depth, max_leaves):
+    """Grow the tree below the u1 intervals (``top``: :func:`interval_tree`) from fixed weighted
+    samples, each standing for n samples (step 3 of the module docstring). Returns the
+    :class:`Growth`."""
+    nodes, ids, lo, hi = top
+    tree = Growth(nodes)
+    sg = np.clip(np.searchsorted(breaks, u[:, 0], side="right") - 1, 0, len(ids) - 1)
+    su, sf, sw, sn = u, f, w, n
     depth = np.zeros(len(ids), np.int64)
-    share = hi[:, 0] - lo[:, 0]
-    counts = np.maximum(samples_per_node, np.round(initial_samples * share).astype(np.int64))
-    su, sf, sg = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64)
-    leaf_lo, leaf_hi, leaf_c = [], [], []
-    total, evaluations, deepest = None, 0, 0
+    total = None
     while len(ids):
-        K = len(ids)
-        u_new, g_new = _new_samples(rng, lo, hi, counts)
-        f_new = np.asarray(target(u_new), np.float64)
-        f_new = np.where(np.isfinite(f_new), np.abs(f_new), 0.0)
-        evaluations += len(f_new)
-        su, sf, sg = np.concatenate([su, u_new]), np.concatenate([sf, f_new]), np.concatenate([sg, g_new])
+        # nodes without a non-zero sample are zero leaves; their samples leave the fit
+        zero = np.bincount(sg, sf, minlength=len(ids)) <= 0
+        if zero.any():
+            tree.add_leaves(ids[zero], lo[zero], hi[zero], np.zeros((int(zero.sum()), 8)), depth[zero])
+            sel, sg = regroup(sg, ~zero)
+            su, sf, sw, sn = su[sel], sf[sel], sw[sel], sn[sel]
+            ids, lo, hi, depth = ids[~zero], lo[~zero], hi[~zero], depth[~zero]
+            if not len(ids):
+                break
+        order = np.argsort(sg, kind="stable")
+        su, sf, sw, sn, sg = su[order], sf[order], sw[order], sn[order], sg[order]
+        K, M = len(ids), len(sg)
+        starts = np.searchsorted(sg, np.arange(K))
         x = (su - lo[sg]) / (hi - lo)[sg]
+        q = _statistics(x, sf, sw, sn)
+        sums = _node_sums(q, starts, M)
+        coef, _ = _solve(sums)
+        wsum, count = sums[:, 0], sums[:, 15]
         vol = np.prod(hi - lo, axis=1)
-        mean = _group_mean(sf, sg, K)
+        mean = sums[:, 10] / np.maximum(wsum, 1e-300)
         if total is None:
             total = float((vol * mean).sum())
-        coef, resid = _fit(x, sf, np.ones_like(sf), sg, K)
-        err = vol * _group_mean(resid, sg, K)
-        want = (err > threshold * total) & (depth < max_depth) & (mean > 0)
-        # leaf budget: every split adds one leaf; split the largest errors first
-        budget = max_leaves - (len(leaf_lo) + K)
+        resid = np.abs(sf - coef[sg, 0] - np.einsum("mi,mi->m", x - 0.5, coef[sg, 1:]))
+        err = vol * _node_sums((sw * resid)[:, None], starts, M)[:, 0] / np.maximum(wsum, 1e-300)
+        want = (err > threshold * total) & (depth < max_depth) & (count >= samples_per_node)
+        budget = max_leaves - (len(tree.lo) + K)  # every split adds one leaf
         if want.sum() > budget:
             keep = np.argsort(-np.where(want, err, -1.0))[:max(budget, 0)]
             want = np.zeros(K, bool)
             want[keep] = True
         done = ~want
         if done.any():
-            leaf[ids[done]] = np.arange(len(leaf_lo), len(leaf_lo) + int(done.sum()))
-            leaf_lo += list(lo[done]); leaf_hi += list(hi[done])
-            leaf_c += list(_corner_values(coef[done], mean[done]))
-            deepest = max(deepest, int(depth[done].max()))
+            tree.add_leaves(ids[done], lo[done], hi[done], _corner_values(coef[done], mean[done]), depth[done])
         if not want.any():
             break
-        # split axis: the one whose two half-box fits leave the smallest total error
-        errs = []
-        for a in range(3):
-            low = (x[:, a] < 0.5).astype(np.float64)
-            e = np.zeros(K)
-            for w in (low, 1.0 - low):
-                _, r = _fit(x, sf, w, sg, K)
-                e += _group_mean(r, sg, K, w)
-            errs.append(e)
-        best = np.argmin(np.stack(errs, 1), axis=1)
-        # children of split node k get active indices 2·rank(k) and 2·rank(k) + 1
-        rank = np.cumsum(want) - 1
-        n_split, a = int(want.sum()), best[want]
-        parents, l0, h0 = ids[want], lo[want], hi[want]
-        rows = np.arange(n_split)
-        mid = 0.5 * (l0[rows, a] + h0[rows, a])
-        first = len(axis) + 2 * rows
-        axis[parents], split[parents], child[parents] = a, mid, first
-        axis = np.r_[axis, np.full(2 * n_split, -1)]
-        split = np.r_[split, np.zeros(2 * n_split)]
-        child = np.r_[child, np.full(2 * n_split, -1)]
-        leaf = np.r_[leaf, np.full(2 * n_split, -1)]
-        h_left, l_right = h0.copy(), l0.copy()
-        h_left[rows, a] = mid
-        l_right[rows, a] = mid
-        new_ids = np.stack([first, first + 1], 1).ravel()
-        new_lo = np.stack([l0, l_right], 1).reshape(-1, 3)
-        new_hi = np.stack([h_left, h0], 1).reshape(-1, 3)
-        keep = want[sg]
-        side = x[np.arange(len(x)), best[sg]] >= 0.5
-        su, sf, sg = su[keep], sf[keep], (2 * rank[sg] + side)[keep]
-        ids, lo, hi = new_ids, new_lo, new_hi
+        best = split_axes(q, x, sg, want, sums)
+        ids, lo, hi = tree.split_nodes(ids[want], lo[want], hi[want], best[want])
+        sel, sg = regroup(sg, want, x[np.arange(M), best[sg]] >= 0.5)
+        su, sf, sw, sn = su[sel], sf[sel], sw[sel], sn[sel]
         depth = np.repeat(depth[want] + 1, 2)
-        counts = np.full(len(ids), samples_per_node)
-    leaf_lo, leaf_hi, leaf_c = np.array(leaf_lo), np.array(leaf_hi), np.array(leaf_c)
-    leaf_c = blend_interval_mean(leaf_lo, leaf_hi, leaf_c, breaks, interval_share)
-    stats = GuideStats("kdtree", max_depth=deepest, evaluations=evaluations, intervals=len(breaks) - 1)
-    guide = KdTreeGuide(leaf_lo, leaf_hi, leaf_c, epsilon, stats, axis, split, child, leaf)
+    return tree
+
+
+def split_axes(q, x, group, want, sums):
+    """Per node (K,), the axis whose two half-box fits leave the smallest weighted residual sum of
+    squares; computed for the ``want`` nodes only (others get 0)."""
+    sel = want[group]
+    q, x, g = q[sel], x[sel], np.cumsum(want)[group[sel]] - 1
+    starts = np.searchsorted(g, np.arange(int(want.sum())))
+    total = sums[want]
+    rss = np.stack([_solve(low)[1] + _solve(total - low)[1] for low in
+                    (_node_sums(q * (x[:, a:a + 1] < 0.5), starts, len(g)) for a in range(3))], 1)
+    best = np.zeros(len(want), np.int64)
+    best[want] = np.argmin(rss, axis=1)
+    return best
+
+
+def thin_zeros(rng, f, keep: float):
+    """Zero-valued samples kept at random: (selection, n) with n = 1/q for a kept zero, q =
+    min(1, keep · #non-zero / #zero), n = 1 for non-zero samples. Weighting kept zeros by n keeps
+    every per-node sum unbiased while a sparse target's fits run on ~(1 + keep) × #non-zero
+    samples instead of all of them."""
+    nonzero = f > 0
+    q = min(1.0, keep * nonzero.sum() / max((~nonzero).sum(), 1))
+    sel = nonzero | (rng.random(len(f)) < q)
+    return sel, np.where(nonzero[sel], 1.0, 1.0 / q)
+
+
+def make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, keep: float = 0.0):
+    """KdTreeGuide grown from weighted samples (``growth``: samples_per_node, threshold,
+    max_depth, max_leaves) with zeros thinned to ``keep`` × the non-zero count (0: all kept),
+    leaves blended with their interval's mean."""
+    sel, n = thin_zeros(rng, f, keep) if keep > 0 else (slice(None), np.ones(len(f)))
+    t = grow(top, breaks, u[sel], f[sel], w[sel] * n, n, *growth)
+    lo, hi = np.array(t.lo), np.array(t.hi)
+    corners = blend_interval_mean(lo, hi, np.array(t.corners), breaks, interval_share)
+    stats = GuideStats("kdtree", max_depth=t.deepest, intervals=len(breaks) - 1)
+    return KdTreeGuide(lo, hi, corners, epsilon, stats, t.axis, t.split, t.child, t.leaf)
+
+
+def explorer(guide: KdTreeGuide) -> KdTreeGuide:
+    """The same tree with a uniform share of at least ``EXPLORE`` (places refinement samples)."""
+    return KdTreeGuide(guide.lo, guide.hi, guide.corners, max(guide.epsilon, EXPLORE), GuideStats("kdtree"),
+                       guide.axis, guide.split, guide.child, guide.node_leaf)
+
+
+def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
+                 max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
+                 seed: int = 0, initial_samples: int = 32768, interval_share: float = 0.1,
+                 refine_ratio: float = 2.0, min_interval_samples: int = 4, prior=None) -> KdTreeGuide:
+    """Kd-tree guide of ``target`` (numpy u (N,3) → F̃ ≥ 0 (N,)), u1 pre-split at ``breaks``,
+    from two batches of F̃ (one with a ``prior`` guide; see the module docstring)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    breaks = np.unique(np.clip(np.r_[0.0, np.asarray(breaks, np.float64), 1.0], 0.0, 1.0))
+    if len(breaks) - 1 > max_leaves // 2:  # too many intervals: merge neighbours, keep the budget
+        breaks = breaks[np.unique(np.linspace(0, len(breaks) - 1, max_leaves // 2 + 1).round().astype(int))]
+    growth = (samples_per_node, threshold, max_depth, max_leaves)
+    top = interval_tree(breaks)
+    n1 = int(round(refine_ratio * initial_samples))
+    if prior is not None:
+        u, g = explorer(prior).sample_np(initial_samples + n1, rng)
+        f = evaluate(target, u)
+        w = 1.0 / ((initial_samples + n1) * g)
+    else:
+        counts = interval_counts(breaks, initial_samples, min_interval_samples)
+        u, d0 = uniform_batch(rng, breaks, counts)
+        f = evaluate(target, u)
+        w = 1.0 / d0
+        if n1 > 0 and f.any():
+            first = explorer(make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, ZERO_KEEP))
+            u2, g2 = first.sample_np(n1, rng)
+            f = np.r_[f, evaluate(target, u2)]
+            w = 1.0 / np.r_[d0 + n1 * first.pdf_batch(u), uniform_density(u2, breaks, counts) + n1 * g2]
+            u = np.r_[u, u2]
+    guide = make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, ZERO_KEEP)
+    stats = guide.stats
+    stats.evaluations = len(f)
     stats.memory_bytes = guide.memory_bytes()
     stats.build_seconds = time.perf_counter() - t0
     return guide

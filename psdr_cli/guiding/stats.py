@@ -1,6 +1,7 @@
 """``psdr guide-stats``: guide sizes and costs, edge chains, the target along u1 (paper Fig. 5)."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -12,6 +13,9 @@ from .. import backend, fileio, plots
 from ..config import Experiment, parse_views
 from ..errors import PsdrError
 from ..estimators.boundary_sampling import edge_distribution, edge_list, sample_edge_point
+from ..estimators.direct import direct_boundary
+from ..estimators.indirect import indirect_boundary
+from ..estimators.passes import make_sampler
 from ..scene import build_scene
 from .targets import build_guide, target_function
 
@@ -39,12 +43,37 @@ def target_curve(scene, edges, views, technique: str, max_depth: int, n_u1: int 
     return u1, xB, mean, edges.breakpoints(P)
 
 
+def pass_seconds(scene, edges, view: int, term: str, sampling: str, max_depth: int, lanes: int,
+                 repeats: int = 3) -> float:
+    """Median seconds of one unguided pass of ``term`` (direct/indirect) with ``lanes`` samples
+    (primal evaluation of the boundary kernel), after one warm-up pass."""
+    P = dr.detach(edges.positions(mi.traverse(scene.mi_scene)))
+    sensor = scene.sensors[view]
+    times = []
+    for r in range(repeats + 1):
+        t0 = time.perf_counter()
+        sampler = make_sampler(r, lanes)
+        if term == "direct":
+            img = direct_boundary(scene.mi_scene, sensor, edges, P, lanes, sampler, sampling)
+        else:
+            img = indirect_boundary(scene.mi_scene, sensor, edges, P, lanes, sampler, max_depth)
+        dr.eval(img)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times[1:]))
+
+
 def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimator, seed: int = 0):
     """Build every (kind, technique) guide; returns ({label: GuideStats-dict}, {label: guide}).
 
     Targets use the MIS weights when ``estimator.sampling`` is ``mis`` (as the estimator does);
-    kernels are compiled by a small warm-up call first, so build seconds are steady-state."""
+    kernels are compiled by a small warm-up call first, so build seconds are steady-state.
+    ``build_over_pass`` divides the build by one unguided pass of the guided term with
+    ``boundary_spp`` samples per pixel (for MIS, each of the two guides against the whole pass)."""
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
+    pixels = int(np.prod(scene.resolution))
+    lanes = pixels * estimator.boundary_spp
+    passes = {term: pass_seconds(scene, edges, views[0], term, estimator.sampling, max_depth, lanes)
+              for term in {"indirect" if t == "indirect" else "direct" for t in techniques}}
     stats, guides = {}, {}
     for kind in kinds:
         for i, t in enumerate(techniques):
@@ -52,13 +81,14 @@ def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimat
             f = target_function(scene, edges, views, term, "dir" if term == "indirect" else t,
                                 term == "direct" and estimator.sampling == "mis", max_depth, seed)
             f(np.random.default_rng(0).random((1024, 3)))  # warm-up: compile the target's kernels
-            g = build_guide(kind, f, breaks, estimator, seed + i)
+            g = build_guide(kind, f, breaks, estimator, seed + i, pixels)
             label = f"{kind}/{t}"
             s = g.stats
             stats[label] = {"guide": kind, "technique": t, "leaves": s.leaves, "max_depth": s.max_depth,
                             "memory_bytes": s.memory_bytes, "build_seconds": s.build_seconds,
                             "evaluations": s.evaluations, "normalization": s.normalization,
-                            "u1_intervals": s.intervals}
+                            "u1_intervals": s.intervals, "pass_seconds": passes[term],
+                            "build_over_pass": s.build_seconds / max(passes[term], 1e-9)}
             guides[label] = g
     return stats, guides
 
@@ -79,7 +109,7 @@ def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None
     along u1, unsorted vs sorted: the paper's Fig. 5) and ``leaves_<kind>_<technique>.png``
     (leaf boundaries in the plane u2.y = ½) to ``<output>/<name>/guide_stats/``."""
     variant = backend.activate(exp)
-    kinds = kinds or ([exp.estimator.guiding] if exp.estimator.guiding != "none" else ["grid", "kdtree"])
+    kinds = kinds or ([exp.estimator.guiding] if exp.estimator.guiding in ("grid", "kdtree") else ["grid", "kdtree"])
     if isinstance(kinds, str):
         kinds = [k.strip() for k in kinds.split(",") if k.strip()]
     bad = [k for k in kinds if k not in ("grid", "kdtree")]

@@ -14,19 +14,40 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..estimators.direct import direct_target
+from ..estimators.direct import direct_motion_target, direct_target
 from ..estimators.indirect import indirect_target
 from ..estimators.passes import make_sampler
+from . import auto
 from .grid import build_grid
-from .kdtree import build_kdtree
+from .kdtree import build_kdtree, share_profiles
 
 #: lanes per batched target evaluation
 CHUNK = 1 << 19
+#: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
+AUTO_SHARE = 2
+AUTO_RANGE = (65536, 262144)
+
+
+def motion_target(scene, sensors, edges, theta, technique: str, mis: bool, u) -> mi.Float:
+    """F̃(u) = Σ_views max_RGB |dv/dθ| of the direct term's samples (forward mode from ``theta``,
+    already applied to the scene with AD): the integrand itself, velocity included. The AD
+    graph from θ is kept, so one application of θ serves every target of a build."""
+    P = edges.positions(mi.traverse(scene.mi_scene))
+    vs = direct_motion_target(scene.mi_scene, sensors, edges, P, technique, mis, u)
+    dr.forward(theta, dr.ADFlag.ClearInput | dr.ADFlag.ClearInterior)
+    total = mi.Float(0.0)
+    for v in vs:
+        total += dr.max(dr.abs(dr.grad(v)))
+    dr.eval(total)
+    return total
 
 
 def target_function(scene, edges, views: list, term: str, technique: str, mis: bool,
-                    max_depth: int, seed: int):
-    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``."""
+                    max_depth: int, seed: int, theta=None):
+    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``. With ``theta``
+    (the scalar parameter, applied with AD: forward mode) the direct term's target includes the
+    velocity, F̃ = max_RGB |dv/dθ| (:func:`motion_target`); without it (optimisation: many
+    parameters) F̃ = max_RGB |F| without the velocity factor."""
     sensors = [scene.sensors[v] for v in views]
     mi_scene = scene.mi_scene
     calls = [0]
@@ -37,7 +58,9 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
         for a in range(0, len(u), CHUNK):
             chunk = u[a:a + CHUNK].astype(np.float32)
             pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(chunk[:, i])) for i in range(3)))
-            if term == "direct":
+            if term == "direct" and theta is not None:
+                val = motion_target(scene, sensors, edges, theta, technique, mis, pt)
+            elif term == "direct":
                 val = direct_target(mi_scene, sensors, edges, P, technique, mis, pt)
             else:
                 calls[0] += 1
@@ -61,29 +84,62 @@ class Guides:
         return out + ([("indirect/dir", self.indirect)] if self.indirect is not None else [])
 
 
-def build_guide(kind: str, target, breaks, estimator, seed: int):
-    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings."""
+def initial_samples(estimator, pixels: int) -> int:
+    """The Kd-tree's first batch: ``kdtree.initial_samples``, or when it is 0 (auto)
+    pixels · boundary_spp / AUTO_SHARE clamped to AUTO_RANGE, so that both batches together
+    ((1 + refine_ratio) × this) cost a fixed share of one boundary pass."""
+    n = estimator.kdtree.initial_samples
+    return n if n > 0 else int(np.clip(pixels * estimator.boundary_spp // AUTO_SHARE, *AUTO_RANGE))
+
+
+def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int, prior=None):
+    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings; a
+    Kd-tree ``prior`` (the previous guide of the same target) makes the build a one-batch refresh."""
     if kind == "grid":
         g = estimator.grid
         return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
     k = estimator.kdtree
     return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, k.initial_samples, k.interval_share)
+                        estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
+                        k.refine_ratio, prior=prior if getattr(prior, "kind", None) == "kdtree" else None)
+
+
+def applied_theta(parameter):
+    """θ = 0 with AD enabled, applied to the scene (None without a parameter); the caller resets."""
+    if parameter is None:
+        return None
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    parameter.apply(theta)
+    return theta
 
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
-                 seed: int = 0) -> Guides:
-    """Guides for the direct and indirect terms among ``terms`` (``estimator.guiding`` ≠ none)."""
+                 seed: int = 0, prior: Guides | None = None, parameter=None) -> Guides:
+    """Guides for the direct and indirect terms among ``terms``, each of the kind
+    :func:`auto.resolve` gives for ``estimator.guiding``; ``prior`` (the previous guides of an
+    optimisation) turns Kd-tree builds into one-batch refreshes; ``parameter`` (the scalar θ of
+    a forward-mode gradient) puts the velocity into the direct term's target."""
     guides = Guides()
-    if estimator.guiding == "none" or edges.count == 0:
+    pixels = int(np.prod(scene.resolution))
+    kinds = auto.resolve(estimator.guiding, terms, pixels, estimator.boundary_spp)
+    if edges.count == 0 or all(k == "none" for k in kinds.values()):
         return guides
+    prior = prior or Guides()
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
     mis = sampling == "mis"
-    if "direct" in terms:
-        for i, t in enumerate(("light", "dir") if mis else (sampling,)):
-            f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed)
-            guides.direct[t] = build_guide(estimator.guiding, f, breaks, estimator, seed + i)
-    if "indirect" in terms and max_depth >= 3:
+    if kinds.get("direct", "none") != "none":
+        theta = applied_theta(parameter)
+        try:
+            for i, t in enumerate(("light", "dir") if mis else (sampling,)):
+                f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, theta)
+                guides.direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
+                                               prior.direct.get(t))
+        finally:
+            if parameter is not None:
+                parameter.reset()
+        guides.direct = share_profiles(guides.direct, breaks, estimator.kdtree.technique_share)
+    if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
-        guides.indirect = build_guide(estimator.guiding, f, breaks, estimator, seed + 2)
+        guides.indirect = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels, prior.indirect)
     return guides
