@@ -120,10 +120,10 @@ def markdown(results, args):
            "configurations interleaved. relMSE = Σ(g − ref)²/Σref² of the boundary gradient image (the "
            "scene's boundary terms) against a high-sample unguided MIS reference (its own estimated "
            "error subtracted), scaled to the exact budget; build time counts. Guides: grid 64×8×8 with "
-           "64 samples per cell; Kd-tree from two batches of target samples (uniform, then drawn from "
-           "a first tree; 3 × 1/16 of one pass's lanes, within [3 × 4096, 3 × 32768], per guide), "
-           "ε = 0.05. `auto` is the default (`estimator.guiding: auto`, docs/config.md); ‘chosen’ "
-           "says what it picked. Lower is better; ‘vs none’ divides by unguided with the same "
+           "64 samples per cell; Kd-tree from one batch of target samples (half the lanes of one pass, "
+           "within [2¹⁷, 2¹⁸]), MIS guides sharing their edge profile; forward-mode targets include the "
+           "velocity; ε = 0.05. `auto` is the default (`estimator.guiding: auto`, docs/config.md); "
+           "‘chosen’ says what it picked when the row ran. Lower is better; ‘vs none’ divides by unguided with the same "
            "sampling, ‘vs grid’ by the grid guide's error with the same sampling and sorting.", ""]
     for sc in results["scenes"]:
         rows = {r["config"]: r for r in sc["rows"]}
