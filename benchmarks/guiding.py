@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import platform
 import sys
 import time
@@ -119,10 +120,10 @@ def markdown(results, args):
            "configurations interleaved. relMSE = Σ(g − ref)²/Σref² of the boundary gradient image (the "
            "scene's boundary terms) against a high-sample unguided MIS reference (its own estimated "
            "error subtracted), scaled to the exact budget; build time counts. Guides: grid 64×8×8 with "
-           "64 samples per cell; Kd-tree from two batches of target samples (uniform, then drawn from "
-           "a first tree; 3 × 1/16 of one pass's lanes, within [3 × 4096, 3 × 32768], per guide), "
-           "ε = 0.05. `auto` is the default (`estimator.guiding: auto`, docs/config.md); ‘chosen’ "
-           "says what it picked. Lower is better; ‘vs none’ divides by unguided with the same "
+           "64 samples per cell; Kd-tree from one batch of target samples (half the lanes of one pass, "
+           "within [2¹⁷, 2¹⁸]), MIS guides sharing their edge profile; forward-mode targets include the "
+           "velocity; ε = 0.05. `auto` is the default (`estimator.guiding: auto`, docs/config.md); "
+           "‘chosen’ says what it picked when the row ran. Lower is better; ‘vs none’ divides by unguided with the same "
            "sampling, ‘vs grid’ by the grid guide's error with the same sampling and sorting.", ""]
     for sc in results["scenes"]:
         rows = {r["config"]: r for r in sc["rows"]}
@@ -190,16 +191,24 @@ def main():
     ap.add_argument("--quick", action="store_true", help="smoke run: 1 trial, 1.5 s budget, 32 reference passes")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks")
     ap.add_argument("--note", default="idle machine", help="machine state written to the table header")
+    ap.add_argument("--update", action="store_true",
+                    help="keep the other scenes of the existing guiding.json (re-run only --scenes)")
     args = ap.parse_args()
     if args.quick:
         args.budget, args.trials, args.ref_passes = 1.5, 1, 32
     variant = psdr_cli.setup(load_experiment(REPO / "configs" / "benchmarks" / f"{SCENES[0]}.yaml"))
     results = {"date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
                "variant": variant, "budget_seconds": args.budget, "trials": args.trials, "scenes": []}
+    old = json.loads((args.out / "guiding.json").read_text()) if args.update and (args.out / "guiding.json").exists() else None
+    order = [s["scene"] for s in old["scenes"]] if old else []
     t0 = time.perf_counter()
     for name in args.scenes.split(","):
         res, images, ref = run_scene(name, args, lambda m: print(m, flush=True))
         results["scenes"].append(res)
+        if old:  # the other scenes as they were, in their old order
+            done = {s["scene"]: s for s in results["scenes"]}
+            kept = [done.get(n, s) for n, s in zip(order, old["scenes"])]
+            results["scenes"] = kept + [s for s in results["scenes"] if s["scene"] not in order]
         image_grid(args.out / f"guiding_{name}.png", name, images, ref, res["rows"])
         fileio.write_json(args.out / "guiding.json", results)
         write_markdown(args.out / "guiding.md", markdown(results, args))

@@ -304,18 +304,18 @@ def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatc
 
 
 def test_auto_guiding_rule():
-    """auto: the direct term gets a Kd-tree from DIRECT_MIN_LANES lanes per pass on, the indirect
-    term none; explicit kinds apply to every term; the line names each term's choice."""
-    big, small = auto.DIRECT_MIN_LANES, auto.DIRECT_MIN_LANES - 1
-    assert auto.choose("direct", big) == "kdtree" and auto.choose("direct", small) == "none"
-    assert auto.choose("indirect", 1 << 30) == "none"
-    assert auto.resolve("auto", ("interior", "direct", "indirect"), 128 * 128, 16) == \
-        {"direct": "kdtree", "indirect": "none"}
-    assert auto.resolve("auto", ("direct",), 48 * 48, 64) == {"direct": "none"}
+    """auto: the direct and indirect terms get a Kd-tree from MIN_LANES lanes per pass on;
+    explicit kinds apply to every term; the line names each term's choice."""
+    for term in ("direct", "indirect"):
+        assert auto.choose(term, auto.MIN_LANES) == "kdtree" and auto.choose(term, auto.MIN_LANES - 1) == "none"
+    assert auto.choose("primary", 1 << 30) == "none"
+    assert auto.resolve("auto", ("interior", "direct", "indirect"), 48 * 48, 64) == \
+        {"direct": "kdtree", "indirect": "kdtree"}
+    assert auto.resolve("auto", ("direct", "indirect"), 24 * 24, 64) == {"direct": "none", "indirect": "none"}
     assert auto.resolve("grid", ("direct", "indirect"), 4, 1) == {"direct": "grid", "indirect": "grid"}
     assert auto.resolve("auto", ("interior", "primary"), 4, 1) == {}
-    line = auto.describe("auto", ("direct", "indirect"), 128 * 128, 16)
-    assert line.startswith("guiding auto: direct kdtree, indirect none")
+    line = auto.describe("auto", ("direct", "indirect"), 32 * 32, 64)
+    assert line == "guiding auto: direct kdtree, indirect kdtree (boundary pass of 65536 lanes)"
 
 
 def test_kdtree_refresh_from_a_prior_guide(variant):

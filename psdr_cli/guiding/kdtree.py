@@ -48,7 +48,7 @@ RIDGE = 1e-6
 #: smallest uniform share of the guide that places the refinement samples
 EXPLORE = 0.25
 #: zero-valued samples kept for the fits, per non-zero sample (:func:`thin_zeros`)
-ZERO_KEEP = 4.0
+ZERO_KEEP = 0.0
 
 
 class KdTreeGuide(Guide):

@@ -25,7 +25,7 @@ from .kdtree import build_kdtree, share_profiles
 CHUNK = 1 << 19
 #: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
 AUTO_SHARE = 2
-AUTO_RANGE = (65536, 262144)
+AUTO_RANGE = (131072, 262144)
 
 
 def motion_target(scene, sensors, edges, theta, technique: str, mis: bool, u) -> mi.Float:
