@@ -555,11 +555,18 @@ def markdown(report: dict) -> str:
 # --------------------------------------------------------------------------------------------
 #: name: (experiment dictionary, procedural meshes, FD step, FD spp in 8 batches)
 STANDINS = {
-    "flat_blob": (lambda: standins.blob_cfg(False), lambda: {"blob": standins.bumpy_blob()}, 0.005, 16384),
+    # off the icosphere's symmetry plane: from x = 0 one crease lies exactly on a pixel boundary
+    "flat_blob": (lambda: standins.off_axis(standins.blob_cfg(False)), lambda: {"blob": standins.bumpy_blob()},
+                  0.005, 16384),
     # the counts and FD step of its test (at h = 0.005 one tile beside the terminator is FD step error)
     "smooth_blob": (lambda: standins.blob_cfg(True, spp=(512, 2048, 2048)), lambda: {"blob": standins.bumpy_blob()},
                     0.0015, 65536),
-    "eyes": (standins.eye_cfg, lambda: {"head": standins.head_with_eye()}, 0.005, 32768),
+    "smooth_dome": (lambda: standins.blob_cfg(True, spp=(512, 2048, 2048)), lambda: {"blob": standins.open_dome()},
+                    0.0015, 32768),
+    "smooth_resting_blob": (lambda: standins.blob_cfg(True, spp=(512, 2048, 2048)),
+                            lambda: {"blob": standins.resting_blob()}, 0.0015, 32768),
+    # at h = 0.005 a silhouette tile is FD step error
+    "eyes": (standins.eye_cfg, lambda: {"head": standins.head_with_eye()}, 0.0015, 65536),
     "camera_translate": (lambda: standins.camera_cfg("translate"), dict, 0.003, 16384),
     "camera_rotate": (lambda: standins.camera_cfg("rotate"), dict, 0.003, 16384),
 }

@@ -1,7 +1,8 @@
 """Procedural stand-ins for the published meshes on which gradients were wrong without warning
 (issue 13), shared by ``tests/test_real_mesh_gradients.py`` and ``benchmarks/gradients.py``:
 
-- a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side;
+- a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side; cut open into a
+  dome, or sunk into the floor;
 - a head with an eye: one mesh of two intersecting shells;
 - a moving camera over a box, a ball and a floor.
 
@@ -31,6 +32,20 @@ def bumpy_blob(subdivisions=3, radius=0.45, amplitude=0.08):
     u = V / np.linalg.norm(V, axis=1, keepdims=True)
     bump = amplitude * (np.sin(3 * u[:, 0] + 1) * np.cos(2 * u[:, 1]) + 0.5 * np.sin(4 * u[:, 2]))
     return V + u * bump[:, None], F
+
+
+def open_dome():
+    """The bumpy blob's upper part, cut open below z = −0.15: a smooth open mesh with a ragged
+    boundary and both of its sides in view."""
+    V, F = bumpy_blob()
+    return V, F[(V[F][:, :, 2] > -0.15).all(axis=1)]
+
+
+def resting_blob():
+    """The bumpy blob lowered until it sinks 0.02 into the floor plane (z = 0 after the
+    experiment's translation): a contact curve between the object and the floor."""
+    V, F = bumpy_blob()
+    return V - np.array([0.0, 0.0, 0.6 + V[:, 2].min() + 0.02]), F
 
 
 def head_with_eye():
@@ -83,6 +98,15 @@ def camera_cfg(kind: str = "translate") -> dict:
          {"type": "constant", "radiance": 0.2}],
         {"origin": [0.2, -2.4, 1.3], "target": [0, 0, 0.3], "fov": 40},
         {"camera": 0, "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]}, spp=(256, 256, 256))
+
+
+def off_axis(cfg: dict, dx: float = 0.031) -> dict:
+    """``cfg`` with its camera moved sideways (origin and target) by ``dx``, out of the plane x = 0
+    that holds icosphere edges: seen from x = 0 such an edge projects exactly onto the boundary
+    between pixel columns 15 and 16, where the pixel value has a kink at θ = 0."""
+    for key in ("origin", "target"):
+        cfg["scene"]["cameras"][0][key][0] += dx
+    return cfg
 
 
 def load(cfg: dict, folder: Path, mesh_arrays: dict | None = None) -> Experiment:

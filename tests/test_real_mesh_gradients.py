@@ -21,7 +21,8 @@ from psdr_cli.config import load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.intersections import intersection_segments
 from psdr_cli.reference import agreement, block_sums, finite_difference, mean_and_error
-from psdr_cli.standins import blob_cfg, bumpy_blob, camera_cfg, eye_cfg, head_with_eye, load
+from psdr_cli.standins import (blob_cfg, bumpy_blob, camera_cfg, eye_cfg, head_with_eye, load, off_axis,
+                               open_dome, resting_blob)
 from psdr_cli.verdict import agrees, describe
 
 
@@ -53,15 +54,6 @@ def assert_sum_and_large_tiles(stats, est, fd, share=0.05, min_tiles=15):
     z = (e - f) / np.sqrt(e_se ** 2 + f_se ** 2 + 1e-30)
     big = np.abs(f) > share * np.abs(f).max()
     assert big.sum() >= min_tiles and np.all(np.abs(z[big]) < 4), z[big]
-
-
-def off_axis(cfg: dict, dx: float = 0.031) -> dict:
-    """``cfg`` with its camera moved sideways (origin and target) by ``dx``, out of the plane x = 0
-    that holds icosphere edges: seen from x = 0 such an edge projects exactly onto the boundary
-    between pixel columns 15 and 16, where the pixel value has a kink at θ = 0."""
-    for key in ("origin", "target"):
-        cfg["scene"]["cameras"][0][key][0] += dx
-    return cfg
 
 
 @pytest.mark.slow
@@ -212,20 +204,6 @@ def test_plugin_warns_about_undifferentiable_shapes():
 
 
 # ---- smooth shading ---------------------------------------------------------------------------
-
-def open_dome():
-    """The bumpy blob's upper part, cut open below z = −0.15: a smooth open mesh with a ragged
-    boundary and both of its sides in view."""
-    V, F = bumpy_blob()
-    return V, F[(V[F][:, :, 2] > -0.15).all(axis=1)]
-
-
-def resting_blob():
-    """The bumpy blob lowered until it sinks 0.02 into the floor plane (z = 0 after the
-    experiment's translation): a contact curve between the object and the floor."""
-    V, F = bumpy_blob()
-    return V - np.array([0.0, 0.0, 0.6 + V[:, 2].min() + 0.02]), F
-
 
 @pytest.mark.slow
 def test_smooth_blob_matches_finite_differences(tmp_path):
