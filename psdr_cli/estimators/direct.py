@@ -46,7 +46,9 @@ def emitter_pdf(scene: mi.Scene, xB, siS, active):
 
 def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point,
                    width, height):
-    """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D).
+    """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D,
+    env, λ) with ``env`` the lanes whose source is the environment and λ = t_S/(t_S + t_D) the
+    lever of the detector end's motion (1 for the environment; see :func:`direct_motion`).
 
     The sample is divided by p(x^B)·p(ω) with p(ω) = p_light + p_dir for MIS, else the density of
     the technique that drew it. ``light_point`` is the sampled emitter point (``None`` for the wedge
@@ -80,8 +82,12 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool
     exw = dr.cross(edge.e, w)
     sin_phi = dr.norm(exw)
     sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
-    coef = dr.select(ok, G * (dr.norm(xB - xD) * sin_phi * sigma), 0.0)
-    return coef, exw / sin_phi, uv, pixel, ok, xD, ~siS.is_valid()
+    tD = dr.norm(xB - xD)
+    coef = dr.select(ok, G * (tD * sin_phi * sigma), 0.0)
+    env = ~siS.is_valid()
+    tS = dr.norm(siS.p - xB)
+    lever = dr.select(env | ~ok, 1.0, tS / dr.maximum(tS + tD, 1e-30))
+    return coef, exw / sin_phi, uv, pixel, ok, xD, env, lever
 
 
 def is_infinite(ds: mi.DirectionSample3f):
@@ -104,9 +110,9 @@ def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
                     mis: bool, u1, u2):
     """Detached boundary segments of one technique from primary samples (u1, u2).
 
-    Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env): ``coef`` is the u-space integrand
-    without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps its AD
-    dependence on ``P``."""
+    Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env, λ): ``coef`` is the u-space
+    integrand without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps
+    its AD dependence on ``P``."""
     width, height = sensor.film().size()
     edge = sample_edge_point(edges, P, distr, u1)
     with dr.suspend_grad():
@@ -117,9 +123,9 @@ def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
             p_dir = pdf_wedge(edge)
         else:
             (w, p_dir), p_light, point = sample_wedge(edge, u2), None, None
-        coef, mhat, uv, pixel, ok, xD, env = segment_weight(scene, sensor, edge, w, p_light, p_dir, mis,
-                                                            origin, point, width, height)
-    return edge, w, coef, mhat, uv, pixel, ok, xD, env
+        coef, mhat, uv, pixel, ok, xD, env, lever = segment_weight(scene, sensor, edge, w, p_light, p_dir,
+                                                                   mis, origin, point, width, height)
+    return edge, w, coef, mhat, uv, pixel, ok, xD, env, lever
 
 
 def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
@@ -137,16 +143,22 @@ def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: 
 def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
                   mis: bool, u1, u2, weight, env_motion):
     """(v, pixel, mask) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
-    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ."""
+    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ.
+
+    ω(θ) = normalize(x^B(θ) − x^D_λ(θ)) with x^D_λ = x^D + λ (x^D(θ) − x^D), λ = t_S/(t_S + t_D):
+    the source point x^S is fixed, so a moving x^D turns the segment x^D → x^S about x^S and
+    moves it at the edge by only λ ẋ^D (m̂·ω̇ = m̂·(ẋ^B − λ ẋ^D)/t_D, the static-source case of
+    the indirect term's m̂·(u̇2 − ẋ^S)); λ = 1 for the environment."""
     width, height = sensor.film().size()
-    edge, w, coef, mhat, uv, pixel, ok, xD, env = direct_segments(scene, sensor, edges, P, distr, technique,
-                                                                  mis, u1, u2)
+    edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, sensor, edges, P, distr,
+                                                                         technique, mis, u1, u2)
     with dr.suspend_grad():
         coef *= weight
-        dr.eval(coef, mhat, uv, pixel, ok, xD, env)  # evaluate once: forward mode would re-trace otherwise
+        dr.eval(coef, mhat, uv, pixel, ok, xD, env, lever)  # evaluate once: forward mode would re-trace otherwise
     # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
     ray = camera_ray(sensor, uv, width, height, ok)
     xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
+    xD_t = dr.detach(xD_t) + lever * (xD_t - dr.detach(xD_t))
     rel = normalize(edge.xB - xD_t)
     if env_motion is not None:  # a rotating environment moves the source end of the segment
         rel = rel - dr.select(env, turn(env_motion, w), mi.Vector3f(0.0))
