@@ -8,11 +8,16 @@ environment), −ω a surface point x^D seen by the camera. Its contribution to 
 and the derivative enters through the normal velocity of the visibility boundary,
 
     v = G · t_D sinφ · σ · (m̂ · ω(θ)),   m̂ = (ê × ω)/|ê × ω|,   σ = sign((ê × ω)·(p2 − p0)),
-    ω(θ) = normalize(x^B(θ) − x^D(θ)),   t_D = |x^B − x^D|,   sinφ = |ê × ω|,
+    ω(θ) = normalize(x^B(θ) − x^D_λ(θ)),   x^D_λ = x^D + λ (x^D(θ) − x^D),   λ = t_S/(t_S + t_D),
+    t_D = |x^B − x^D|,   t_S = |x^S − x^B|,   sinφ = |ê × ω|,
 
-with x^D(θ) the pixel-tied camera hit. The sample adds (W·H/N)(v − detach(v)) to its pixel, so
-primal images are unchanged and only derivatives flow (forward and reverse mode alike). This
-velocity form holds for static sources (area lights that do not move, environment maps).
+with x^D(θ) the pixel-tied camera hit (it moves with a moving camera, or on a moving surface) and
+λ = 1 for the environment (t_S = ∞). The lever λ: with the source point x^S fixed, a moving x^D
+turns the segment x^D → x^S about x^S, which passes the edge at λ·ẋ^D; the indirect term's
+m̂·(u̇2 − ẋ^S) reduces to the same m̂·(ẋ^B − λ ẋ^D) for a static source. The sample adds
+(W·H/N)(v − detach(v)) to its pixel, so primal images are unchanged and only derivatives flow
+(forward and reverse mode alike). This velocity form holds for static sources (area lights that
+do not move, environment maps).
 
 ``technique``: ``light`` (emitter sampling), ``dir`` (wedge sampling) or ``mis`` (one sample of
 each per pair, balance heuristic 1/(p(x^B)(p_light + p_dir)) on densities in (x^B, ω) measure).
