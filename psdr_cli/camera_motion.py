@@ -7,8 +7,9 @@ and *every* discontinuity seen in the image moves relative to the film, static g
 - silhouettes and creases of every mesh (primary term: their projection q(θ) depends on the
   camera through the projection),
 - shadow boundaries on every surface (direct and indirect terms: the pixel-tied end point
-  x^D(θ) slides across a static visibility boundary, which the velocity m̂·ω(θ) with
-  ω(θ) = normalize(x^B − x^D(θ)) already measures).
+  x^D(θ) slides across a static visibility boundary; the segment x^D → x^S turns about the fixed
+  source point, so it passes the edge at λ·ẋ^D, λ = t_S/(t_S + t_D), which both terms' velocities
+  measure: the direct term's lever λ, the indirect term's u2(θ) − x^S).
 
 So every object takes part in the boundary terms, whatever its ``edges`` setting. Shapes that are
 not scene objects (the rectangles of area lights) have no edge list; when one of them is in view

@@ -115,7 +115,7 @@ def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetu
     if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
         with_all_edges(scene)
         check_camera_motion(scene, exp.parameter.camera)
-    settings = Settings.from_experiment(exp, spp).with_estimator(guiding=guiding_of(exp))
+    settings = Settings.from_experiment(exp, spp)
     edges = edge_list(scene, exp.estimator, settings.edge_sort)
     return GradientSetup(scene, Parameter(scene, exp.parameter), edges, settings)
 
@@ -149,18 +149,10 @@ def uses_guides(settings: Settings, terms, pixels: int) -> bool:
     return any(k != "none" for k in kinds.values())
 
 
-def guiding_of(exp: Experiment) -> str:
-    """``estimator.guiding``, except that ``auto`` means ``none`` when θ moves a camera: guided
-    boundary samples (grid or Kd-tree, with or without the velocity in the target) disagree with
-    finite differences there (tests/test_real_mesh_gradients.py, camera translation; open)."""
-    moves_camera = exp.parameter is not None and exp.parameter.camera is not None
-    return "none" if exp.estimator.guiding == "auto" and moves_camera else exp.estimator.guiding
-
-
 def guiding_line(exp: Experiment, terms=None) -> str:
     """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved)."""
     e = exp.estimator
-    return auto.describe(guiding_of(exp), parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
+    return auto.describe(e.guiding, parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
                          e.boundary_spp)
 
 

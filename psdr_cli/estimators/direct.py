@@ -8,11 +8,16 @@ environment), −ω a surface point x^D seen by the camera. Its contribution to 
 and the derivative enters through the normal velocity of the visibility boundary,
 
     v = G · t_D sinφ · σ · (m̂ · ω(θ)),   m̂ = (ê × ω)/|ê × ω|,   σ = sign((ê × ω)·(p2 − p0)),
-    ω(θ) = normalize(x^B(θ) − x^D(θ)),   t_D = |x^B − x^D|,   sinφ = |ê × ω|,
+    ω(θ) = normalize(x^B(θ) − x^D_λ(θ)),   x^D_λ = x^D + λ (x^D(θ) − x^D),   λ = t_S/(t_S + t_D),
+    t_D = |x^B − x^D|,   t_S = |x^S − x^B|,   sinφ = |ê × ω|,
 
-with x^D(θ) the pixel-tied camera hit. The sample adds (W·H/N)(v − detach(v)) to its pixel, so
-primal images are unchanged and only derivatives flow (forward and reverse mode alike). This
-velocity form holds for static sources (area lights that do not move, environment maps).
+with x^D(θ) the pixel-tied camera hit (it moves with a moving camera, or on a moving surface) and
+λ = 1 for the environment (t_S = ∞). The lever λ: with the source point x^S fixed, a moving x^D
+turns the segment x^D → x^S about x^S, which passes the edge at λ·ẋ^D; the indirect term's
+m̂·(u̇2 − ẋ^S) reduces to the same m̂·(ẋ^B − λ ẋ^D) for a static source. The sample adds
+(W·H/N)(v − detach(v)) to its pixel, so primal images are unchanged and only derivatives flow
+(forward and reverse mode alike). This velocity form holds for static sources (area lights that
+do not move, environment maps).
 
 ``technique``: ``light`` (emitter sampling), ``dir`` (wedge sampling) or ``mis`` (one sample of
 each per pair, balance heuristic 1/(p(x^B)(p_light + p_dir)) on densities in (x^B, ω) measure).
@@ -46,7 +51,9 @@ def emitter_pdf(scene: mi.Scene, xB, siS, active):
 
 def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point,
                    width, height):
-    """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D).
+    """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D,
+    env, λ) with ``env`` the lanes whose source is the environment and λ = t_S/(t_S + t_D) the
+    lever of the detector end's motion (1 for the environment; see :func:`direct_motion`).
 
     The sample is divided by p(x^B)·p(ω) with p(ω) = p_light + p_dir for MIS, else the density of
     the technique that drew it. ``light_point`` is the sampled emitter point (``None`` for the wedge
@@ -80,8 +87,12 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool
     exw = dr.cross(edge.e, w)
     sin_phi = dr.norm(exw)
     sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
-    coef = dr.select(ok, G * (dr.norm(xB - xD) * sin_phi * sigma), 0.0)
-    return coef, exw / sin_phi, uv, pixel, ok, xD, ~siS.is_valid()
+    tD = dr.norm(xB - xD)
+    coef = dr.select(ok, G * (tD * sin_phi * sigma), 0.0)
+    env = ~siS.is_valid()
+    tS = dr.norm(siS.p - xB)
+    lever = dr.select(env | ~ok, 1.0, tS / dr.maximum(tS + tD, 1e-30))
+    return coef, exw / sin_phi, uv, pixel, ok, xD, env, lever
 
 
 def is_infinite(ds: mi.DirectionSample3f):
@@ -104,9 +115,9 @@ def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
                     mis: bool, u1, u2):
     """Detached boundary segments of one technique from primary samples (u1, u2).
 
-    Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env): ``coef`` is the u-space integrand
-    without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps its AD
-    dependence on ``P``."""
+    Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env, λ): ``coef`` is the u-space
+    integrand without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps
+    its AD dependence on ``P``."""
     width, height = sensor.film().size()
     edge = sample_edge_point(edges, P, distr, u1)
     with dr.suspend_grad():
@@ -117,9 +128,9 @@ def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
             p_dir = pdf_wedge(edge)
         else:
             (w, p_dir), p_light, point = sample_wedge(edge, u2), None, None
-        coef, mhat, uv, pixel, ok, xD, env = segment_weight(scene, sensor, edge, w, p_light, p_dir, mis,
-                                                            origin, point, width, height)
-    return edge, w, coef, mhat, uv, pixel, ok, xD, env
+        coef, mhat, uv, pixel, ok, xD, env, lever = segment_weight(scene, sensor, edge, w, p_light, p_dir,
+                                                                   mis, origin, point, width, height)
+    return edge, w, coef, mhat, uv, pixel, ok, xD, env, lever
 
 
 def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
@@ -137,16 +148,22 @@ def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: 
 def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
                   mis: bool, u1, u2, weight, env_motion):
     """(v, pixel, mask) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
-    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ."""
+    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ.
+
+    ω(θ) = normalize(x^B(θ) − x^D_λ(θ)) with x^D_λ = x^D + λ (x^D(θ) − x^D), λ = t_S/(t_S + t_D):
+    the source point x^S is fixed, so a moving x^D turns the segment x^D → x^S about x^S and
+    moves it at the edge by only λ ẋ^D (m̂·ω̇ = m̂·(ẋ^B − λ ẋ^D)/t_D, the static-source case of
+    the indirect term's m̂·(u̇2 − ẋ^S)); λ = 1 for the environment."""
     width, height = sensor.film().size()
-    edge, w, coef, mhat, uv, pixel, ok, xD, env = direct_segments(scene, sensor, edges, P, distr, technique,
-                                                                  mis, u1, u2)
+    edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, sensor, edges, P, distr,
+                                                                         technique, mis, u1, u2)
     with dr.suspend_grad():
         coef *= weight
-        dr.eval(coef, mhat, uv, pixel, ok, xD, env)  # evaluate once: forward mode would re-trace otherwise
+        dr.eval(coef, mhat, uv, pixel, ok, xD, env, lever)  # evaluate once: forward mode would re-trace otherwise
     # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
     ray = camera_ray(sensor, uv, width, height, ok)
     xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
+    xD_t = dr.detach(xD_t) + lever * (xD_t - dr.detach(xD_t))
     rel = normalize(edge.xB - xD_t)
     if env_motion is not None:  # a rotating environment moves the source end of the segment
         rel = rel - dr.select(env, turn(env_motion, w), mi.Vector3f(0.0))
