@@ -2,7 +2,8 @@
 (issue 13), shared by ``tests/test_real_mesh_gradients.py`` and ``benchmarks/gradients.py``:
 
 - a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side;
-- a head with an eye: one mesh of two intersecting shells;
+- a head with an eye: one mesh of two intersecting shells (flat, or smooth-shaded and lit from
+  the side; translated or turned about the vertical);
 - a moving camera over a box, a ball and a floor.
 
 Each ``*_cfg`` returns an experiment dictionary (32×32 px); :func:`load` writes it, with any
