@@ -553,6 +553,12 @@ def markdown(report: dict) -> str:
 # --------------------------------------------------------------------------------------------
 # Real-mesh stand-ins: FD verdict of ours and prb_projective, time of a gradient
 # --------------------------------------------------------------------------------------------
+def smooth_counts(cfg: dict) -> dict:
+    """``cfg`` at the smooth stand-ins' sample counts (interior 512, primary and boundary 2048)."""
+    cfg["estimator"] = {"spp": 512, "primary_spp": 2048, "boundary_spp": 2048}
+    return cfg
+
+
 #: name: (experiment dictionary, procedural meshes, FD step, FD spp in 8 batches)
 STANDINS = {
     # off the icosphere's symmetry plane: from x = 0 one crease lies exactly on a pixel boundary
@@ -567,6 +573,10 @@ STANDINS = {
                             lambda: {"blob": standins.resting_blob()}, 0.0015, 32768),
     # at h = 0.005 a silhouette tile is FD step error
     "eyes": (standins.eye_cfg, lambda: {"head": standins.head_with_eye()}, 0.0015, 65536),
+    "smooth_eyes": (lambda: smooth_counts(standins.eye_cfg(smooth=True)), lambda: {"head": standins.head_with_eye(1)},
+                    0.0015, 32768),
+    "smooth_eyes_rotate": (lambda: smooth_counts(standins.eye_cfg(smooth=True, kind="rotate")),
+                           lambda: {"head": standins.head_with_eye(1)}, 0.003, 32768),
     "camera_translate": (lambda: standins.camera_cfg("translate"), dict, 0.003, 16384),
     "camera_rotate": (lambda: standins.camera_cfg("rotate"), dict, 0.003, 16384),
 }

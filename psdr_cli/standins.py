@@ -3,7 +3,8 @@
 
 - a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side; cut open into a
   dome, or sunk into the floor;
-- a head with an eye: one mesh of two intersecting shells;
+- a head with an eye: one mesh of two intersecting shells (flat, or smooth-shaded and lit from
+  the side; translated or turned about the vertical);
 - a moving camera over a box, a ball and a floor.
 
 Each ``*_cfg`` returns an experiment dictionary (32×32 px); :func:`load` writes it, with any
@@ -48,10 +49,11 @@ def resting_blob():
     return V - np.array([0.0, 0.0, 0.6 + V[:, 2].min() + 0.02]), F
 
 
-def head_with_eye():
-    """One mesh, two shells: a sphere and a smaller one piercing it towards the camera."""
-    V1, F1 = meshes.sphere(0.45, 2)
-    V2, F2 = meshes.sphere(0.2, 2)
+def head_with_eye(subdivisions=2):
+    """One mesh, two shells: a sphere and a smaller one piercing it towards the camera (icospheres
+    of 162 vertices each at 2 subdivisions, 42 at 1)."""
+    V1, F1 = meshes.sphere(0.45, subdivisions)
+    V2, F2 = meshes.sphere(0.2, subdivisions)
     V2 = V2 + np.array([0.12, -0.38, 0.12])
     return np.vstack([V1, V2]), np.vstack([F1, F2 + len(V1)])
 
@@ -74,14 +76,32 @@ def blob_cfg(smooth: bool, spp=(64, 256, 256)) -> dict:
                      {"object": "blob", "kind": "translate", "axis": [1, 0, 0]}, spp=spp)
 
 
-def eye_cfg() -> dict:
-    """The head (mesh ``head``: give it :func:`head_with_eye`) over a floor, translated in x."""
-    return scene_cfg("eyes", [{"name": "head", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.5]},
-                               "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}}, copy.deepcopy(FLOOR)],
-                     [{"type": "area", "center": [-0.8, -1.2, 2.0], "normal": [0.3, 0.5, -0.8], "size": [0.8, 0.8],
-                       "radiance": 12}, {"type": "constant", "radiance": 0.3}],
+def eye_cfg(smooth: bool = False, kind: str = "translate") -> dict:
+    """The head (mesh ``head``: give it :func:`head_with_eye`) over a floor, translated in x
+    (``kind`` "translate") or turned about the vertical axis through its bounding box's centre
+    ("rotate", θ in radians).
+
+    ``smooth``: the smooth-shaded head, lit from the side (a brighter copy of the blob's light, so
+    that the terminator crosses the visible head and eye) under the same dim environment, and
+    turned 10° about the vertical: the mesh is mirror-symmetric, and unturned its edges in the
+    plane x = 0 project exactly onto the image's middle pixel boundary, where a pixel's derivative
+    has a kink (one-sided values that central differences average). Its floor keeps its edges:
+    the floor's far border (in view, at the horizon) hides part of the environment from the
+    head's unlit side, and without its edges that moving occlusion has no boundary term (the
+    left silhouette tile then sat 5–8 % above finite differences, on a flat plain sphere too)."""
+    head = {"name": "head", "mesh": {"shape": "sphere"}, "transform": {"translate": [0, 0, 0.5]},
+            "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}}
+    light = {"type": "area", "center": [-0.8, -1.2, 2.0], "normal": [0.3, 0.5, -0.8], "size": [0.8, 0.8],
+             "radiance": 12}
+    floor = copy.deepcopy(FLOOR)
+    if smooth:
+        head.update(smooth=True, transform={"translate": [0, 0, 0.5], "rotate": {"axis": [0, 0, 1], "angle_deg": 10}})
+        light = dict(copy.deepcopy(LIGHT_SIDE), radiance=40)
+        floor["edges"] = True
+    return scene_cfg("eyes", [head, floor], [light, {"type": "constant", "radiance": 0.3}],
                      {"origin": [0, -2.4, 1.0], "target": [0, 0, 0.45], "fov": 40},
-                     {"object": "head", "kind": "translate", "axis": [1, 0, 0]}, spp=(1024, 256, 256))
+                     {"object": "head", "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]},
+                     spp=(1024, 256, 256))
 
 
 def camera_cfg(kind: str = "translate") -> dict:

@@ -27,7 +27,8 @@ from .camera import Projection, camera_ray, film_pixel
 #: (6.4e-5 px at 32 px, 1e-3 px at 512 px: ≥ 16 float32 ulps of the pixel coordinate). The
 #: difference of the two samples is the jump plus 2·offset·∂L/∂n, and next to a silhouette ∂L/∂n
 #: is steep (grazing faces): an offset of 10⁻³ px at 32 px inflated the image-edge sum of a lit
-#: smooth blob by 0.6 % and its inner-edge sum several times over (docs/gradients.md).
+#: smooth blob by 0.6 % and its inner-edge sum several times over (docs/gradients.md). Intersection
+#: curves move their side samples out of the ray-spawn band around the curve (crossing_offsets).
 SIDE_EPS = 2e-6
 #: Relative depth within which a foreign hit counts as "at the edge" (a neighbour face sharing an
 #: end point of the edge, hit by a side ray near that end point).
@@ -77,6 +78,14 @@ class Curves:
     face1: np.ndarray
     strict: np.ndarray  # visibility needs both sides (flat creases, intersections), else one side
     inner: np.ndarray  # both faces face the camera: each side must land on the curve's surface
+    #: unit normals (n, 3) of face0 and face1 on intersection curves, zero on mesh edges
+    normal0: np.ndarray = None
+    normal1: np.ndarray = None
+
+    def __post_init__(self):
+        for name in ("normal0", "normal1"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.zeros((len(self.face0), 3)))
 
     def __len__(self):
         return len(self.face0)
@@ -135,8 +144,20 @@ def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
     _, buf, _ = scene_meshes(scene, edges, P)
     p0, p1 = segment_points(buf, seg)
     ids = np.array([shape_id(s) for s, _, _ in meshes], np.int64)
+    normals = [face_normals(meshes, seg.mesh[:, j], seg.face[:, j]) for j in (0, 1)]
     return Curves(p0, p1, ids[seg.mesh[:, 0]], seg.face[:, 0], ids[seg.mesh[:, 1]], seg.face[:, 1],
-                  np.ones(len(seg), bool), np.zeros(len(seg), bool))
+                  np.ones(len(seg), bool), np.zeros(len(seg), bool), *normals)
+
+
+def face_normals(meshes, mesh, face):
+    """Unit normals (n, 3) of faces ``face`` of meshes ``mesh`` (indices into (shape, V, F))."""
+    out = np.zeros((len(face), 3))
+    for m, (_, V, F) in enumerate(meshes):
+        sel = mesh == m
+        a, b, c = (V[F[face[sel], i]] for i in range(3))
+        n = np.cross(b - a, c - a)
+        out[sel] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    return out
 
 
 def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool = True) -> Curves:
@@ -146,7 +167,8 @@ def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scat
     if len(b) == 0:
         return a
     return Curves(concat_points(a.p0, b.p0), concat_points(a.p1, b.p1),
-                  *(np.concatenate([getattr(a, k), getattr(b, k)]) for k in ("shape0", "face0", "shape1", "face1", "strict", "inner")))
+                  *(np.concatenate([getattr(a, k), getattr(b, k)])
+                    for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1")))
 
 
 def edge_depth(ray, p0, p1):
@@ -186,6 +208,65 @@ def edge_visible(scene, rays, p0, p1, own, strict, inner, active):
     return active & dr.select(strict, every, some)
 
 
+#: Distance of an intersection curve's side samples from the other surface's plane, in units of
+#: the largest distance at which a ray spawned from the side's hit point would start behind that
+#: plane (see :func:`crossing_offsets`).
+CROSSING_MARGIN = 2.0
+#: Largest image offset of an intersection curve's side samples, as a fraction of the image's
+#: larger side (reached only where the two surfaces are nearly tangent).
+CROSSING_MAX_EPS = 1e-4
+
+
+def lands_on_own_face(scene, ray, own, active):
+    """Whether ``ray`` first hits face (own[0], own[1]) or (own[2], own[3])."""
+    si = scene.ray_intersect(ray, active)
+    sid = dr.reinterpret_array(mi.UInt32, si.shape)
+    return si.is_valid() & (((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3])))
+
+
+def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, active):
+    """Signed image offsets (−a, +b) of the two side samples of intersection-curve points q (the
+    default ±SIDE_EPS·size elsewhere: ``n0`` = 0).
+
+    A ray leaving a surface point p starts at p + m·n, m = (1 + max|p|)·RayEpsilon (Mitsuba's
+    ``spawn_ray``, n the facet normal on the ray's side). Next to an intersection curve the other
+    surface's plane passes within m of p, and where the two normals point apart (a sharp crease)
+    that start point lies behind it: inside the other solid, where every ray from it is blocked.
+    A side sample at the default offset then reads a radiance of 0 (or a partly blocked one):
+    the band is 2·10⁻⁴…6·10⁻⁴ px wide at 32 px on the smooth head with its eye, against
+    6.4·10⁻⁵ px. So each side moves out until its plane point lies CROSSING_MARGIN·m·max(0,
+    −n_o·n_p) from the other plane (n_p the seen face's normal towards the camera, n_o the other
+    face's towards p), found from the two planes through the curve (``x`` a point of it,
+    ``n0``/``n1`` their normals) without tracing, and at most CROSSING_MAX_EPS·size. Only where
+    both sides at the default offset land on the curve's own faces (``own``): a crease hidden a
+    hair behind another surface (accepted by the depth tolerance of :func:`edge_visible`) keeps
+    the default, where both sides read that surface and the jump is 0."""
+    base = SIDE_EPS * max(width, height)
+    cap = CROSSING_MAX_EPS * max(width, height)
+    crossing = dr.squared_norm(n0) > 0
+    for sign in (-1.0, 1.0):
+        crossing &= lands_on_own_face(scene, camera_ray(sensor, q + sign * base * n_s, width, height, active),
+                                      own, active & crossing)
+    out = []
+    for sign in (-1.0, 1.0):
+        ray = camera_ray(sensor, q + sign * cap * n_s, width, height, active)  # planes: distances ∝ offset
+        t0 = dr.dot(n0, x - ray.o) / dr.dot(n0, ray.d)
+        t1 = dr.dot(n1, x - ray.o) / dr.dot(n1, ray.d)
+        first = (t0 > 0) & ((t0 <= t1) | ~(t1 > 0))  # a concave crease: the nearer plane is seen
+        t = dr.select(first, t0, t1)
+        n_p = dr.select(first, n0, n1)
+        n_o = dr.select(first, n1, n0)
+        p = ray.o + t * ray.d
+        n_p = dr.mulsign(n_p, -dr.dot(n_p, ray.d))  # towards the camera
+        dist = dr.dot(n_o, p - x)  # grows linearly with the offset, from 0 on the curve
+        n_o = dr.mulsign(n_o, dist)
+        m = (1.0 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
+        need = CROSSING_MARGIN * m * dr.maximum(-dr.dot(n_o, n_p), 0.0)
+        offset = dr.minimum(dr.maximum(cap * need / dr.maximum(dr.abs(dist), 1e-30), base), cap)
+        out.append(sign * dr.select(crossing & (t > 0), offset, base))
+    return out
+
+
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
                      sampler: mi.Sampler, max_depth: int):
     """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` curve points
@@ -217,9 +298,15 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         n_s = mi.Vector2f(-t.y, t.x)
         ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height)
         eps = SIDE_EPS * max(width, height)
-        rays = [camera_ray(sensor, qd + sign * eps * n_s, width, height, ok) for sign in (-1.0, 1.0)]
         own = [dr.gather(mi.UInt32, mi.UInt32(getattr(curves, a).astype(np.uint32)), k)
                for a in ("shape0", "face0", "shape1", "face1")]
+        offsets = [mi.Float(-eps), mi.Float(eps)]
+        if np.any(curves.normal0):  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
+            normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(mi.Float(getattr(curves, a)[:, i].astype(np.float32))
+                                                            for i in range(3))), k) for a in ("normal0", "normal1")]
+            offsets = crossing_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+                                       *normals, own, width, height, ok)
+        rays = [camera_ray(sensor, qd + o * n_s, width, height, ok) for o in offsets]
         strict = dr.gather(mi.Bool, mi.Bool(curves.strict), k)
         inner = dr.gather(mi.Bool, mi.Bool(curves.inner), k)
         ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
