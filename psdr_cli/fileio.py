@@ -14,6 +14,22 @@ import OpenEXR
 from .errors import PsdrError
 
 
+def temporaries(folder) -> list:
+    """Temporary files of :func:`atomic_path` under ``folder`` (``.<stem>.<random>.tmp<suffix>``):
+    left behind only by a process killed in the middle of a write."""
+    folder = Path(folder)
+    return sorted(p for p in folder.rglob(".*.tmp*") if p.is_file()) if folder.is_dir() else []
+
+
+def remove_temporaries(folder) -> int:
+    """Delete the leftover temporaries under ``folder`` (call only while no process writes
+    there, e.g. holding the run's lock); returns how many were removed."""
+    found = temporaries(folder)
+    for path in found:
+        path.unlink(missing_ok=True)
+    return len(found)
+
+
 @contextmanager
 def atomic_path(path):
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.

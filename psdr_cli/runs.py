@@ -72,7 +72,8 @@ def lock_run(files: RunFiles):
 
     The lock is ``fcntl.flock`` on ``<parent>/.<name>.lock`` (outside the folder, so that the folder
     itself can be moved aside), which holds the PID of its holder; the OS releases it when the
-    process dies, so a killed run never leaves a stale lock."""
+    process dies, so a killed run never leaves a stale lock. Holding it, the temporaries that a
+    killed writer left in the folder are deleted (the files they were to replace are intact)."""
     path = files.root.parent / f".{files.root.name}.lock"
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -88,6 +89,7 @@ def lock_run(files: RunFiles):
                             f"wait for it to end or stop it") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        fileio.remove_temporaries(files.root)  # a writer killed mid-write (kill -9) leaves its temporary
         yield
     finally:
         os.close(fd)  # releases the lock (the file stays: unlinking it would race with a waiting process)

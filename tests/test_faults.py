@@ -332,14 +332,16 @@ def test_two_optimize_processes_on_one_run(tmp_path):
     """Two real `psdr optimize` processes started together: one runs, the other is refused."""
     cfg = write_small(tmp_path)
     env = dict(os.environ, COLUMNS="200")
-    procs = [subprocess.Popen([sys.executable, "-m", "psdr_cli", "optimize", str(cfg)], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    # enough iterations that the first still holds the lock when the second has imported Mitsuba
+    # (3 iterations took under a second: the second then found the run finished and redid it)
+    procs = [subprocess.Popen([sys.executable, "-m", "psdr_cli", "optimize", str(cfg), "--iterations", "150"],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
     results = [(p.wait(timeout=600), p.communicate()[1]) for p in procs]
     codes = sorted(c for c, _ in results)
     assert codes == [0, 2], results
     refused = next(e for c, e in results if c == 2)
     assert "is writing this run" in refused and "Traceback" not in refused
-    assert iterations_logged(tmp_path / "runs" / "small") == [0, 1, 2]
+    assert iterations_logged(tmp_path / "runs" / "small") == list(range(150))
 
 
 TORN_TAILS = {"torn_row": b"3,0", "row_cut_to_number": b"3", "nul_bytes": b"\x00" * 64,
@@ -433,3 +435,17 @@ def test_stopped_and_resumed_guided_run_reproduces_the_uninterrupted_one(tmp_pat
     assert losses(tmp_path / "part") == losses(tmp_path / "full")
     a = (tmp_path / "full" / "runs" / "small" / "final.ply").read_bytes()
     assert (tmp_path / "part" / "runs" / "small" / "final.ply").read_bytes() == a
+
+
+def test_taking_the_lock_clears_a_killed_writers_temporaries(tmp_path):
+    """kill -9 between an atomic write's temporary and its rename leaves ``.<stem>.<random>.tmp<ext>``;
+    the next holder of the run's lock deletes it and keeps every named file."""
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "state.npz").write_bytes(b"kept")
+    left = [run / ".state.k3j9.tmp.npz", run / "checkpoints" / ".iter_0004.x1y2.tmp.ply"]
+    for path in left:
+        path.write_bytes(b"partial")
+    with lock_run(RunFiles(run)):
+        assert not any(path.exists() for path in left)
+    assert (run / "state.npz").read_bytes() == b"kept"
