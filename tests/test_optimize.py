@@ -56,10 +56,16 @@ def saved_iteration(state: Path) -> int:
         return -1
 
 
+def default_sigint():
+    """Ctrl-C as on a terminal: a test suite started in the background by a non-interactive shell
+    ignores SIGINT, and a child would inherit that (Python then never raises KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(cfg, *args):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "psdr_cli", "optimize", str(cfg), *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint)
 
 
 def wait_for_state(state: Path, at_least: int, proc, timeout: float = 300) -> int:
