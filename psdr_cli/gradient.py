@@ -34,6 +34,7 @@ from .reference import agreement, finite_difference
 from .render import render_view
 from .scene import build_scene
 from .shading import smooth_warning
+from .topology import build_topology
 
 
 @dataclass
@@ -270,6 +271,20 @@ class GradResult:
 FD_BATCHES = 8
 
 
+def nonmanifold_warning(scene) -> str | None:
+    """One-line warning for moving objects with edges shared by more than two faces (``None``
+    when there are none): the boundary terms keep two faces per edge, so the image and shadow
+    jumps at the other faces of such an edge are missing from the gradient."""
+    counts = {name: build_topology(om.vertices, om.faces).nonmanifold
+              for name, om in scene.objects.items() if om.edges}
+    bad = [f"{name!r} ({n} edge{'s' if n > 1 else ''})" for name, n in counts.items() if n]
+    if not bad:
+        return None
+    return (f"object(s) {', '.join(bad)} have edges shared by more than two faces: the boundary terms keep "
+            "two faces per edge, so the gradient can be biased near them; weld or split the mesh "
+            "(pymeshlab: meshing_repair_non_manifold_edges)")
+
+
 def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
@@ -288,6 +303,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     variant = mi.variant()
     if warn and smooth_warning(scene):
         warn(smooth_warning(scene))
+    if warn and nonmanifold_warning(scene):
+        warn(nonmanifold_warning(scene))
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
     folder = fileio.writable_folder(exp.command_dir("grad", out))

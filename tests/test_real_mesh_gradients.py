@@ -329,3 +329,14 @@ def test_smooth_transmitting_mesh_gradient_warns(tmp_path):
     messages = []
     api.grad(exp, spp=1, terms="interior", out=tmp_path, warn=messages.append)
     assert len(messages) == 1 and "'blob'" in messages[0] and "transmit" in messages[0]
+
+
+def test_non_manifold_mesh_gradient_warns(tmp_path):
+    """Three triangles sharing one edge (a "book" of three pages): the boundary terms keep two
+    faces per edge, so the gradient names the object and the count instead of staying silent."""
+    V = np.array([[0, 0, 0.3], [0, 0, 0.8], [0.4, 0, 0.5], [-0.2, 0.35, 0.5], [-0.2, -0.35, 0.5]])
+    F = np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
+    exp = load(blob_cfg(False), tmp_path, {"blob": (V, F)})
+    messages = []
+    api.grad(exp, spp=1, terms="interior", out=tmp_path, warn=messages.append)
+    assert len(messages) == 1 and "'blob' (1 edge)" in messages[0] and "more than two faces" in messages[0]
