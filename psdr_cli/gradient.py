@@ -301,10 +301,9 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     views = parse_views(views, len(exp.scene.cameras))
     scene, parameter, edges, settings = prepare(exp, spp)
     variant = mi.variant()
-    if warn and smooth_warning(scene):
-        warn(smooth_warning(scene))
-    if warn and nonmanifold_warning(scene):
-        warn(nonmanifold_warning(scene))
+    for message in (smooth_warning(scene), nonmanifold_warning(scene)) if warn else ():
+        if message:
+            warn(message)
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
     folder = fileio.writable_folder(exp.command_dir("grad", out))
