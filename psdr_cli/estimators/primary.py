@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from . import interior
 from ..intersections import Segments, intersection_segments, segment_points
+from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
 from .camera import Projection, camera_ray, film_pixel
 
@@ -144,19 +145,17 @@ def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
     _, buf, _ = scene_meshes(scene, edges, P)
     p0, p1 = segment_points(buf, seg)
     ids = np.array([shape_id(s) for s, _, _ in meshes], np.int64)
-    normals = [face_normals(meshes, seg.mesh[:, j], seg.face[:, j]) for j in (0, 1)]
+    normals = [curve_face_normals(meshes, seg.mesh[:, j], seg.face[:, j]) for j in (0, 1)]
     return Curves(p0, p1, ids[seg.mesh[:, 0]], seg.face[:, 0], ids[seg.mesh[:, 1]], seg.face[:, 1],
                   np.ones(len(seg), bool), np.zeros(len(seg), bool), *normals)
 
 
-def face_normals(meshes, mesh, face):
+def curve_face_normals(meshes, mesh, face):
     """Unit normals (n, 3) of faces ``face`` of meshes ``mesh`` (indices into (shape, V, F))."""
     out = np.zeros((len(face), 3))
     for m, (_, V, F) in enumerate(meshes):
         sel = mesh == m
-        a, b, c = (V[F[face[sel], i]] for i in range(3))
-        n = np.cross(b - a, c - a)
-        out[sel] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        out[sel] = face_normals(V, F[face[sel]])
     return out
 
 
@@ -198,8 +197,7 @@ def edge_visible(scene, rays, p0, p1, own, strict, inner, active):
     every, some = mi.Bool(True), mi.Bool(False)
     for ray in rays:
         si = scene.ray_intersect(ray, active)
-        sid = dr.reinterpret_array(mi.UInt32, si.shape)
-        mine = ((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3]))
+        mine = is_own_face(si, own)
         at_edge = si.is_valid() & (dr.abs(si.t - t_edge) <= t_edge * DEPTH_TOL)
         behind = ~si.is_valid() | (si.t > t_edge * (1.0 - DEPTH_TOL))
         side = mine | dr.select(inner, at_edge, behind)
@@ -217,11 +215,16 @@ CROSSING_MARGIN = 2.0
 CROSSING_MAX_EPS = 1e-4
 
 
+def is_own_face(si, own):
+    """Whether hits ``si`` are on face (own[0], own[1]) or (own[2], own[3]) (shape id, prim index)."""
+    sid = dr.reinterpret_array(mi.UInt32, si.shape)
+    return ((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3]))
+
+
 def lands_on_own_face(scene, ray, own, active):
     """Whether ``ray`` first hits face (own[0], own[1]) or (own[2], own[3])."""
     si = scene.ray_intersect(ray, active)
-    sid = dr.reinterpret_array(mi.UInt32, si.shape)
-    return si.is_valid() & (((sid == own[0]) & (si.prim_index == own[1])) | ((sid == own[2]) & (si.prim_index == own[3])))
+    return si.is_valid() & is_own_face(si, own)
 
 
 def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, active):
