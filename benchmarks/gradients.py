@@ -579,6 +579,10 @@ STANDINS = {
                            lambda: {"head": standins.head_with_eye(1)}, 0.003, 32768),
     "camera_translate": (lambda: standins.camera_cfg("translate"), dict, 0.003, 16384),
     "camera_rotate": (lambda: standins.camera_cfg("rotate"), dict, 0.003, 16384),
+    # faces turned over, edges of more than two faces
+    "turned_cube": (standins.part_cfg, lambda: {"part": standins.turned_cube()}, 0.003, 16384),
+    "book": (standins.part_cfg, lambda: {"part": standins.book()}, 0.003, 16384),
+    "joined_boxes": (standins.part_cfg, lambda: {"part": standins.joined_boxes()}, 0.003, 16384),
 }
 #: Mitsuba's samples per pixel per batch (8 batches) on the stand-ins.
 STANDIN_MI_SPP = 256

@@ -34,7 +34,6 @@ from .reference import agreement, finite_difference
 from .render import render_view
 from .scene import build_scene
 from .shading import smooth_warning
-from .topology import build_topology
 
 
 @dataclass
@@ -271,20 +270,6 @@ class GradResult:
 FD_BATCHES = 8
 
 
-def nonmanifold_warning(scene) -> str | None:
-    """One-line warning for moving objects with edges shared by more than two faces (``None``
-    when there are none): the boundary terms keep two faces per edge, so the image and shadow
-    jumps at the other faces of such an edge are missing from the gradient."""
-    counts = {name: build_topology(om.vertices, om.faces).nonmanifold
-              for name, om in scene.objects.items() if om.edges}
-    bad = [f"{name!r} ({n} edge{'s' if n > 1 else ''})" for name, n in counts.items() if n]
-    if not bad:
-        return None
-    return (f"object(s) {', '.join(bad)} have edges shared by more than two faces: the boundary terms keep "
-            "two faces per edge, so the gradient can be biased near them; weld or split the mesh "
-            "(pymeshlab: meshing_repair_non_manifold_edges)")
-
-
 def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
@@ -301,7 +286,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     views = parse_views(views, len(exp.scene.cameras))
     scene, parameter, edges, settings = prepare(exp, spp)
     variant = mi.variant()
-    for message in (smooth_warning(scene), nonmanifold_warning(scene)) if warn else ():
+    for message in (smooth_warning(scene),) if warn else ():
         if message:
             warn(message)
     fd_spp = fd_spp or 4 * settings.spp

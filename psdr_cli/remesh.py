@@ -80,16 +80,10 @@ def defects(V, F) -> list[str]:
         out.append(f"{int(t.open.sum())} open edges")
     if t.nonmanifold:
         out.append(f"{t.nonmanifold} non-manifold edges")
-    inner = ~t.open
-    if inner.any():
-        # face1 must traverse the edge (v0, v1) of face0 as (v1, v0)
-        f1 = F[t.face1[inner]]
-        a, b = t.v0[inner], t.v1[inner]
-        same = np.zeros(int(inner.sum()), bool)
-        for k in range(3):
-            same |= (f1[:, k] == a) & (f1[:, (k + 1) % 3] == b)
-        if same.any():
-            out.append(f"{int(same.sum())} edges with inconsistent face orientation")
+    # the two faces of an edge traverse it in the same direction
+    same = ~t.open & ~t.sector & (t.turned0 != t.turned1)
+    if same.any():
+        out.append(f"{int(same.sum())} edges with inconsistent face orientation")
     return out
 
 

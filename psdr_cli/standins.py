@@ -5,7 +5,10 @@
   dome, or sunk into the floor;
 - a head with an eye: one mesh of two intersecting shells (flat, or smooth-shaded and lit from
   the side; translated or turned about the vertical);
-- a moving camera over a box, a ball and a floor.
+- a moving camera over a box, a ball and a floor;
+- meshes with non-manifold edges or faces turned over, as exported by CAD tools and scanners:
+  a cube with every third triangle turned, a book of pages on one spine with mixed winding, two
+  boxes sharing an edge with one of them inside out.
 
 Each ``*_cfg`` returns an experiment dictionary (32×32 px); :func:`load` writes it, with any
 procedural meshes as PLY files, into a folder and loads it as an :class:`Experiment`.
@@ -56,6 +59,49 @@ def head_with_eye(subdivisions=2):
     V2, F2 = meshes.sphere(0.2, subdivisions)
     V2 = V2 + np.array([0.12, -0.38, 0.12])
     return np.vstack([V1, V2]), np.vstack([F1, F2 + len(V1)])
+
+
+def turn_faces(F, faces):
+    """F with the triangles ``faces`` (an index or slice) turned over (winding reversed)."""
+    F = np.array(F)
+    F[faces] = F[faces, ::-1]
+    return F
+
+
+def turned_cube(size=0.5):
+    """A cube with every third triangle turned over: a closed mesh whose winding is inconsistent
+    (the turned triangles render black from outside with a one-sided material)."""
+    V, F = meshes.cube((size, size, size))
+    return V, turn_faces(F, slice(None, None, 3))
+
+
+def book():
+    """Three two-triangle pages on one spine (the x axis): an edge with three faces; the middle
+    page is turned over, so the pages' windings disagree."""
+    V = np.array([[-0.35, 0, 0], [0.35, 0, 0], [-0.35, -0.4, 0.15], [0.35, -0.4, 0.15],
+                  [-0.35, -0.1, 0.42], [0.35, -0.1, 0.42], [-0.35, 0.35, 0.2], [0.35, 0.35, 0.2]])
+    F = np.array([[0, 1, 3], [0, 3, 2], [0, 5, 1], [0, 4, 5], [0, 1, 7], [0, 7, 6]])
+    return V, turn_faces(F, slice(2, 4))
+
+
+def joined_boxes(size=0.36):
+    """Two cubes of one mesh sharing one edge (four faces on it), the second inside out."""
+    Va, Fa = meshes.cube((size, size, size))
+    Vb, Fb = meshes.cube((size, size, size))
+    V = np.vstack([Va + [0, -size / 2, -size / 2], Vb + [0, size / 2, size / 2]])
+    return V, np.vstack([Fa, turn_faces(Fb, slice(None)) + len(Va)])
+
+
+def part_cfg() -> dict:
+    """A mesh ``part`` (give it :func:`turned_cube`, :func:`book` or :func:`joined_boxes`) over the
+    blob's floor and light, turned 20° about the vertical and translated along (0.6, 0.3, 0.75):
+    a motion with no special direction (moved straight up, the cube's shadow edge sweeps the
+    floor so slowly that finite differences see no change in some tiles, and estimate 0 ± 0)."""
+    cfg = blob_cfg(False)
+    obj = cfg["scene"]["objects"][0]
+    obj.update(name="part", transform={"translate": [0.05, 0, 0.5], "rotate": {"axis": [0, 0, 1], "angle_deg": 20}})
+    cfg.update(name="part", parameter={"object": "part", "kind": "translate", "axis": [0.6, 0.3, 0.75]})
+    return cfg
 
 
 def scene_cfg(name, objects, emitters, camera, parameter, spp=(64, 256, 256), max_depth=2) -> dict:

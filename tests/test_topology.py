@@ -60,3 +60,92 @@ def test_primary_edges_are_the_silhouette_from_the_camera():
     assert len(sil) == 4 and np.allclose(mid[:, 2], 0.5)
     sil = t.primary(V, camera_origin=[10, 10, 10])  # corner view: a hexagonal outline
     assert len(sil) == 6
+
+
+def edge_set(t, rows, V):
+    """Welded, unordered end points of the given rows (to compare tables of differently wound meshes)."""
+    wid, _ = weld(V)
+    return {tuple(sorted((wid[t.v0[r]], wid[t.v1[r]]))) for r in rows}
+
+
+def test_turned_faces_do_not_change_silhouettes_or_shadow_edges():
+    """Turning faces over (a mesh with inconsistent winding, or a whole solid inside out) changes
+    no edge class: the table orients each closed part outward first."""
+    rng = np.random.default_rng(1)
+    for V, F in (meshes.cube((1, 1, 1)), meshes.torus(1.0, 0.3, 24, 12), meshes.sphere(1.0, 2)):
+        t = build_topology(V, F)
+        for turned in (rng.random(len(F)) < 0.3, np.ones(len(F), bool)):
+            G = F.copy()
+            G[turned] = G[turned, ::-1]
+            u = build_topology(V, G)
+            assert edge_set(u, u.secondary(), V) == edge_set(t, t.secondary(), V)
+            assert edge_set(u, np.nonzero(u.concave)[0], V) == edge_set(t, np.nonzero(t.concave)[0], V)
+            for cam in ([0, 0, 10], [7, -5, 3], [-2, 9, -4]):
+                assert edge_set(u, u.primary(V, cam), V) == edge_set(t, t.primary(V, cam), V)
+            # a flat edge between a turned and an unturned face is an image edge (a one-sided
+            # material shades the turned face black)
+            mixed = ~u.open & (turned[u.face0] != turned[u.face1])
+            assert np.array_equal(u.turned0 != u.turned1, mixed)
+            assert np.array_equal(u.turned0, turned[u.face0])  # closed parts: outward
+
+
+def test_open_surface_keeps_edges_concave_on_either_side():
+    """Both sides of an open surface are free space: no edge is left out as concave."""
+    V, F = meshes.sphere(1.0, 2)
+    V = V * (1 + 0.1 * np.sin(5 * V[:, :1]))
+    keep = (V[F][:, :, 2] > -0.2).all(axis=1)
+    t = build_topology(V, F[keep])
+    assert t.open.any() and not t.concave.any()
+    assert len(t.secondary()) == int((~t.flat).sum())
+
+
+def book_mesh():
+    """Three pages on the spine x ∈ [0, 1] at angles 0°, 40° and 100° in the y–z plane, wound
+    every which way."""
+    ang = np.radians([0.0, 40.0, 100.0])
+    V = [[0, 0, 0], [1, 0, 0]] + [[0.5, np.cos(a), np.sin(a)] for a in ang]
+    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    return np.array(V, float), F
+
+
+def test_book_spine_has_one_row_per_sector():
+    V, F = book_mesh()
+    t = build_topology(V, F)
+    assert t.nonmanifold == 1 and t.sector.sum() == 3 and t.open.sum() == 6
+    spine = np.nonzero(t.sector)[0]
+    # only the 220° sector (from the 100° page round to the 0° page) bounds visibility; its
+    # normals point into it, away from the 40° page
+    assert list(t.secondary()) == [r for r in range(len(t)) if not t.sector[r] or not t.concave[r]]
+    reflex = spine[~t.concave[spine]]
+    assert len(reflex) == 1
+    n0, n1 = t.normals(V)
+    middle = np.array([0, np.cos(np.radians(40)), np.sin(np.radians(40))])
+    assert n0[reflex[0]] @ middle < 0 and n1[reflex[0]] @ middle < 0
+
+    def spine_rows(rows):
+        return [r for r in rows if t.sector[r]]
+
+    far = 50.0
+    # a line of sight at 250°/70° passes between the pages: no silhouette; the camera at 250°
+    # sits in the 220° sector and sees the crease between the 100° and 0° pages
+    cam = [0.5, far * np.cos(np.radians(250)), far * np.sin(np.radians(250))]
+    assert spine_rows(t.primary(V, cam)) == []
+    assert spine_rows(t.creases(V, cam)) == list(reflex)
+    # at 150° the line (150°/330°) has every page on one side: a silhouette
+    cam = [0.5, far * np.cos(np.radians(150)), far * np.sin(np.radians(150))]
+    assert spine_rows(t.primary(V, cam)) == list(reflex)
+    # between the 0° and 40° pages the camera sees that sector's crease only
+    cam = [0.5, far * np.cos(np.radians(20)), far * np.sin(np.radians(20))]
+    rows = spine_rows(t.creases(V, cam))
+    assert len(rows) == 1 and {t.face0[rows[0]], t.face1[rows[0]]} == {0, 1}
+
+
+def test_edge_shared_by_two_boxes_bounds_no_visibility():
+    """Two cubes touching along an edge: four faces 90° apart, so no line through it has every
+    face on one side, and the edge is in no shadow-edge list."""
+    Va, Fa = meshes.cube((1, 1, 1))
+    V = np.vstack([Va, Va + [0, 1, 1]])
+    F = np.vstack([Fa, Fa + len(Va)])
+    t = build_topology(V, F)
+    assert t.nonmanifold == 1 and t.sector.sum() == 4 and t.concave[t.sector].all()
+    assert len(t.secondary()) == 22

@@ -38,8 +38,9 @@ class BoundaryEdges:
 
     Vertex ids index the concatenation of those objects' ``vertex_positions`` buffers (in
     ``names`` order), so :meth:`positions` returns one differentiable buffer for all of them.
-    ``ids``: v0, v1, v2 (face0 in winding order) and face1's three vertices (a copy of face0's
-    for open edges); ``open``: border edges. ``meshes`` keeps (topology, vertex offset, smooth
+    ``ids``: v0, v1, v2 (face0 with normal n0) and v1, v0, v3 (face1 with normal n1, consistent
+    with n0 whatever the faces' winding: see :mod:`psdr_cli.topology`; a copy of face0's on open
+    edges); ``open``: border edges. ``meshes`` keeps (topology, vertex offset, smooth
     shading) per object for the per-view primary (silhouette) edges. ``flip``: edges traversed
     from v1 to v0 (edge sorting); ``chains``: the chain structure of the edge order (every edge
     its own chain unless sorted).
@@ -64,9 +65,10 @@ class BoundaryEdges:
             topo = build_topology(om.vertices, om.faces)
             meshes.append((topo, offset, bool(om.config.smooth)))
             sel = topo.secondary(transmissive=om.config.bsdf.type in TRANSMISSIVE)
-            F = om.faces
-            f1 = np.where(topo.open, topo.face0, topo.face1)[sel]
-            for c, arr in zip(cols, (topo.v0[sel], topo.v1[sel], topo.v2[sel], F[f1, 0], F[f1, 1], F[f1, 2])):
+            o = topo.open[sel]
+            face1 = (np.where(o, topo.v0[sel], topo.v1[sel]), np.where(o, topo.v1[sel], topo.v0[sel]),
+                     np.where(o, topo.v2[sel], topo.v3[sel]))
+            for c, arr in zip(cols, (topo.v0[sel], topo.v1[sel], topo.v2[sel], *face1)):
                 c.append(arr + offset)
             opens.append(topo.open[sel])
             names.append(name)

@@ -39,9 +39,10 @@ DEPTH_TOL = 1e-3
 def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scattering: bool = True):
     """(v0, v1, face0, face1, mesh index, strict, inner) of the edges that can carry an
     image discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on
-    open edges): every non-flat edge with at least one face towards the camera (an edge between
-    two back faces of a closed mesh is never seen, and near a silhouette it projects just behind
-    a grazing front face).
+    open edges): the rows of :meth:`psdr_cli.topology.Topology.creases` (non-flat edges, and flat
+    edges between a turned and an unturned face, with at least one face showing its front to the
+    camera: an edge between two back faces of a closed mesh is never seen, and near a silhouette
+    it projects just behind a grazing front face).
 
     Smooth-shaded meshes need their inner edges too when light scatters at the camera vertex
     (``scattering``: max_depth ≥ 2): the pixel value is continuous in the shading normal, but the
