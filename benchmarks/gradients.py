@@ -67,7 +67,8 @@ from psdr_cli.compare import rel_mse  # noqa: E402
 from psdr_cli.config import TERMS, load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.gradient import forward_gradient, prepare  # noqa: E402
-from psdr_cli.reference import agreement, block_sums, finite_difference, mitsuba_projective  # noqa: E402
+from psdr_cli.reference import agreement, block_sums, fd_resolution, finite_difference, mitsuba_projective  # noqa: E402
+from psdr_cli.render import render_view  # noqa: E402
 from psdr_cli.verdict import agrees, checks  # noqa: E402
 
 SCENES = ("silhouette", "shadow", "bunny", "cornell")
@@ -610,8 +611,9 @@ def standin_row(name: str, folder: Path) -> dict:
         ours_s = time.perf_counter() - t0
     scene, parameter, _, _ = prepare(exp)
     fd = finite_difference(scene, parameter, 0, h, fd_spp, seed=exp.seed, batches=FD_BATCHES)
+    resolution = fd_resolution(render_view(scene, 0, 64, seed=exp.seed), h, fd_spp, FD_BATCHES)
     row = {"parameter": parameter.name, "fd": {"h": h, "spp": fd_spp},
-           "ours": verdict_row(agreement([(e.passes, e.weights) for e in est.values()], fd)),
+           "ours": verdict_row(agreement([(e.passes, e.weights) for e in est.values()], fd, resolution=resolution)),
            "ours_seconds": ours_s, "ours_other_processes_cores": load.cores,
            "ours_spp": {"interior": exp.estimator.spp, "primary": exp.estimator.primary_spp,
                         "boundary": exp.estimator.boundary_spp, "passes": len(next(iter(est.values())).passes)}}
@@ -619,7 +621,7 @@ def standin_row(name: str, folder: Path) -> dict:
     try:
         t0 = time.perf_counter()
         batches = mitsuba_projective(scene, parameter, 0, STANDIN_MI_SPP, seed=5, batches=FD_BATCHES)
-        row["mitsuba"] = verdict_row(agreement([(batches, None)], fd))
+        row["mitsuba"] = verdict_row(agreement([(batches, None)], fd, resolution=resolution))
         row["mitsuba_seconds"] = time.perf_counter() - t0
         log(f"{name}: prb_projective sum z {row['mitsuba']['sum']['z']:+.2f}, agrees {row['mitsuba']['agrees']}")
     except RuntimeError as exc:

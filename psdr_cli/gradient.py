@@ -30,7 +30,7 @@ from .estimators.primary import primary_boundary
 from .guiding import auto
 from .guiding.targets import Guides, build_guides
 from .parameters import Parameter
-from .reference import agreement, finite_difference
+from .reference import agreement, fd_resolution, finite_difference
 from .render import render_view
 from .scene import build_scene
 from .shading import smooth_warning
@@ -322,7 +322,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
             fd_image = np.mean(batches, axis=0)
             for c, ch in enumerate("RGB"):
                 channels[f"fd.{ch}"] = fd_image[..., c]
-            stats = agreement([(e.passes, e.weights) for e in estimates.values()], batches)
+            stats = agreement([(e.passes, e.weights) for e in estimates.values()], batches,
+                              resolution=fd_resolution(image, fd, fd_spp, FD_BATCHES))
             header["psdr.fd_h"] = str(fd)
             header["psdr.fd_spp"] = str(fd_spp)
         exr = folder / f"view_{v:03d}.exr"

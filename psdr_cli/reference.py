@@ -3,7 +3,10 @@ integrator.
 
 - Central finite differences with common random numbers:
   FD_h = [I(θ + h) − I(θ − h)] / 2h, both renders with the same seed, so most of the Monte Carlo
-  noise cancels. Run in ``batches`` independent seeds to give a standard error.
+  noise cancels. Run in ``batches`` independent seeds to give a standard error. Where no batch
+  changed at all on a tile (a shadow edge sweeping so slowly that no sample flipped), that error
+  is 0, and the tile is scored against the change one flipped sample would have made
+  (:func:`fd_resolution`) instead.
 - Mitsuba's ``prb_projective`` (forward mode through ``mi.render``), a different estimator of the
   same derivative, with its guiding switched off (its default guides can give regions zero
   probability).
@@ -33,6 +36,14 @@ def finite_difference(scene, parameter, view: int, h: float, spp: int, seed: int
         parameter.reset()
         out.append((imgs[0].astype(np.float64) - imgs[1]) / (2 * h))
     return out
+
+
+def fd_resolution(image, h: float, spp: int, batches: int) -> np.ndarray:
+    """Per pixel, the change of one batch of central differences when one of its n = spp/batches
+    samples changes by the pixel's value I: I / (n · 2h) (image (H, W, 3), summed over channels
+    as the tiles are)."""
+    n = max(1, spp // batches)
+    return np.abs(np.asarray(image, np.float64)).sum(-1) / (n * 2 * h)
 
 
 def mitsuba_projective(scene, parameter, view: int, spp: int, seed: int = 0, max_depth: int | None = None,
@@ -75,12 +86,22 @@ def block_sums(images, block: int):
     return x[:, :h, :w].sum(-1).reshape(n, h // block, block, w // block, block).sum((2, 4))
 
 
-def agreement(estimates, fd_batches, block: int = 4) -> dict:
+def block_max(image, block: int):
+    """Maxima over block×block pixel tiles of an (H, W) image."""
+    x = np.asarray(image, np.float64)
+    h, w = x.shape[0] // block * block, x.shape[1] // block * block
+    return x[:h, :w].reshape(h // block, block, w // block, block).max((1, 3))
+
+
+def agreement(estimates, fd_batches, block: int = 4, resolution=None) -> dict:
     """Agreement of a gradient estimate with finite differences, on the image sum and on tiles.
 
     ``estimates``: one (per-pass images, pass weights) pair per term; terms are independent, so
     their means and variances add. ``z = (estimate − FD) / sqrt(se_estimate² + se_FD²)``; tiles
-    count as *signal* where the FD value exceeds 3 of its standard errors."""
+    count as *signal* where the FD value exceeds 3 of its standard errors. ``resolution``
+    (:func:`fd_resolution`): on a tile where every FD batch is the same (se_FD = 0: no sample
+    changed), se_FD = max over its pixels of the one-sample change / batches, the smallest FD
+    mean that one flipped sample would have shown."""
     est_sum = est_var = e = e_var = 0.0
     for passes, weights in estimates:
         m, se = mean_and_error([p.sum() for p in passes], weights)
@@ -89,6 +110,8 @@ def agreement(estimates, fd_batches, block: int = 4) -> dict:
         e, e_var = e + m, e_var + se ** 2
     fd_sum, fd_se = mean_and_error([b.sum() for b in fd_batches])
     f, f_se = mean_and_error(block_sums(fd_batches, block))
+    if resolution is not None:
+        f_se = np.where(f_se > 0, f_se, block_max(resolution, block) / len(fd_batches))
     z = (e - f) / np.sqrt(e_var + f_se ** 2 + 1e-30)
     signal = np.abs(f) > 3 * f_se
     corr = float(np.corrcoef(e.ravel(), f.ravel())[0, 1]) if f.size > 1 and f.std() > 0 and np.std(e) > 0 else float("nan")

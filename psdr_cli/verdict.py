@@ -2,7 +2,9 @@
 the test suite (``tests/test_gradients.py``), so the CLI never calls "agrees" what a test rejects.
 
 The statistics come from :func:`psdr_cli.reference.agreement`: z = (estimate − FD)/√(se² + se_FD²)
-on the image sum and on B×B tiles. A gradient agrees when every criterion holds:
+on the image sum and on B×B tiles (where no FD batch changed at all on a tile, se_FD is the
+change one flipped sample would make: :func:`psdr_cli.reference.fd_resolution`). A gradient
+agrees when every criterion holds:
 
 - image sum: |z| < 3;
 - tiles within 3 SE: ≥ 90 %;

@@ -18,7 +18,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import api
+from psdr_cli import api, meshes
 from psdr_cli.estimators import interior, primary
 from psdr_cli.estimators.camera import Projection, camera_ray
 from psdr_cli.estimators.passes import make_sampler
@@ -26,7 +26,8 @@ from psdr_cli.gradient import prepare
 from psdr_cli.config import load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.intersections import intersection_segments
-from psdr_cli.reference import agreement, block_sums, finite_difference, mean_and_error
+from psdr_cli.reference import agreement, block_max, block_sums, fd_resolution, finite_difference, mean_and_error
+from psdr_cli.render import render_view
 from psdr_cli.standins import (blob_cfg, book, bumpy_blob, camera_cfg, eye_cfg, head_with_eye, joined_boxes, load,
                                off_axis, open_dome, part_cfg, resting_blob, turned_cube)
 from psdr_cli.verdict import agrees, describe
@@ -37,7 +38,8 @@ def fd_agreement(exp, h, fd_spp):
     est = api.gradient_images(exp, min_passes=8)
     scene, parameter, _, _ = prepare(exp)
     fd = finite_difference(scene, parameter, 0, h, fd_spp, seed=exp.seed, batches=8)
-    return agreement([(e.passes, e.weights) for e in est.values()], fd), est, fd
+    resolution = fd_resolution(render_view(scene, 0, 64, seed=exp.seed), h, fd_spp, 8)
+    return agreement([(e.passes, e.weights) for e in est.values()], fd, resolution=resolution), est, fd
 
 
 @pytest.mark.slow
@@ -341,3 +343,27 @@ def test_turned_faces_and_shared_edges_match_finite_differences(tmp_path, make):
     exp = load(part_cfg(), tmp_path, {"part": make()})
     stats, _, _ = fd_agreement(exp, 0.003, 16384)
     assert agrees(stats), describe(stats)
+
+
+def test_tiles_finite_differences_see_no_change_in_are_scored_by_resolution(tmp_path):
+    """A plain cube moved straight up: its shadow edge sweeps some floor tiles so slowly that no
+    FD sample changes in any batch (FD 0 ± 0) while the estimate is 10⁻⁷…10⁻⁴ there, a million
+    times below the largest tile. Scored against a zero error these tiles gave z up to −48 and
+    mean z² 103; against the change one flipped sample would make (fd_resolution) the verdict
+    agrees. A tile 10³ times above that resolution would still fail."""
+    cfg = part_cfg()
+    cfg["parameter"]["axis"] = [0, 0, 1]
+    exp = load(cfg, tmp_path, {"part": meshes.cube((0.5, 0.5, 0.5))})
+    stats, est, fd = fd_agreement(exp, 0.003, 16384)
+    assert agrees(stats), describe(stats)
+    scene, _, _, _ = prepare(exp)
+    resolution = fd_resolution(render_view(scene, 0, 64, seed=exp.seed), 0.003, 16384, 8)
+    still = np.all(block_sums(fd, 4) == 0, axis=0) & (block_max(resolution, 4) > 0)
+    assert still.any()
+    spurious = [np.array(p) for p in est["interior"].passes]
+    i, j = np.argwhere(still)[0]
+    bump = 1000 * resolution[4 * i: 4 * i + 4, 4 * j: 4 * j + 4].max() / 8
+    for p in spurious:
+        p[4 * i, 4 * j, 0] += bump
+    terms = [(e.passes, e.weights) for k, e in est.items() if k != "interior"] + [(spurious, est["interior"].weights)]
+    assert not agrees(agreement(terms, fd, resolution=resolution))
