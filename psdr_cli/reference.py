@@ -99,8 +99,8 @@ def agreement(estimates, fd_batches, block: int = 4, resolution=None) -> dict:
     ``estimates``: one (per-pass images, pass weights) pair per term; terms are independent, so
     their means and variances add. ``z = (estimate − FD) / sqrt(se_estimate² + se_FD²)``; tiles
     count as *signal* where the FD value exceeds 3 of its standard errors. ``resolution``
-    (:func:`fd_resolution`): on a tile where every FD batch is the same (se_FD = 0: no sample
-    changed), se_FD = max over its pixels of the one-sample change / batches, the smallest FD
+    (:func:`fd_resolution`): on a tile where every FD batch is exactly 0 (no sample changed),
+    se_FD = max over its pixels of the one-sample change / batches, the smallest FD
     mean that one flipped sample would have shown."""
     est_sum = est_var = e = e_var = 0.0
     for passes, weights in estimates:
@@ -110,8 +110,8 @@ def agreement(estimates, fd_batches, block: int = 4, resolution=None) -> dict:
         e, e_var = e + m, e_var + se ** 2
     fd_sum, fd_se = mean_and_error([b.sum() for b in fd_batches])
     f, f_se = mean_and_error(block_sums(fd_batches, block))
-    if resolution is not None:
-        f_se = np.where(f_se > 0, f_se, block_max(resolution, block) / len(fd_batches))
+    if resolution is not None:  # every batch exactly 0 on the tile: no sample changed
+        f_se = np.where((f_se > 0) | (f != 0), f_se, block_max(resolution, block) / len(fd_batches))
     z = (e - f) / np.sqrt(e_var + f_se ** 2 + 1e-30)
     signal = np.abs(f) > 3 * f_se
     corr = float(np.corrcoef(e.ravel(), f.ravel())[0, 1]) if f.size > 1 and f.std() > 0 and np.std(e) > 0 else float("nan")

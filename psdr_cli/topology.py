@@ -164,19 +164,38 @@ def closed_parts(F, label):
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     other = np.nonzero(counts[inverse] != 2)[0]
     part = label[other // 3]
-    _, pair, pair_counts = np.unique(key[other] * (label.max() + 1) + part, return_inverse=True, return_counts=True)
-    bad = np.bincount(part, weights=pair_counts[pair] != 2, minlength=label.max() + 1)
+    _, pair, pair_counts = np.unique(np.stack([key[other], part], 1), axis=0, return_inverse=True,
+                                     return_counts=True)
+    bad = np.bincount(part, weights=pair_counts[pair.reshape(-1)] != 2, minlength=label.max() + 1)
     return bad == 0
 
 
-def oriented_parts(V, F):
+def winding_numbers(V, F, points) -> np.ndarray:
+    """(points, faces) signed solid angles / 4π of the triangles F seen from each point (Van
+    Oosterom and Strackee: tan(Ω/2) = det(a, b, c) / (|a||b||c| + (a·b)|c| + (a·c)|b| + (b·c)|a|),
+    a, b, c the corners relative to the point). Summed over a closed, outward surface: 1 inside,
+    0 outside."""
+    out = []
+    for p in np.asarray(points, float).reshape(-1, 3):
+        a, b, c = (V[F[:, k]] - p for k in range(3))
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb \
+            + np.einsum("ij,ij->i", b, c) * la
+        out.append(np.arctan2(det, den) / (2 * np.pi))
+    return np.array(out).reshape(-1, len(F))
+
+
+def oriented_parts(V, F, viewpoints=()):
     """(flipped, solid) per face of a welded mesh (V, F): whether its winding must be reversed so
     that every connected part (faces joined through edges with two faces) is consistently
-    oriented, and outward where the part is closed (signed volume Σ det(p0, p1, p2)/6 > 0); and
-    whether the part is closed and orientable, so that no path enters its inside.
+    oriented, towards free space where the part is closed; and whether the part is closed and
+    orientable, so that paths stay on one side of it.
 
-    flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the parts
-    (scipy.sparse.csgraph), accumulated to the roots by pointer doubling."""
+    A closed part's free space is its outside (signed volume Σ det(p0, p1, p2)/6 > 0), unless it
+    encloses one of the ``viewpoints`` (camera origins; winding number ≥ ½): a room seen from
+    inside. flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the
+    parts (scipy.sparse.csgraph), accumulated to the roots by pointer doubling."""
     n = len(F)
     f, g, same = face_graph(F)
     # 1 for opposite traversals, 4 for the same; two faces sharing two edges add up (2, 5 or 8)
@@ -201,7 +220,12 @@ def oriented_parts(V, F):
     G = np.where(parity[:, None], F[:, ::-1], F)
     det = np.einsum("ij,ij->i", V[G[:, 0]], np.cross(V[G[:, 1]], V[G[:, 2]]))
     inward = np.bincount(label, weights=det) < 0
-    return parity ^ (solid & inward[label]), solid
+    room = np.zeros(len(inward), bool)
+    if len(viewpoints) and solid.any():
+        w = winding_numbers(V, G[solid], viewpoints)
+        enclosed = np.abs(np.stack([np.bincount(label[solid], weights=x, minlength=len(room)) for x in w])) >= 0.5
+        room = enclosed.any(0)
+    return parity ^ (solid & (inward != room)[label]), solid
 
 
 def row_geometry(V, F, wid, h0, h1, forward):
@@ -231,12 +255,13 @@ def edge_classes(V, ids, normals, open_, eps):
     return flat, concave
 
 
-def build_topology(V, F, eps: float = 1e-5) -> Topology:
+def build_topology(V, F, eps: float = 1e-5, viewpoints=()) -> Topology:
     """Edge table of the mesh (V, F), vertices welded by position (vertex ids stay V's).
 
     An edge with two faces gets one row, its normals those of the consistently oriented part
-    (:func:`oriented_parts`): outward on a closed part, so that its concave edges can be left out
-    for opaque materials; on an open part turned into the sector wider than π, since both sides
+    (:func:`oriented_parts`): towards free space on a closed part (outward, or inward for a part
+    enclosing one of the ``viewpoints``), so that its concave edges can be left out for opaque
+    materials; on an open part turned into the sector wider than π, since both sides
     of an open surface are free space. An edge with more than two faces gets one row per sector
     between neighbouring faces (:func:`sector_pairs`), its normals turned into the sector: a line
     through the edge is a visibility boundary only inside a sector wider than π (all faces on
@@ -246,7 +271,7 @@ def build_topology(V, F, eps: float = 1e-5) -> Topology:
     F = np.asarray(F, np.int64)
     wid, rep = weld(V)
     Fw = wid[F]
-    flipped, solid = oriented_parts(V[rep], Fw)
+    flipped, solid = oriented_parts(V[rep], Fw, viewpoints)
     # Half-edges h = 3f + k of face f: (F[f,k], F[f,k+1]); grouped by their welded, unordered end points.
     a = Fw.reshape(-1)
     b = Fw[:, [1, 2, 0]].reshape(-1)

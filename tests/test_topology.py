@@ -2,7 +2,7 @@
 import numpy as np
 
 from psdr_cli import meshes
-from psdr_cli.topology import build_topology, face_normals, weld
+from psdr_cli.topology import build_topology, face_normals, weld, winding_numbers
 
 
 def test_cube_edges_are_convex_and_diagonals_flat():
@@ -149,3 +149,16 @@ def test_edge_shared_by_two_boxes_bounds_no_visibility():
     t = build_topology(V, F)
     assert t.nonmanifold == 1 and t.sector.sum() == 4 and t.concave[t.sector].all()
     assert len(t.secondary()) == 22
+
+
+def test_closed_mesh_around_a_camera_is_a_room():
+    """A closed box around the camera is seen from inside: its free space is the inside, so its
+    corners are concave (no line through a corner stays inside the room), however it is wound.
+    The same box seen from outside has twelve convex edges."""
+    V, F = meshes.cube((4, 4, 4))
+    for G in (F, F[:, ::-1]):
+        room = build_topology(V, G, viewpoints=[[0.3, -0.5, 0.2], [9, 9, 9]])
+        assert len(room.secondary()) == 0 and room.concave.sum() == 12
+        box = build_topology(V, G, viewpoints=[[9, 9, 9]])
+        assert len(box.secondary()) == 12 and not box.concave.any()
+    assert np.allclose(winding_numbers(V, F, [[0.1, 0.2, 0.3], [5, 0, 0]]).sum(1), [1, 0])

@@ -32,6 +32,12 @@ def normalize(v):
     return v / dr.norm(v)
 
 
+def camera_origins(mi_scene: mi.Scene) -> np.ndarray:
+    """(n, 3) positions of the scene's sensors: a closed mesh around one of them is a room, whose
+    free space is its inside."""
+    return np.array([np.ravel(s.world_transform().translation()) for s in mi_scene.sensors()], float).reshape(-1, 3)
+
+
 @dataclass
 class BoundaryEdges:
     """Secondary edges of every object with ``edges: true``.
@@ -59,10 +65,11 @@ class BoundaryEdges:
         stop at turns sharper than ``max_turn`` degrees and at ``max_length`` edges)."""
         cols = [[] for _ in range(6)]
         opens, names, meshes, verts, offset = [], [], [], [], 0
+        cameras = camera_origins(scene.mi_scene)
         for name, om in scene.objects.items():
             if not om.edges:
                 continue
-            topo = build_topology(om.vertices, om.faces)
+            topo = build_topology(om.vertices, om.faces, viewpoints=cameras)
             meshes.append((topo, offset, bool(om.config.smooth)))
             sel = topo.secondary(transmissive=om.config.bsdf.type in TRANSMISSIVE)
             o = topo.open[sel]
