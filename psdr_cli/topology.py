@@ -80,11 +80,8 @@ class Topology:
         return np.nonzero(keep)[0]
 
     def normals(self, V):
-        """(n0, n1) per row: unit (p1 − p0) × (p2 − p0) and (p0 − p1) × (p3 − p1) (n0 on open edges)."""
-        V = np.asarray(V, float)
-        n0 = unit(np.cross(V[self.v1] - V[self.v0], V[self.v2] - V[self.v0]))
-        n1 = unit(np.cross(V[self.v0] - V[self.v1], V[self.v3] - V[self.v1]))
-        return n0, np.where(self.open[:, None], n0, n1)
+        """(n0, n1) per row (:func:`row_normals`)."""
+        return row_normals(np.asarray(V, float), (self.v0, self.v1, self.v2, self.v3), self.open)
 
     def facing(self, V, camera_origin):
         """Whether n0 and n1 point towards ``camera_origin``."""
@@ -138,20 +135,21 @@ def sector_pairs(V, F, wid, halfedges):
     return [(halfedges[i], halfedges[j], forward[i], b) for i, j, b in zip(order, np.roll(order, -1), beta)]
 
 
-def edge_keys(F):
-    """Per half-edge h = 3f + k, an id of its unordered end points (F[f,k], F[f,k+1])."""
+def edge_groups(F):
+    """Half-edges h = 3f + k of face f, (F[f,k], F[f,k+1]), grouped by their unordered end points:
+    (key per half-edge, half-edges sorted by key, start of each group in that order, its size)."""
     a, b = F.reshape(-1), F[:, [1, 2, 0]].reshape(-1)
-    return np.minimum(a, b) * (F.max() + 1) + np.maximum(a, b)
+    key = np.minimum(a, b) * (F.max() + 1) + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    starts = np.nonzero(np.r_[True, ks[1:] != ks[:-1]])[0]
+    return key, order, starts, np.diff(np.r_[starts, len(ks)])
 
 
 def face_graph(F):
     """(f, g, same): pairs of faces sharing an edge with no third face, and whether f and g
     traverse it in the same direction (their windings disagree)."""
-    key = edge_keys(F)
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    starts = np.nonzero(np.r_[True, ks[1:] != ks[:-1]])[0]
-    counts = np.diff(np.r_[starts, len(ks)])
+    _, order, starts, counts = edge_groups(F)
     h, g = order[starts[counts == 2]], order[starts[counts == 2] + 1]
     a = F.reshape(-1)
     return h // 3, g // 3, a[h] == a[g]
@@ -160,9 +158,8 @@ def face_graph(F):
 def closed_parts(F, label):
     """Per part: whether each of its edges has exactly two of its faces. An edge with two faces
     joins them into one part, so only edges with one face or more than two are counted."""
-    key = edge_keys(F)
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    other = np.nonzero(counts[inverse] != 2)[0]
+    key, order, starts, counts = edge_groups(F)
+    other = order[np.repeat(counts != 2, counts)]
     part = label[other // 3]
     _, pair, pair_counts = np.unique(np.stack([key[other], part], 1), axis=0, return_inverse=True,
                                      return_counts=True)
@@ -228,6 +225,14 @@ def oriented_parts(V, F, viewpoints=()):
     return parity ^ (solid & (inward != room)[label]), solid
 
 
+def row_normals(V, ids, open_):
+    """(n0, n1) of edge rows (v0, v1, v2, v3): unit (p1 − p0) × (p2 − p0) and (p0 − p1) × (p3 − p1)
+    (n0 on open edges)."""
+    v0, v1, v2, v3 = ids
+    n0 = unit(np.cross(V[v1] - V[v0], V[v2] - V[v0]))
+    return n0, np.where(open_[:, None], n0, unit(np.cross(V[v0] - V[v1], V[v3] - V[v1])))
+
+
 def row_geometry(V, F, wid, h0, h1, forward):
     """Vertex ids (v0, v1, v2, v3) and normals (n0, n1) of edge rows: face0 = h0 // 3 traversed
     along its winding (``forward``) or against it, face1 = h1 // 3 (−1: open), n1 consistent with
@@ -238,11 +243,9 @@ def row_geometry(V, F, wid, h0, h1, forward):
     open_ = h1 < 0
     f1, k1 = np.maximum(h1, 0) // 3, np.maximum(h1, 0) % 3
     v3 = np.where(open_, v2, F[f1, (k1 + 2) % 3])
-    n0 = unit(np.cross(V[v1] - V[v0], V[v2] - V[v0]))
-    n1 = np.where(open_[:, None], n0, unit(np.cross(V[v0] - V[v1], V[v3] - V[v1])))
     # face1's winding normal is n1 exactly when it traverses the edge as (v1, v0)
     turned1 = ~open_ & (wid[F[f1, k1]] != wid[v1])
-    return (v0, v1, v2, v3), (n0, n1), turned1
+    return (v0, v1, v2, v3), row_normals(V, (v0, v1, v2, v3), open_), turned1
 
 
 def edge_classes(V, ids, normals, open_, eps):
@@ -272,14 +275,7 @@ def build_topology(V, F, eps: float = 1e-5, viewpoints=()) -> Topology:
     wid, rep = weld(V)
     Fw = wid[F]
     flipped, solid = oriented_parts(V[rep], Fw, viewpoints)
-    # Half-edges h = 3f + k of face f: (F[f,k], F[f,k+1]); grouped by their welded, unordered end points.
-    a = Fw.reshape(-1)
-    b = Fw[:, [1, 2, 0]].reshape(-1)
-    key = np.minimum(a, b) * (wid.max() + 1) + np.maximum(a, b)
-    order = np.argsort(key, kind="stable")
-    key_sorted = key[order]
-    starts = np.nonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])[0]
-    counts = np.diff(np.r_[starts, len(key_sorted)])
+    _, order, starts, counts = edge_groups(Fw)  # by welded end points
     simple = counts <= 2
     h0 = order[starts[simple]]
     h1 = np.where(counts[simple] == 2, order[np.minimum(starts[simple] + 1, len(order) - 1)], -1)
