@@ -30,7 +30,11 @@ import numpy as np
 
 from .topology import weld
 
-#: Rows of the candidate matrix processed at once (memory of the bounding-box test).
+#: A box larger than this many broad-phase cells along an axis is compared with every box
+#: directly instead of being put into the grid (:func:`overlapping_pairs`).
+LARGE_BOX_CELLS = 8
+
+#: Rows of a dense large-box comparison processed at once (memory of the test).
 CHUNK = 512
 
 
@@ -50,20 +54,79 @@ class Segments:
         return len(self.ends)
 
 
-def overlapping_boxes(lo_a, hi_a, lo_b, hi_b, same: bool):
-    """Index pairs (i, j) of axis-aligned boxes of A and B that overlap (i < j when ``same``)."""
-    out_i, out_j = [], []
-    for s in range(0, len(lo_a), CHUNK):
-        sl = slice(s, s + CHUNK)
-        hit = np.all((lo_a[sl, None, :] <= hi_b[None]) & (lo_b[None] <= hi_a[sl, None, :]), axis=-1)
+def grid_cell_size(lo, hi) -> float:
+    """Edge h of the broad phase's cubic cells: the median box extent, at least 1/256 of the
+    extent of all boxes."""
+    extent = float((hi.max(0) - lo.min(0)).max()) or 1.0
+    return max(float(np.median((hi - lo).max(1))), extent / 256, 1e-12)
+
+
+def cell_entries(lo, hi, h):
+    """(box, cell key) for every grid cell of size h that box [lo, hi] touches."""
+    first = np.floor(lo / h).astype(np.int64)
+    span = np.floor(hi / h).astype(np.int64) - first + 1
+    count = np.prod(span, axis=1)
+    box = np.repeat(np.arange(len(lo)), count)
+    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    sx, sy = span[box, 0], span[box, 1]
+    cell = first[box] + np.stack([local % sx, (local // sx) % sy, local // (sx * sy)], 1)
+    cell -= cell.min(0)
+    dims = cell.max(0) + 1
+    return box, (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+
+
+def grid_pairs(lo, hi, h):
+    """Candidate pairs (i, j), i < j, of boxes that share a grid cell of size h (unsorted, with
+    repeats)."""
+    box, key = cell_entries(lo, hi, h)
+    order = np.lexsort((box, key))
+    box, key = box[order], key[order]
+    out_i, out_j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for d in range(1, len(key)):
+        same = key[d:] == key[:-d]
+        if not same.any():
+            break
+        out_i.append(box[:-d][same])
+        out_j.append(box[d:][same])
+    return np.concatenate(out_i), np.concatenate(out_j)   # i < j: boxes are sorted within a cell
+
+
+def dense_pairs(rows, lo, hi):
+    """Pairs (i, j) with i in ``rows`` and any j ≠ i whose boxes overlap (unsorted)."""
+    out_i, out_j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for s in range(0, len(rows), CHUNK):
+        r = rows[s:s + CHUNK]
+        hit = np.all((lo[r, None, :] <= hi[None]) & (lo[None] <= hi[r, None, :]), axis=-1)
         i, j = np.nonzero(hit)
-        i = i + s
-        if same:
-            keep = i < j
-            i, j = i[keep], j[keep]
-        out_i.append(i)
+        out_i.append(r[i])
         out_j.append(j)
-    return np.concatenate(out_i), np.concatenate(out_j)
+    i, j = np.concatenate(out_i), np.concatenate(out_j)
+    keep = i != j
+    return i[keep], j[keep]
+
+
+def overlapping_pairs(lo, hi):
+    """Index pairs (i, j), i < j, of the axis-aligned boxes [lo_k, hi_k] that overlap, in
+    lexicographic order.
+
+    Broad phase on a uniform grid (cell size h, :func:`grid_cell_size`): two overlapping boxes
+    share at least one cell, so only boxes listed in a common cell are compared; boxes longer
+    than ``LARGE_BOX_CELLS``·h (a floor's two triangles) are compared with every box directly.
+    Cost O(n · boxes per cell + large boxes · n), against O(n²) for all pairs."""
+    n = len(lo)
+    if n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    h = grid_cell_size(lo, hi)
+    large = (hi - lo).max(1) > LARGE_BOX_CELLS * h
+    small = np.flatnonzero(~large)
+    gi, gj = grid_pairs(lo[small], hi[small], h)
+    di, dj = dense_pairs(np.flatnonzero(large), lo, hi)
+    i = np.concatenate([small[gi], np.minimum(di, dj)])
+    j = np.concatenate([small[gj], np.maximum(di, dj)])
+    pair = np.unique(i * np.int64(n) + j)
+    i, j = pair // n, pair % n
+    hit = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
+    return i[hit], j[hit]
 
 
 def plane_side(V, tri_vertices, plane_tri):
@@ -136,17 +199,27 @@ def intersection_segments(vertices: list, faces: list, rel_min_length: float = 1
     wid, _ = weld(V)
     extent = float(np.ptp(V, axis=0).max()) or 1.0
     Fs = [np.asarray(F, np.int64) + o for F, o in zip(faces, offsets)]
-    boxes = [(V[F].min(1) - 1e-9 * extent, V[F].max(1) + 1e-9 * extent) for F in Fs]
+    sizes = [len(F) for F in Fs]
+    start = np.cumsum([0] + sizes)
+    F_all = np.concatenate(Fs)
+    part = np.repeat(np.arange(len(Fs)), sizes)
+    gi, gj = overlapping_pairs(V[F_all].min(1) - 1e-9 * extent, V[F_all].max(1) + 1e-9 * extent)
     ends, mesh, face = [], [], []
     for a in range(len(Fs)):
         for b in range(a, len(Fs)):
-            i, j = overlapping_boxes(*boxes[a], *boxes[b], same=a == b)
+            sel = (part[gi] == a) & (part[gj] == b)
+            if a != b:  # the pairs with one triangle in each mesh, either way round
+                sel |= (part[gi] == b) & (part[gj] == a)
+            i, j = gi[sel], gj[sel]
+            i, j = np.where(part[i] == a, i, j) - start[a], np.where(part[i] == a, j, i) - start[b]
             if a == b and len(i):  # neighbours share a welded vertex
                 wa, wb = wid[Fs[a][i]], wid[Fs[b][j]]
                 shared = (wa[:, :, None] == wb[:, None, :]).any((1, 2))
                 i, j = i[~shared], j[~shared]
             if not len(i):
                 continue
+            order = np.lexsort((j, i))  # row-major, as a dense (i, j) test lists them
+            i, j = i[order], j[order]
             ok, e, length = segment_ends(V, Fs[a][i], Fs[b][j])
             ok &= length > rel_min_length * extent
             ends.append(e[ok])

@@ -15,7 +15,7 @@ continuous along each chain.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -49,7 +49,9 @@ class BoundaryEdges:
     edges); ``open``: border edges. ``meshes`` keeps (topology, vertex offset, smooth
     shading) per object for the per-view primary (silhouette) edges. ``flip``: edges traversed
     from v1 to v0 (edge sorting); ``chains``: the chain structure of the edge order (every edge
-    its own chain unless sorted).
+    its own chain unless sorted). ``segments``: the intersection segments of the last geometry
+    they were searched for (:func:`psdr_cli.estimators.primary.scene_segments`), shared by the
+    views of one iteration.
     """
     names: list
     ids: list
@@ -58,6 +60,7 @@ class BoundaryEdges:
     meshes: list = None
     flip: mi.Bool = None
     chains: object = None
+    segments: dict = field(default_factory=dict)
 
     @staticmethod
     def from_scene(scene, sort: bool = False, max_turn: float = 60.0, max_length: int = 1024) -> "BoundaryEdges":

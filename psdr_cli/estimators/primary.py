@@ -12,6 +12,8 @@ sample adds (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] to the pixel of q.
 """
 from __future__ import annotations
 
+import hashlib
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -133,11 +135,26 @@ def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
     return out, buf, len([n for n in order if n in edges.names])
 
 
+def scene_segments(edges: BoundaryEdges, meshes) -> Segments:
+    """Intersection segments of ``meshes`` ((shape, V, F) each), searched once per geometry: the
+    result is kept in ``edges.segments`` under a digest of every V and F, so the views of one
+    iteration (same vertices) share one search."""
+    digest = hashlib.blake2b(digest_size=16)
+    for _, V, F in meshes:
+        digest.update(np.ascontiguousarray(V).tobytes())
+        digest.update(np.ascontiguousarray(F).tobytes())
+    key = digest.hexdigest()
+    if key not in edges.segments:
+        edges.segments.clear()
+        edges.segments[key] = intersection_segments([V for _, V, _ in meshes], [F for _, _, F in meshes])
+    return edges.segments[key]
+
+
 def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
     """Intersection curves that involve at least one edge object (:mod:`psdr_cli.intersections`)."""
     with dr.suspend_grad():
         meshes, _, n_moving = scene_meshes(scene, edges, P)
-    seg = intersection_segments([V for _, V, _ in meshes], [F for _, _, F in meshes])
+    seg = scene_segments(edges, meshes)
     keep = (seg.mesh < n_moving).any(1)
     empty = np.zeros(0, np.int64)
     if not keep.any():
