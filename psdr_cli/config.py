@@ -449,6 +449,7 @@ class OptimizeConfig:
     learning_rate: float = 0.1             # Adam step on the large-steps latent (docs/optimize.md, "Defaults")
     lambda_: float = 20.0
     guide_every: int = 10
+    adjoint_spp: int = 0                   # samples of the separate primal render the L1 sign comes from (0: the AD image's own)
     checkpoint_every: int = 50
     preview_views: tuple = (0,)
     albedo: bool = False
@@ -1123,6 +1124,7 @@ def parse_optimize(base: Path) -> Parser:
         o.learning_rate = sec.get("learning_rate", number(positive=True), o.learning_rate)
         o.lambda_ = sec.get("lambda", number(minimum=0), o.lambda_)
         o.guide_every = sec.get("guide_every", integer(1), o.guide_every)
+        o.adjoint_spp = sec.get("adjoint_spp", integer(0, MAX_SPP), o.adjoint_spp)
         o.checkpoint_every = sec.get("checkpoint_every", integer(1), o.checkpoint_every)
         o.preview_views = tuple(sec.get("preview_views", list_of(integer(0), min_len=1), list(o.preview_views)))
         if sec.has("albedo"):
@@ -1272,7 +1274,8 @@ def check_experiment(exp: Experiment):
             f"camera {exp.parameter.camera} does not exist (the scene has cameras 0..{len(exp.scene.cameras) - 1})")
     for key, spp in (("estimator.spp", exp.estimator.spp), ("estimator.primary_spp", exp.estimator.primary_spp),
                      ("estimator.boundary_spp", exp.estimator.boundary_spp),
-                     ("optimize.target.spp", exp.optimize.target_spp if exp.optimize else 0)):
+                     ("optimize.target.spp", exp.optimize.target_spp if exp.optimize else 0),
+                     ("optimize.adjoint_spp", exp.optimize.adjoint_spp if exp.optimize else 0)):
         check_paths(spp, exp.scene.width, exp.scene.height, Where(str(exp.file), key).fail)
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):

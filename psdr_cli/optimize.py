@@ -40,6 +40,7 @@ from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, Paramete
 from .engines import Engine
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
+from .estimators.passes import pass_seed
 from .gradient import Settings, make_guides, uses_guides
 from .parameters import Parameter
 from .remesh import remesh
@@ -47,6 +48,10 @@ from .render import render_view
 from .runs import (RunFiles, append_log, clear_run, lock_run, move_aside, read_log, run_fingerprint,
                    saved_fingerprint, variant_experiments, write_log, write_mesh)
 from .scene import build_scene, object_mesh
+
+
+#: Random-number stream of the adjoint renders (:func:`adjoint_image`; the terms use 1..4, Mitsuba 9).
+ADJOINT_STREAM = 10
 
 
 # --------------------------------------------------------------------------------------------
@@ -388,6 +393,30 @@ def texture_experiment(exp, texture):
     return replace(exp, scene=replace(exp.scene, objects=objects))
 
 
+def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.Float:
+    """Primal render P of ``view`` (flat W·H·3, no AD) from samples of its own random stream, for
+    the derivative of :func:`l1_loss`."""
+    image = render_view(scene, view, spp, seed=pass_seed(seed, view, iteration, ADJOINT_STREAM))
+    return mi.Float(np.asarray(image, np.float32).ravel())
+
+
+def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) -> mi.Float:
+    """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I.
+
+    With ``adjoint`` P (an independent primal render of the same view) the value is mean |P − T|
+    and the derivative mean sign(P − T)·∂I. Taking the sign from the AD image I itself (n
+    samples) gives the exact gradient of E|I_n − T|, the L1 loss of a noisy render: a different
+    objective, minimised where the median (not the mean) of the n-sample pixel estimate meets
+    the target, whose gradient also shrinks wherever the residual is small next to the noise. A
+    P of more samples, independent of those of ∂I, brings the estimate close to the gradient of
+    the noise-free image's L1 loss at the cost of a forward render (docs/optimize.md, "Gradient
+    quality per second")."""
+    if adjoint is None:
+        return dr.mean(dr.abs(image - target))
+    sign = dr.sign(adjoint - target)
+    return dr.mean(dr.abs(adjoint - target)) + dr.mean(sign * (image - dr.detach(image)))
+
+
 def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
     """The mini-batch of iteration ``iteration``: a function of (seed, iteration) only."""
     rng = np.random.default_rng([seed, iteration])
@@ -510,7 +539,8 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             loss = mi.Float(0.0)
             for v in views:
                 img = engine.image(problem, edges, v, it, guides)
-                loss += dr.mean(dr.abs(img - target_arrays[v])) / len(views)
+                adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, exp.seed, it) if cfg.adjoint_spp else None
+                loss += l1_loss(img, target_arrays[v], adjoint) / len(views)
             dr.backward(loss)
             loss_value = float(loss[0])
             t_post = time.perf_counter()

@@ -477,3 +477,44 @@ def test_mitsuba_engine_lowers_the_shape_error(tmp_path):
     assert after < 0.9 * before, (before, after)
     losses = [float(r["loss"]) for r in log_rows(exp.run_dir)]
     assert np.mean(losses[-3:]) < np.mean(losses[:3]), losses
+
+
+def test_l1_adjoint_from_an_independent_render_removes_the_sign_correlation():
+    """Each lane is a pixel I = θ·X (X: mean of 2 exponential samples, E[X] = 1) at θ = 1 with
+    target 0.7, so the noise-free L1 loss has derivative sign(1 − 0.7)·E[X] = 1. The sign taken
+    from I's own samples gives E[sign(X − 0.7)·X] (the gradient of the noisy render's loss, far
+    from 1); the sign of an independent 256-sample render P gives ≈ 1. The value is P's L1."""
+    import drjit as dr
+    import mitsuba as mi
+    from psdr_cli import backend
+    from psdr_cli.optimize import l1_loss
+    backend.select_variant("auto")
+    rng = np.random.default_rng(0)
+    n = 200_000
+    X = rng.exponential(size=(n, 2)).mean(1)
+    P = rng.exponential(size=(n, 256)).mean(1)
+    target = mi.Float(np.full(n, 0.7, np.float32))
+    grads = []
+    for adjoint in (None, mi.Float(P.astype(np.float32))):
+        theta = mi.Float(1.0)
+        dr.enable_grad(theta)
+        loss = l1_loss(theta * mi.Float(X.astype(np.float32)), target, adjoint)
+        dr.backward(loss)
+        grads.append(float(dr.grad(theta)[0]))
+        if adjoint is not None:
+            assert abs(float(loss[0]) - np.mean(np.abs(P - 0.7))) < 1e-4
+    assert grads[0] < 0.8, grads            # E[sign(X − 0.7)·X] ≈ 0.67 for this X
+    assert abs(grads[1] - 1.0) < 0.02, grads
+
+
+def test_adjoint_spp_optimisation_runs_and_is_checked(tmp_path):
+    """optimize.adjoint_spp > 0 runs (the loss logged is the adjoint render's L1) and a negative
+    value is a one-line error naming the key."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=3, adjoint_spp=4, remesh={"method": "none"})
+    r = run_cli("optimize", write(tmp_path, data), timeout=240)
+    assert r.returncode == 0, r.stderr
+    assert len(log_rows(tmp_path / "runs" / "tiny")) == 3
+    data["optimize"]["adjoint_spp"] = -1
+    r = run_cli("optimize", write(tmp_path, data, "bad.yaml"), timeout=60)
+    assert r.returncode != 0 and "optimize.adjoint_spp" in r.stderr and "Traceback" not in r.stderr
