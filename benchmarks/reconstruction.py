@@ -9,7 +9,8 @@ with the same batches, L1 loss, LargeSteps, Adam and remeshing; they differ only
 
 - **psdr**: the experiment's own estimator (interior + primary + direct terms);
 - **mitsuba**: Mitsuba's ``direct_projective`` as its shape-optimisation tutorial sets it up
-  (shadow term off, 16 spp; :mod:`psdr_cli.engines`).
+  (shadow term off, 16 spp; :mod:`psdr_cli.engines`), the loss's sign taken from that same
+  render as in the tutorial (``optimize.adjoint_spp`` 0, whatever the experiment sets).
 
 **Load sharing.** All runs live in one process and advance in rounds: in round k every run is
 resumed until its optimisation time reaches k·``--chunk`` seconds (``optimize.seconds`` and
@@ -25,7 +26,7 @@ Chamfer-L1 = ½(mean_P d(p, Q) + mean_Q d(q, P)) and Hausdorff = max(max_P d, ma
 Outputs: ``<out>/reconstruction.md`` (table), ``reconstruction.png`` (Chamfer-L1 and Hausdorff
 against seconds, one panel per scene), ``reconstruction.json``.
 
-    .venv/bin/python benchmarks/reconstruction.py                  # 3 scenes × 2 seeds × 300 s each
+    .venv/bin/python benchmarks/reconstruction.py                  # 3 scenes × 2 seeds × 120 s each
     .venv/bin/python benchmarks/reconstruction.py --quick          # 32², 90 s, one scene (bunny)
     .venv/bin/python benchmarks/reconstruction.py --quick --scenes bunny ears groove
 """
@@ -70,7 +71,8 @@ def run_experiment(base, engine: str, seed: int, root: Path):
     """One run: ``base`` with ``estimator.engine`` and ``seed`` replaced, the targets of the
     base seed, a folder ``<root>/<engine>_s<seed>``, no iteration limit (the time decides)."""
     exp = with_estimator(base, engine=engine)
-    opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,))
+    adjoint = exp.optimize.adjoint_spp if engine == "psdr" else 0
+    opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,), adjoint_spp=adjoint)
     return replace(exp, seed=seed, name=f"{engine}_s{seed}", output=root, optimize=opt)
 
 
@@ -165,7 +167,8 @@ def write_report(out: Path, args, results: dict, loads: list, wall: float, times
           f"mean {np.mean(loads):.2f}, min {np.min(loads):.2f}, max {np.max(loads):.2f}; wall time {wall / 60:.1f} min.",
           "",
           "Same loop, targets, initial sphere, batches, L1 loss, LargeSteps λ, Adam, remeshing; "
-          "`psdr`: the experiment's estimator; `mitsuba`: `direct_projective`, shadow term off, 16 spp. "
+          "`psdr`: the experiment's estimator and adjoint render; `mitsuba`: `direct_projective`, shadow term off, 16 spp, "
+          "the loss on that render (the tutorial's recipe). "
           "Runs advance in alternating chunks of "
           f"{args.chunk:g} s so that load is shared. Errors are normalised by the ground truth's bounding box; "
           "mean ± half-range over seeds; ratio = psdr / Mitsuba (< 1: psdr better).",
@@ -189,8 +192,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="32² film, 90 s per run, bunny only (unless --scenes)")
     ap.add_argument("--scenes", nargs="+", choices=list(SCENES), help="scenes (default: all; quick: bunny)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds per engine")
-    ap.add_argument("--seconds", type=float, help="optimisation seconds per run (default 300; quick: 90)")
-    ap.add_argument("--chunk", type=float, help="seconds per run and round (default 50; quick: 30)")
+    ap.add_argument("--seconds", type=float, help="optimisation seconds per run (default 120; quick: 90)")
+    ap.add_argument("--chunk", type=float, help="seconds per run and round (default 40; quick: 30)")
     ap.add_argument("--samples", type=int, default=50_000, help="surface points per mesh for the distances")
     ap.add_argument("--evaluate-only", action="store_true",
                     help="no optimisation: evaluate the runs already in --runs (e.g. scenes run separately)")
@@ -198,8 +201,8 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks", help="output folder")
     args = ap.parse_args(argv)
     scenes = args.scenes or (["bunny"] if args.quick else list(SCENES))
-    seconds = args.seconds or (90.0 if args.quick else 300.0)
-    args.chunk = args.chunk or (30.0 if args.quick else 50.0)
+    seconds = args.seconds or (90.0 if args.quick else 120.0)
+    args.chunk = args.chunk or (30.0 if args.quick else 40.0)
     rounds = int(np.ceil(seconds / args.chunk))
     runs = {}
     for scene in scenes:
