@@ -447,6 +447,7 @@ class OptimizeConfig:
     iterations: int = 200
     batch_size: int = 4
     learning_rate: float = 0.1             # Adam step on the large-steps latent (docs/optimize.md, "Defaults")
+    learning_rate_final: float | None = None  # geometric decay to this after the last remesh (None: constant)
     lambda_: float = 20.0
     guide_every: int = 10
     adjoint_spp: int = 0                   # samples of the separate primal render the L1 sign comes from (0: the AD image's own)
@@ -1122,6 +1123,7 @@ def parse_optimize(base: Path) -> Parser:
         o.iterations = sec.get("iterations", integer(1), o.iterations)
         o.batch_size = sec.get("batch_size", integer(1), o.batch_size)
         o.learning_rate = sec.get("learning_rate", number(positive=True), o.learning_rate)
+        o.learning_rate_final = sec.get("learning_rate_final", number(positive=True), o.learning_rate_final)
         o.lambda_ = sec.get("lambda", number(minimum=0), o.lambda_)
         o.guide_every = sec.get("guide_every", integer(1), o.guide_every)
         o.adjoint_spp = sec.get("adjoint_spp", integer(0, MAX_SPP), o.adjoint_spp)

@@ -423,6 +423,18 @@ def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
     return sorted(rng.choice(count, size=min(size, count), replace=False).tolist())
 
 
+def learning_rate_at(cfg, iteration: int, total: int) -> float:
+    """Adam's step at ``iteration`` of a ``total``-iteration run: ``learning_rate`` up to the last
+    remesh s (the last of ``remesh.at`` before ``total``, else 0), then the geometric decay
+    lr(i) = lr · (lr_final / lr)^((i − s) / (total − 1 − s)), reaching ``learning_rate_final``
+    at the last iteration; constant when ``learning_rate_final`` is unset."""
+    lr, final = cfg.learning_rate, cfg.learning_rate_final
+    s = max([a for a in cfg.remesh.at if a < total] + [0])
+    if final is None or iteration <= s or total - 1 <= s:
+        return lr
+    return lr * (final / lr) ** (min(iteration - s, total - 1 - s) / (total - 1 - s))
+
+
 def strip(target, current, zoom: int = 3):
     """target | current | |difference| side by side, pixels enlarged ``zoom`` times, linear RGB."""
     gap = np.ones((target.shape[0], 2, 3))
@@ -552,6 +564,8 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
                 for k in problem.opt.keys():
                     dr.set_grad(problem.opt[k], 0.0)
             else:
+                if cfg.learning_rate_final is not None:
+                    problem.opt.set_learning_rate(learning_rate_at(cfg, it, total))
                 problem.opt.step()
             t_end = time.perf_counter()
             seconds_so_far += t_end - t_start

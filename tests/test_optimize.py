@@ -518,3 +518,38 @@ def test_adjoint_spp_optimisation_runs_and_is_checked(tmp_path):
     data["optimize"]["adjoint_spp"] = -1
     r = run_cli("optimize", write(tmp_path, data, "bad.yaml"), timeout=60)
     assert r.returncode != 0 and "optimize.adjoint_spp" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_learning_rate_final_decays_geometrically_after_the_last_remesh():
+    """lr is constant up to the last remesh before the end, then decays geometrically to
+    learning_rate_final at the last iteration; unset, it stays constant."""
+    from psdr_cli.config import OptimizeConfig, RemeshConfig
+    from psdr_cli.optimize import learning_rate_at
+    cfg = OptimizeConfig(object="x", learning_rate=0.1, learning_rate_final=0.01,
+                         remesh=RemeshConfig("instant", 800, (100, 200, 400), (1500, 2500, 4000)))
+    assert learning_rate_at(cfg, 0, 300) == 0.1 and learning_rate_at(cfg, 200, 300) == 0.1
+    assert np.isclose(learning_rate_at(cfg, 299, 300), 0.01)
+    assert np.isclose(learning_rate_at(cfg, 250, 300), 0.1 * 0.1 ** (50 / 99))
+    assert np.isclose(learning_rate_at(cfg, 150, 200), 0.1 * 0.1 ** (50 / 99))  # s = 100 when 200 is not reached
+    assert learning_rate_at(OptimizeConfig(object="x", learning_rate=0.1), 299, 300) == 0.1
+
+
+def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path):
+    """A run with learning_rate_final takes smaller late steps than one without (its vertices move
+    less over the last three iterations), and a non-positive value is a one-line error."""
+    from psdr_cli import api
+    from psdr_cli.config import load_experiment
+    finals = {}
+    for label, extra in (("const", {}), ("decay", {"learning_rate_final": 0.001})):
+        data = copy.deepcopy(TINY)
+        data["name"] = label
+        data["optimize"].update(iterations=6, remesh={"method": "none"}, checkpoint_every=3, **extra)
+        exp = load_experiment(write(tmp_path, data, f"{label}.yaml"))
+        api.optimize(exp, warn=lambda m: None)
+        mid = ev.load(exp.run_dir / "checkpoints" / "iter_0003.ply")
+        finals[label] = (mid, ev.load(exp.run_dir / "final.ply"))
+    (mid_c, end_c), (mid_d, end_d) = finals["const"], finals["decay"]
+    assert np.abs(end_d[0] - mid_d[0]).max() < 0.5 * np.abs(end_c[0] - mid_c[0]).max()
+    data["optimize"]["learning_rate_final"] = 0
+    r = run_cli("optimize", write(tmp_path, data, "bad.yaml"), timeout=60)
+    assert r.returncode != 0 and "optimize.learning_rate_final" in r.stderr and "Traceback" not in r.stderr
