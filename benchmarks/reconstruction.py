@@ -29,6 +29,10 @@ against seconds, one panel per scene), ``reconstruction.json``.
     .venv/bin/python benchmarks/reconstruction.py                  # 3 scenes × 2 seeds × 120 s each
     .venv/bin/python benchmarks/reconstruction.py --quick          # 32², 90 s, one scene (bunny)
     .venv/bin/python benchmarks/reconstruction.py --quick --scenes bunny ears groove
+    .venv/bin/python benchmarks/reconstruction.py --psdr-spp 1 4 1 4 --mitsuba-spp 4 --name reconstruction_low_spp
+
+``--psdr-spp`` replaces the experiment's interior, primary and boundary spp and adjoint spp,
+``--mitsuba-spp`` the recipe's 16; ``--name`` names the outputs and the runs' folder.
 """
 from __future__ import annotations
 
@@ -67,10 +71,14 @@ def quick_experiment(exp):
     return replace(exp, scene=scene, optimize=opt)
 
 
-def run_experiment(base, engine: str, seed: int, root: Path):
+def run_experiment(base, engine: str, seed: int, root: Path, psdr_spp=None, mitsuba_spp: int = 16):
     """One run: ``base`` with ``estimator.engine`` and ``seed`` replaced, the targets of the
-    base seed, a folder ``<root>/<engine>_s<seed>``, no iteration limit (the time decides)."""
-    exp = with_estimator(base, engine=engine)
+    base seed, a folder ``<root>/<engine>_s<seed>``, no iteration limit (the time decides).
+    ``psdr_spp``: (interior, primary, boundary, adjoint) spp replacing the experiment's."""
+    if engine == "psdr" and psdr_spp:
+        base = with_estimator(base, spp=psdr_spp[0], primary_spp=psdr_spp[1], boundary_spp=psdr_spp[2])
+        base = replace(base, optimize=replace(base.optimize, adjoint_spp=psdr_spp[3]))
+    exp = with_estimator(base, engine=engine, mitsuba_spp=mitsuba_spp)
     adjoint = exp.optimize.adjoint_spp if engine == "psdr" else 0
     opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,), adjoint_spp=adjoint)
     return replace(exp, seed=seed, name=f"{engine}_s{seed}", output=root, optimize=opt)
@@ -157,6 +165,15 @@ def plot(path: Path, results: dict):
     save(fig, path)
 
 
+def allocations(args) -> str:
+    """The sample counts of the two engines, as the report states them."""
+    psdr = ("the experiment's estimator and adjoint render" if not args.psdr_spp else
+            "interior/primary/boundary spp {}/{}/{}, a {}-spp adjoint render".format(*args.psdr_spp))
+    return (f"`psdr`: {psdr}; `mitsuba`: `direct_projective`, shadow term off, {args.mitsuba_spp} spp, "
+            "the loss on that render (the tutorial's recipe" + (")" if args.mitsuba_spp == 16 else
+                                                              f", at {args.mitsuba_spp} instead of 16 spp)") + ". ")
+
+
 def write_report(out: Path, args, results: dict, loads: list, wall: float, times: list):
     md = [f"# Shape reconstruction at equal time: psdr vs Mitsuba's recipe",
           "",
@@ -167,23 +184,21 @@ def write_report(out: Path, args, results: dict, loads: list, wall: float, times
           f"mean {np.mean(loads):.2f}, min {np.min(loads):.2f}, max {np.max(loads):.2f}; wall time {wall / 60:.1f} min.",
           "",
           "Same loop, targets, initial sphere, batches, L1 loss, LargeSteps λ, Adam, remeshing; "
-          "`psdr`: the experiment's estimator and adjoint render; `mitsuba`: `direct_projective`, shadow term off, 16 spp, "
-          "the loss on that render (the tutorial's recipe). "
-          "Runs advance in alternating chunks of "
+          + allocations(args) + "Runs advance in alternating chunks of "
           f"{args.chunk:g} s so that load is shared. Errors are normalised by the ground truth's bounding box; "
           "mean ± half-range over seeds; ratio = psdr / Mitsuba (< 1: psdr better).",
           "",
           table(results, times),
           "",
-          "![Chamfer-L1 and Hausdorff against optimisation seconds](reconstruction.png)",
+          f"![Chamfer-L1 and Hausdorff against optimisation seconds]({args.name}.png)",
           ""]
-    with atomic_path(out / "reconstruction.md") as tmp:
+    with atomic_path(out / f"{args.name}.md") as tmp:
         Path(tmp).write_text("\n".join(md))
     data = {scene: {f"{e}_s{s}": c for (e, s), c in runs.items()} for scene, runs in results.items()}
-    with atomic_path(out / "reconstruction.json") as tmp:
+    with atomic_path(out / f"{args.name}.json") as tmp:
         Path(tmp).write_text(json.dumps({"args": vars(args) | {"out": str(args.out), "runs": str(args.runs)},
                                          "loads": loads, "curves": data}, indent=1))
-    plot(out / "reconstruction.png", results)
+    plot(out / f"{args.name}.png", results)
 
 
 def main(argv=None):
@@ -197,8 +212,12 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=50_000, help="surface points per mesh for the distances")
     ap.add_argument("--evaluate-only", action="store_true",
                     help="no optimisation: evaluate the runs already in --runs (e.g. scenes run separately)")
-    ap.add_argument("--runs", type=Path, default=REPO / "runs" / "benchmarks" / "reconstruction", help="run folders")
+    ap.add_argument("--runs", type=Path, default=REPO / "runs" / "benchmarks", help="run folders (under <runs>/<name>/)")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks", help="output folder")
+    ap.add_argument("--psdr-spp", type=int, nargs=4, metavar=("I", "P", "B", "A"),
+                    help="psdr's interior, primary, boundary and adjoint spp (default: the experiment's)")
+    ap.add_argument("--mitsuba-spp", type=int, default=16, help="spp of Mitsuba's recipe")
+    ap.add_argument("--name", default="reconstruction", help="name of the outputs and of the runs' folder")
     args = ap.parse_args(argv)
     scenes = args.scenes or (["bunny"] if args.quick else list(SCENES))
     seconds = args.seconds or (90.0 if args.quick else 120.0)
@@ -210,7 +229,8 @@ def main(argv=None):
         base = quick_experiment(base) if args.quick else base
         for seed in args.seeds:
             for engine in ENGINES:
-                runs[(scene, engine, seed)] = run_experiment(base, engine, seed, args.runs / ("quick" if args.quick else "full") / scene)
+                folder = args.runs / args.name / ("quick" if args.quick else "full") / scene
+                runs[(scene, engine, seed)] = run_experiment(base, engine, seed, folder, args.psdr_spp, args.mitsuba_spp)
     loads, t0 = [], time.time()
     for folder in {exp.output for exp in runs.values()} if not args.evaluate_only else ():
         (folder / "loads.json").unlink(missing_ok=True)  # a fresh benchmark of this scene
@@ -231,7 +251,7 @@ def main(argv=None):
     times = sorted({min(k * args.chunk, seconds) for k in (max(rounds // 3, 1), max(2 * rounds // 3, 1), rounds)})
     args.out.mkdir(parents=True, exist_ok=True)
     write_report(args.out, args, results, loads, time.time() - t0, times)
-    print((args.out / "reconstruction.md").read_text())
+    print((args.out / f"{args.name}.md").read_text())
 
 
 if __name__ == "__main__":
