@@ -78,7 +78,8 @@ def run_experiment(base, engine: str, seed: int, root: Path, psdr_spp=None, mits
     if engine == "psdr" and psdr_spp:
         base = with_estimator(base, spp=psdr_spp[0], primary_spp=psdr_spp[1], boundary_spp=psdr_spp[2])
         base = replace(base, optimize=replace(base.optimize, adjoint_spp=psdr_spp[3]))
-    exp = with_estimator(base, engine=engine, mitsuba_spp=mitsuba_spp)
+    exp = (with_estimator(base, engine=engine, mitsuba_spp=mitsuba_spp) if engine == "mitsuba"
+           else with_estimator(base, engine=engine))
     adjoint = exp.optimize.adjoint_spp if engine == "psdr" else 0
     opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,), adjoint_spp=adjoint)
     return replace(exp, seed=seed, name=f"{engine}_s{seed}", output=root, optimize=opt)
