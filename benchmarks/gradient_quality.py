@@ -20,6 +20,7 @@ creases and ears rounded).
 
     .venv/bin/python benchmarks/gradient_quality.py                # bunny, both shapes, K = 5
     .venv/bin/python benchmarks/gradient_quality.py --config configs/reconstruct_groove.yaml
+    .venv/bin/python benchmarks/gradient_quality.py --only "psdr 1/4/1, adjoint 4 (configs)" --out /tmp/gq
 """
 from __future__ import annotations
 
@@ -55,13 +56,18 @@ from psdr_cli.scene import build_scene  # noqa: E402
 
 VIEWS = (0, 3, 6, 9)
 TERMS = ("interior", "primary", "direct")
-#: label -> ("psdr", interior spp, primary spp, boundary spp, adjoint spp) or ("mitsuba", spp, adjoint spp)
+#: label -> ("psdr", interior spp, primary spp, boundary spp, adjoint spp[, primary_sampling]) or
+#: ("mitsuba", spp, adjoint spp); psdr's primary_sampling is the experiment's unless given
 CONFIGS = {
     "psdr 4/4/4 (before)": ("psdr", 4, 4, 4, 0),
     "psdr 4/4/4, adjoint 16": ("psdr", 4, 4, 4, 16),
     "psdr 4/16/4": ("psdr", 4, 16, 4, 0),
     "psdr 4/16/4, adjoint 16": ("psdr", 4, 16, 4, 16),
     "psdr 1/4/1, adjoint 4 (configs)": ("psdr", 1, 4, 1, 4),
+    "psdr 1/4/1, adjoint 4, jump sampling": ("psdr", 1, 4, 1, 4, "jump"),
+    "psdr 1/4/1, adjoint 16": ("psdr", 1, 4, 1, 16),
+    "psdr 1/2/1, adjoint 4": ("psdr", 1, 2, 1, 4),
+    "psdr 1/1/1, adjoint 4": ("psdr", 1, 1, 1, 4),
     "psdr 8/32/8, adjoint 32": ("psdr", 8, 32, 8, 32),
     "mitsuba 16 (recipe)": ("mitsuba", 16, 0),
     "mitsuba 16, adjoint 16": ("mitsuba", 16, 16),
@@ -99,10 +105,13 @@ class Bench:
             integrator = mitsuba_integrator(est, self.settings.max_depth)
             seed = pass_seed(0, view, draw, 9)
             img = mitsuba_image(self.problem.scene, self.problem.params, integrator, view, config[1], seed)
+            adjoint = config[2]
         else:
-            s = self.settings.with_estimator(spp=config[1], primary_spp=config[2], boundary_spp=config[3])
+            s = self.settings.with_estimator(spp=config[1], primary_spp=config[2], boundary_spp=config[3],
+                                             primary_sampling=config[5] if len(config) > 5
+                                             else self.exp.estimator.primary_sampling)
             img = ad_image(self.problem.scene, edges, view, TERMS, s, pass_index=draw)
-        adjoint = config[-1]
+            adjoint = config[4]
         return img, (opt.adjoint_image(self.problem.scene, view, adjoint, 12345, draw) if adjoint else None)
 
     def gradient(self, config, draw: int) -> np.ndarray:
@@ -121,12 +130,13 @@ class Bench:
         return g
 
 
-def measure(bench: Bench, trials: int) -> dict:
+def measure(bench: Bench, trials: int, labels) -> dict:
     reference = [bench.gradient(("psdr", 64, 64, 64, 1024), 1000 + k) for k in range(4)]
     g_ref = np.mean(reference, 0)
     norm = float(np.sum(g_ref ** 2))
     rows = {}
-    for label, config in CONFIGS.items():
+    for label in labels:
+        config = CONFIGS[label]
         bench.gradient(config, 0)  # compiles the kernels
         times, draws = [], []
         for k in range(trials):
@@ -161,14 +171,17 @@ def main(argv=None):
     ap.add_argument("--states", nargs="+", default=["sphere", "smooth"], choices=["sphere", "smooth"])
     ap.add_argument("--trials", type=int, default=5, help="gradient draws per configuration (K)")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks")
+    ap.add_argument("--only", nargs="+", choices=list(CONFIGS), default=list(CONFIGS), metavar="LABEL",
+                    help="measure only these configurations (labels of CONFIGS; default: all)")
     args = ap.parse_args(argv)
+    labels = args.only if "mitsuba 16 (recipe)" in args.only else args.only + ["mitsuba 16 (recipe)"]
     exp = load_experiment(args.config)
     backend.activate(exp)
     dr.set_thread_count(int(os.environ.get("PSDR_OPTIMIZE_THREADS", "1")))
     results = {}
     for state in args.states:
         print(f"== {args.config.name}, {state}", flush=True)
-        results[state] = measure(Bench(exp, state), args.trials)
+        results[state] = measure(Bench(exp, state), args.trials, labels)
     md = ["# Gradient quality per second: psdr's allocations vs Mitsuba's recipe", "",
           f"`benchmarks/gradient_quality.py {' '.join(sys.argv[1:])}` — {time.strftime('%Y-%m-%d %H:%M')}, "
           f"{platform.machine()}, {os.cpu_count()} cores, one Dr.Jit thread; {args.config.name}, views "

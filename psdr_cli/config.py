@@ -29,6 +29,7 @@ TERMS = ("interior", "primary", "direct", "indirect")
 GUIDINGS = ("auto", "none", "grid", "kdtree")
 #: Direction techniques of the boundary terms (``mis``: both, balance heuristic).
 SAMPLINGS = ("dir", "light", "mis")
+PRIMARY_SAMPLINGS = ("length", "jump")  # primary-term edge density (estimators/primary.py)
 #: Remeshers (``none``: keep the mesh; a scheduled remesh then uses ``isotropic``).
 REMESH_METHODS = ("instant", "isotropic", "none")
 #: Renderers of an optimisation's gradient images (``mitsuba``: Mitsuba's projective integrators).
@@ -418,6 +419,7 @@ class EstimatorConfig:
     passes: int = 1
     guide_epsilon: float = 0.05
     edge_sort: bool = False
+    primary_sampling: str = "length"       # length | jump: primary-term edge density (estimators/primary.py)
     engine: str = "psdr"                   # psdr | mitsuba (optimize only)
     mitsuba_integrator: str | None = None  # default: direct_projective, prb_projective when max_depth > 2
     mitsuba_spp: int = 16                  # samples per pixel of Mitsuba's render (the tutorial's 16)
@@ -1023,6 +1025,7 @@ def parse_estimator(value, where) -> EstimatorConfig:
     est.passes = sec.get("passes", integer(1, MAX_PASSES), est.passes)
     est.guide_epsilon = sec.get("guide_epsilon", number(minimum=0, maximum=1), est.guide_epsilon)
     est.edge_sort = sec.get("edge_sort", boolean, est.edge_sort)
+    est.primary_sampling = sec.get("primary_sampling", choice(*PRIMARY_SAMPLINGS), est.primary_sampling)
     est.engine = sec.get("engine", choice(*ENGINES), est.engine)
     for key in ("mitsuba_integrator", "mitsuba_spp", "mitsuba_shadows"):
         if sec.has(key) and est.engine != "mitsuba":

@@ -171,7 +171,8 @@ def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed
     sampler = make_sampler(seed, n)
     P = edges.positions(mi.traverse(mi_scene)) if edges.count else None
     if term == "primary":
-        return primary_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth)
+        return primary_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth,
+                                settings.estimator.primary_sampling)
     if term == "direct":
         return direct_boundary(mi_scene, sensor, edges, P, n, sampler, settings.sampling,
                                guides.direct if guides else None)

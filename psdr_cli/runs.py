@@ -166,12 +166,15 @@ def run_fingerprint(exp: Experiment) -> str:
 
 
 def estimator_identity(est) -> dict:
-    """The estimator keys a run depends on: all of them with ``engine: mitsuba``; without the
-    engine keys otherwise (a psdr run's fingerprint is what it was before engines existed)."""
+    """The estimator keys a run depends on: all of them but ``primary_sampling`` with ``engine:
+    mitsuba``; without the engine keys otherwise (a psdr run's fingerprint is what it was before
+    engines existed), and without ``primary_sampling: length`` (the sampling before that key)."""
     d = asdict(est)
     if est.engine == "psdr":
         for key in ("engine", "mitsuba_integrator", "mitsuba_spp", "mitsuba_shadows"):
             d.pop(key)
+    if est.engine == "mitsuba" or est.primary_sampling == "length":
+        d.pop("primary_sampling")  # not read by Mitsuba; "length" is what runs did before the key existed
     return d
 
 

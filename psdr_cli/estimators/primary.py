@@ -7,8 +7,19 @@ normal jumps). For a projected edge point q(θ) with screen normal n_s,
 
     dI/dθ = ∫_edges (n_s · q̇) [L(q − ε n_s) − L(q + ε n_s)] dl.
 
-Sampling: an edge ∝ its projected length, a uniform point on it, p(q) = 1/Σℓ (pixels). Each
-sample adds (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] to the pixel of q.
+Sampling: an edge e ∝ w_e·ℓ_e (ℓ_e its projected length in pixels), a uniform point on it:
+p(q) = w_e / Σ_e' w_e'·ℓ_e'. Each sample adds (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] to the
+pixel of q. With ``primary_sampling: length`` (the default) every w_e = 1; with ``jump`` an
+inner crease of a flat-shaded mesh (both faces towards the camera, none turned) gets
+w_e = clamp(φ_e / JUMP_ANGLE, JUMP_MIN_WEIGHT, 1), φ_e the angle between its two face normals,
+and every other curve w_e = 1. Across such an edge the radiance jumps only because the
+shading normal turns by φ_e, so ΔL = O(φ_e), while a silhouette's ΔL is the full contrast
+of object and background: on a finely tessellated mesh the inner edges hold ~95 % of the
+projected length and a small part of the gradient, and uniform-length sampling spends most
+samples there. Any w_e > 0 leaves the estimator unbiased; the floor bounds the variance where
+ΔL is larger than φ_e suggests (glossy highlights). ``jump`` suits parameters that move
+silhouettes (a rigid motion, a camera); per-vertex shape gradients draw on the inner creases
+too, and there it does not help (docs/gradients.md).
 """
 from __future__ import annotations
 
@@ -36,10 +47,31 @@ SIDE_EPS = 2e-6
 #: Relative depth within which a foreign hit counts as "at the edge" (a neighbour face sharing an
 #: end point of the edge, hit by a side ray near that end point).
 DEPTH_TOL = 1e-3
+#: Face-normal angle (radians, ~14°) from which an inner crease is sampled as densely per pixel
+#: of length as a silhouette (``primary_sampling: jump``).
+JUMP_ANGLE = 0.25
+#: Smallest relative sampling density of an inner crease (``primary_sampling: jump``).
+JUMP_MIN_WEIGHT = 0.1
 
 
-def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scattering: bool = True):
-    """(v0, v1, face0, face1, mesh index, strict, inner) of the edges that can carry an
+def jump_weights(topo, V, rows, inner, smooth: bool) -> np.ndarray:
+    """Sampling weight w_e per edge row (``primary_sampling: jump``, see the module docstring):
+    clamp(φ_e / JUMP_ANGLE, JUMP_MIN_WEIGHT, 1) on the inner edges of a flat-shaded mesh whose
+    faces are both unturned (φ_e = angle between n0 and n1), 1 elsewhere."""
+    w = np.ones(len(rows))
+    if smooth or not len(rows):
+        return w
+    n0, n1 = topo.normals(V)
+    n0, n1 = n0[rows], n1[rows]
+    phi = np.arctan2(np.linalg.norm(np.cross(n0, n1), axis=1), np.einsum("ij,ij->i", n0, n1))
+    crease = inner & ~topo.turned0[rows] & ~topo.turned1[rows] & ~topo.open[rows]
+    w[crease] = np.clip(phi[crease] / JUMP_ANGLE, JUMP_MIN_WEIGHT, 1.0)
+    return w
+
+
+def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scattering: bool = True,
+                     sampling: str = "length"):
+    """(v0, v1, face0, face1, mesh index, strict, inner, weight) of the edges that can carry an
     image discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on
     open edges): the rows of :meth:`psdr_cli.topology.Topology.creases` (non-flat edges, and flat
     edges between a turned and an unturned face, with at least one face showing its front to the
@@ -51,8 +83,9 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
     light a vertex receives is cut at its facet's plane (the terminator), and that plane turns
     from face to face, so near the terminator the image jumps across every edge. ``strict`` (both sides must see the edge)
     holds for all but smooth silhouettes (see docs/gradients.md); ``inner`` marks edges whose two
-    faces both face the camera."""
-    cols = [[] for _ in range(7)]
+    faces both face the camera; ``weight`` is the edge's sampling weight w_e (:func:`jump_weights`,
+    all 1 with ``sampling`` = ``length``)."""
+    cols = [[] for _ in range(8)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
         sel = topo.creases(Vo, camera_origin)
@@ -62,12 +95,13 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
         inner = ~np.isin(sel, silhouette)
         strict = inner if smooth else np.ones(len(sel), bool)
         f1 = np.where(topo.open, topo.face0, topo.face1)
+        weight = jump_weights(topo, Vo, sel, inner, smooth) if sampling == "jump" else np.ones(len(sel))
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
-                                 np.full(len(sel), m), strict, inner)):
+                                 np.full(len(sel), m), strict, inner, weight)):
             c.append(arr)
     if not cols[0]:
-        return [np.zeros(0, np.int64)] * 7
-    return [np.concatenate(c).astype(np.int64) for c in cols]
+        return [np.zeros(0, np.int64)] * 7 + [np.zeros(0)]
+    return [np.concatenate(c).astype(np.int64) for c in cols[:7]] + [np.concatenate(cols[7])]
 
 
 @dataclass
@@ -85,11 +119,15 @@ class Curves:
     #: unit normals (n, 3) of face0 and face1 on intersection curves, zero on mesh edges
     normal0: np.ndarray = None
     normal1: np.ndarray = None
+    #: sampling weight w_e per curve (module docstring); 1 when not given
+    weight: np.ndarray = None
 
     def __post_init__(self):
         for name in ("normal0", "normal1"):
             if getattr(self, name) is None:
                 setattr(self, name, np.zeros((len(self.face0), 3)))
+        if self.weight is None:
+            self.weight = np.ones(len(self.face0))
 
     def __len__(self):
         return len(self.face0)
@@ -108,14 +146,15 @@ def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
     return mi.Point3f(*(dr.concat([a[i], b[i]]) for i in range(3)))
 
 
-def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool) -> Curves:
+def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool,
+                     sampling: str = "length") -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
     V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
-    v0, v1, f0, f1, m, strict, inner = primary_edge_ids(edges, V, camera_origin, scattering)
+    v0, v1, f0, f1, m, strict, inner, weight = primary_edge_ids(edges, V, camera_origin, scattering, sampling)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
     gather = lambda i: dr.gather(mi.Point3f, P, mi.UInt32(i.astype(np.uint32)))  # noqa: E731
-    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool))
+    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool), weight=weight)
 
 
 def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
@@ -177,15 +216,17 @@ def curve_face_normals(meshes, mesh, face):
     return out
 
 
-def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool = True) -> Curves:
+def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool = True,
+                   sampling: str = "length") -> Curves:
     """Mesh edges and intersection curves, concatenated."""
-    a = mesh_edge_curves(scene, edges, P, camera_origin, scattering)
+    a = mesh_edge_curves(scene, edges, P, camera_origin, scattering, sampling)
     b = intersection_curves(scene, edges, P)
     if len(b) == 0:
         return a
     return Curves(concat_points(a.p0, b.p0), concat_points(a.p1, b.p1),
                   *(np.concatenate([getattr(a, k), getattr(b, k)])
-                    for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1")))
+                    for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1",
+                              "weight")))
 
 
 def edge_depth(ray, p0, p1):
@@ -289,27 +330,28 @@ def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: 
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                     sampler: mi.Sampler, max_depth: int):
+                     sampler: mi.Sampler, max_depth: int, sampling: str = "length"):
     """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` curve points
-    (mesh edges and intersection curves)."""
+    (mesh edges and intersection curves), edges drawn ∝ w_e·ℓ_e (``sampling``: module docstring)."""
     proj = Projection(sensor)
     width, height = proj.width, proj.height
     img = dr.zeros(mi.Float, width * height * 3)
     if edges.count == 0 and not edges.meshes:
         return img
     curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
-                            max_depth >= 2)
+                            max_depth >= 2, sampling)
     if len(curves) == 0:
         return img
     q0, z0 = proj(curves.p0)
     q1, z1 = proj(curves.p1)
     with dr.suspend_grad():
+        weight = mi.Float(curves.weight.astype(np.float32))
         front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
-        length = dr.select(front, dr.norm(dr.detach(q1 - q0)), 0.0)
-        total = float(dr.sum(length)[0])
+        mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
+        total = float(dr.sum(mass)[0])
     if not total > 0:
         return img
-    distr = mi.DiscreteDistribution(length)
+    distr = mi.DiscreteDistribution(mass)
     k, s = distr.sample_reuse(sampler.next_1d())
     qa, qb = dr.gather(mi.Point2f, q0, k), dr.gather(mi.Point2f, q1, k)
     q = qa + s * (qb - qa)
@@ -336,8 +378,10 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         # the jump and loses most of the noise (each side alone stays unbiased)
         twin = sampler.clone()
         sides = [interior.radiance(scene, s, ray, max_depth, ok) for s, ray in zip((sampler, twin), rays)]
-        # opaque: the edge length sum changes with the geometry and must not be baked into the kernel
-        delta = dr.select(ok, (sides[0] - sides[1]) * dr.opaque(mi.Float, total / n_samples), 0.0)
+        # 1/(N·p(q)) = Σw·ℓ / (N·w_e); opaque: the sum changes with the geometry and must not be
+        # baked into the kernel
+        inv_pdf = dr.opaque(mi.Float, total / n_samples) / dr.gather(mi.Float, weight, k)
+        delta = dr.select(ok, (sides[0] - sides[1]) * inv_pdf, 0.0)
         pixel = dr.select(ok, film_pixel(qd, width), 0)
         dr.eval(delta, pixel, n_s, ok)
     v = delta * dr.dot(n_s, q)
