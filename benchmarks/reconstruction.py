@@ -33,6 +33,17 @@ against seconds, one panel per scene), ``reconstruction.json``.
 
 ``--psdr-spp`` replaces the experiment's interior, primary and boundary spp and adjoint spp,
 ``--mitsuba-spp`` the recipe's 16; ``--name`` names the outputs and the runs' folder.
+
+**The loop's own floor** (``--from-truth N``): every run starts from the ground truth itself,
+remeshed to N vertices with the experiment's remesher, and is not remeshed again. Where the
+errors settle is the stationary error of this loop (L1 on 64² targets, Adam's constant step,
+LargeSteps) with each engine's gradients: the lowest error either engine's run can be expected to
+hold, so it bounds the psdr / Mitsuba ratio that any gradient can reach at equal time. The
+report adds each scene's metric floor: the distance of the ground truth to itself with
+independent surface samples (:func:`psdr_cli.evaluate.noise_floor`).
+
+    .venv/bin/python benchmarks/reconstruction.py --from-truth 2500 --seconds 60 --chunk 30 \
+        --psdr-spp 1 4 1 4 --mitsuba-spp 4 --name reconstruction_floor
 """
 from __future__ import annotations
 
@@ -69,6 +80,16 @@ def quick_experiment(exp):
     opt = replace(exp.optimize, remesh=RemeshConfig(exp.optimize.remesh.method, 500, (40,), (1000,)),
                   target_spp=64, checkpoint_every=10)
     return replace(exp, scene=scene, optimize=opt)
+
+
+def from_truth_experiment(exp, vertices: int):
+    """The experiment started from its ground truth (the optimised object's mesh, or
+    ``optimize.target.mesh``, with the object's transform) remeshed to ``vertices``, never
+    remeshed again."""
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    remesh = RemeshConfig(exp.optimize.remesh.method, vertices, (), ())
+    return replace(exp, optimize=replace(exp.optimize, init=exp.optimize.target_mesh or obj.mesh,
+                                         init_transform=obj.transform, remesh=remesh))
 
 
 def run_experiment(base, engine: str, seed: int, root: Path, psdr_spp=None, mitsuba_spp: int = 16):
@@ -175,7 +196,9 @@ def allocations(args) -> str:
                                                               f", at {args.mitsuba_spp} instead of 16 spp)") + ". ")
 
 
-def write_report(out: Path, args, results: dict, loads: list, wall: float, times: list):
+def write_report(out: Path, args, results: dict, loads: list, wall: float, times: list, floors: dict):
+    """``<name>.md``, ``.json`` and ``.png``; ``floors``: {scene: (Chamfer-L1, Hausdorff)} of
+    the metric's own floor (reported with ``--from-truth``; empty otherwise)."""
     md = [f"# Shape reconstruction at equal time: psdr vs Mitsuba's recipe",
           "",
           f"`benchmarks/reconstruction.py {' '.join(sys.argv[1:])}` — {time.strftime('%Y-%m-%d %H:%M')}, "
@@ -184,13 +207,19 @@ def write_report(out: Path, args, results: dict, loads: list, wall: float, times
           f"Machine load while it ran (1-minute load average after each chunk, this benchmark included): "
           f"mean {np.mean(loads):.2f}, min {np.min(loads):.2f}, max {np.max(loads):.2f}; wall time {wall / 60:.1f} min.",
           "",
-          "Same loop, targets, initial sphere, batches, L1 loss, LargeSteps λ, Adam, remeshing; "
+          ("Same loop, targets, initial sphere, batches, L1 loss, LargeSteps λ, Adam, remeshing; " if not args.from_truth
+           else f"Same loop, targets, batches, L1 loss, LargeSteps λ, Adam; every run starts from the ground truth "
+                f"remeshed to {args.from_truth} vertices and is not remeshed again (the loop's floor). ")
           + allocations(args) + "Runs advance in alternating chunks of "
           f"{args.chunk:g} s so that load is shared. Errors are normalised by the ground truth's bounding box; "
           "mean ± half-range over seeds; ratio = psdr / Mitsuba (< 1: psdr better).",
           "",
           table(results, times),
           "",
+          *([] if not floors else ["Metric floor (the ground truth against itself, independent samples, "
+                                   f"{args.samples} points per mesh): "
+                                   + ", ".join(f"{sc} Chamfer-L1 {c:.4f}, Hausdorff {h:.4f}" for sc, (c, h) in floors.items())
+                                   + ".", ""]),
           f"![Chamfer-L1 and Hausdorff against optimisation seconds]({args.name}.png)",
           ""]
     with atomic_path(out / f"{args.name}.md") as tmp:
@@ -198,7 +227,7 @@ def write_report(out: Path, args, results: dict, loads: list, wall: float, times
     data = {scene: {f"{e}_s{s}": c for (e, s), c in runs.items()} for scene, runs in results.items()}
     with atomic_path(out / f"{args.name}.json") as tmp:
         Path(tmp).write_text(json.dumps({"args": vars(args) | {"out": str(args.out), "runs": str(args.runs)},
-                                         "loads": loads, "curves": data}, indent=1))
+                                         "loads": loads, "curves": data, "metric_floor": floors}, indent=1))
     plot(out / f"{args.name}.png", results)
 
 
@@ -219,6 +248,8 @@ def main(argv=None):
                     help="psdr's interior, primary, boundary and adjoint spp (default: the experiment's)")
     ap.add_argument("--mitsuba-spp", type=int, default=16, help="spp of Mitsuba's recipe")
     ap.add_argument("--name", default="reconstruction", help="name of the outputs and of the runs' folder")
+    ap.add_argument("--from-truth", type=int, metavar="N",
+                    help="start from the ground truth remeshed to N vertices, no remeshing (the loop's floor)")
     args = ap.parse_args(argv)
     scenes = args.scenes or (["bunny"] if args.quick else list(SCENES))
     seconds = args.seconds or (90.0 if args.quick else 120.0)
@@ -228,6 +259,7 @@ def main(argv=None):
     for scene in scenes:
         base = load_experiment(REPO / SCENES[scene])
         base = quick_experiment(base) if args.quick else base
+        base = from_truth_experiment(base, args.from_truth) if args.from_truth else base
         for seed in args.seeds:
             for engine in ENGINES:
                 folder = args.runs / args.name / ("quick" if args.quick else "full") / scene
@@ -251,7 +283,12 @@ def main(argv=None):
         results.setdefault(scene, {})[(engine, seed)] = errors(exp, args.samples)
     times = sorted({min(k * args.chunk, seconds) for k in (max(rounds // 3, 1), max(2 * rounds // 3, 1), rounds)})
     args.out.mkdir(parents=True, exist_ok=True)
-    write_report(args.out, args, results, loads, time.time() - t0, times)
+    floors = {}
+    for (scene, engine, seed), exp in runs.items():
+        if args.from_truth and scene not in floors:
+            d = ev.noise_floor(ev.load(RunFiles(exp.run_dir).reference), args.samples)
+            floors[scene] = (d.chamfer_l1, d.hausdorff)
+    write_report(args.out, args, results, loads, time.time() - t0, times, floors)
     print((args.out / f"{args.name}.md").read_text())
 
 
