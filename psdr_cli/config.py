@@ -450,7 +450,8 @@ class OptimizeConfig:
     batch_size: int = 4
     learning_rate: float = 0.1             # Adam step on the large-steps latent (docs/optimize.md, "Defaults")
     learning_rate_final: float | None = None  # geometric decay to this after the last remesh (None: constant)
-    lambda_: float = 20.0
+    lambda_: tuple = (20.0,)               # LargeSteps λ: one value, or one per remesh stage (1 + len(remesh.at))
+    downsample: tuple = (1,)               # image downsampling factor per remesh stage (coarse to fine)
     guide_every: int = 10
     adjoint_spp: int = 0                   # samples of the separate primal render the L1 sign comes from (0: the AD image's own)
     checkpoint_every: int = 50
@@ -1088,6 +1089,19 @@ def parse_remesh(value, where) -> RemeshConfig:
     return r
 
 
+def per_stage(parse_item: Parser, stages: int) -> Parser:
+    """One value for the whole run, or a list of one value per remesh stage (the initial shape,
+    then each entry of ``remesh.at``), as a tuple."""
+    def parse(value, where):
+        if not isinstance(value, list):
+            return (parse_item(value, where),)
+        if len(value) != stages:
+            raise where.fail(f"expected one value, or a list of {stages} (one per remesh stage: the initial "
+                             f"shape and each entry of remesh.at), got a list of {len(value)}")
+        return tuple(parse_item(v, where.child(i)) for i, v in enumerate(value))
+    return parse
+
+
 def _texture_size(value, where):
     """[W, H] of a texture being optimised: integers in 1..MAX_FILM."""
     if not isinstance(value, list) or len(value) != 2:
@@ -1127,7 +1141,9 @@ def parse_optimize(base: Path) -> Parser:
         o.batch_size = sec.get("batch_size", integer(1), o.batch_size)
         o.learning_rate = sec.get("learning_rate", number(positive=True), o.learning_rate)
         o.learning_rate_final = sec.get("learning_rate_final", number(positive=True), o.learning_rate_final)
-        o.lambda_ = sec.get("lambda", number(minimum=0), o.lambda_)
+        stages = 1 + len(o.remesh.at)
+        o.lambda_ = sec.get("lambda", per_stage(number(minimum=0), stages), o.lambda_)
+        o.downsample = sec.get("downsample", per_stage(integer(1, MAX_FILM), stages), o.downsample)
         o.guide_every = sec.get("guide_every", integer(1), o.guide_every)
         o.adjoint_spp = sec.get("adjoint_spp", integer(0, MAX_SPP), o.adjoint_spp)
         o.checkpoint_every = sec.get("checkpoint_every", integer(1), o.checkpoint_every)
@@ -1272,6 +1288,11 @@ def check_experiment(exp: Experiment):
         if bad and not exp.optimize.target_images:
             raise where.child("optimize").child("preview_views").fail(
                 f"view {bad[0]} does not exist (the scene has views 0..{len(exp.scene.cameras) - 1})")
+        for i, k in enumerate(exp.optimize.downsample):
+            key = where.child("optimize").child("downsample")
+            if exp.scene.width % k or exp.scene.height % k:
+                raise (key.child(i) if len(exp.optimize.downsample) > 1 else key).fail(
+                    f"{k} does not divide the film's {exp.scene.width}×{exp.scene.height} pixels")
         if exp.optimize.envmap_rotation and not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("optimize").child("envmap_rotation").fail("needs an envmap or sky emitter")
     if exp.parameter and exp.parameter.camera is not None and exp.parameter.camera >= len(exp.scene.cameras):

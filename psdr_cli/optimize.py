@@ -263,11 +263,12 @@ class OptimizeResult:
 class Problem:
     """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
 
-    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None):
-        self.exp, self.cfg = exp, exp.optimize
+    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None, stage: int = 0):
+        self.exp, self.cfg, self.stage = exp, exp.optimize, stage
+        self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if uv is None else np.asarray(uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
-        built = exp
+        built = stage_experiment(exp, stage)
         if self.texture:
             if self.uv is None:
                 raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
@@ -277,7 +278,7 @@ class Problem:
                 init = np.asarray(init, np.float64).reshape(H, W, 3)
             else:
                 init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
-            built = texture_experiment(exp, np.clip(init, 0.0, 1.0))
+            built = texture_experiment(built, np.clip(init, 0.0, 1.0))
         mesh = (V, F) if self.uv is None else (V, F, self.uv)
         self.scene = build_scene(built, objects={self.cfg.object: mesh}, cameras=cameras)
         self.params = mi.traverse(self.scene.mi_scene)
@@ -287,7 +288,7 @@ class Problem:
         # same vertices as the original so that the saved u means the same thing
         self.basis = np.asarray(V if basis is None else basis, np.float64)
         self.steps = mi.ad.LargeSteps(mi.Float(self.basis.astype(np.float32).ravel()),
-                                      self.params[f"{self.cfg.object}.faces"], self.cfg.lambda_)
+                                      self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
         self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
         # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
         self.opt["u"] = mi.Float(np.asarray(u, np.float32)) if u is not None else \
@@ -391,6 +392,40 @@ def texture_experiment(exp, texture):
     bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
     objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
     return replace(exp, scene=replace(exp.scene, objects=objects))
+
+
+# --------------------------------------------------------------------------------------------
+# Stages: what changes at each remesh (λ, image resolution)
+# --------------------------------------------------------------------------------------------
+def stage_at(cfg, iteration: int) -> int:
+    """Remesh stage of the shape that ``iteration`` optimises: the number of entries a > 0 of
+    ``remesh.at`` with a ≤ iteration (the remesh at a happens at the start of iteration a; stage 0
+    is the initial shape)."""
+    return sum(1 for a in cfg.remesh.at if 0 < a <= iteration)
+
+
+def stage_value(values: tuple, stage: int):
+    """The value of a per-stage key (``lambda``, ``downsample``) at ``stage``; a single value holds
+    for every stage."""
+    return values[min(stage, len(values) - 1)]
+
+
+def stage_experiment(exp, stage: int):
+    """``exp`` with the film of ``stage``: W/k × H/k pixels for ``downsample`` k."""
+    k = stage_value(exp.optimize.downsample, stage)
+    if k == 1:
+        return exp
+    return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
+
+
+def downsample(image: np.ndarray, k: int) -> np.ndarray:
+    """Mean of every k × k block of pixels of an (H, W, C) image. With the box pixel filter every
+    render uses, a pixel of the W/k × H/k film integrates exactly the area of its k² pixels at
+    W × H, so this is the target a render at the lower resolution would estimate."""
+    if k == 1:
+        return image
+    H, W, C = image.shape
+    return image.reshape(H // k, k, W // k, k, C).mean(axis=(1, 3))
 
 
 def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.Float:
@@ -500,7 +535,9 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
         uv = state.uv
     fileio.write_json(files.run, {"fingerprint": run_fingerprint(exp)})  # fresh, unchanged, or saved before fingerprints
     result = OptimizeResult(files.root, resumed_from=start)
-    problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else (None, None)), uv=uv)
+    # the shape of iteration `start` before its remesh, if one is due: the stage of start − 1
+    problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else (None, None)), uv=uv,
+                      stage=stage_at(cfg, max(start - 1, 0)))
     if state is not None:
         for k, saved in state.adam.items():
             if k in problem.opt.keys():
@@ -512,7 +549,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     engine = Engine(settings, terms)
     if not engine.needs_edges:
         settings = settings.with_estimator(guiding="none")  # Mitsuba's integrators have their own
-    target_arrays = [mi.Float(np.asarray(t, np.float32).ravel()) for t in targets]
+    stage_targets, target_arrays = stage_images(targets, problem.factor)
     if progress:
         progress.start(total, start)
     guides = guide_snapshot = None
@@ -534,7 +571,10 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
                                 if cfg.remesh.method != "none" else "isotropic",
                                 warn=lambda m: warn(f"iteration {it}: {m}"))
                 problem.release()
-                problem = Problem(exp, V2, F2, cameras, problem.values())
+                factor = problem.factor
+                problem = Problem(exp, V2, F2, cameras, problem.values(), stage=stage_at(cfg, it))
+                if problem.factor != factor:
+                    stage_targets, target_arrays = stage_images(targets, problem.factor)
                 guides = None
             problem.apply()
             problem.scene.objects[cfg.object].vertices = problem.vertices()
@@ -584,7 +624,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             if cfg.seconds is not None and seconds_so_far >= cfg.seconds:
                 total = it + 1  # time budget spent: this is the last iteration
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == total:
-                result.checkpoints.append(save_checkpoint(problem, files, it + 1, targets, exp))
+                result.checkpoints.append(save_checkpoint(problem, files, it + 1, stage_targets, exp))
             saved = problem.export(it + 1, seconds_so_far)
             if guide_snapshot is not None:
                 saved.guide_V, saved.guide_values = guide_snapshot
@@ -654,8 +694,15 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
         return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
 
 
+def stage_images(targets, k: int):
+    """The targets at downsampling factor ``k``: (H/k, W/k, 3) arrays and flat ``mi.Float`` copies."""
+    images = [downsample(t, k) for t in targets]
+    return images, [mi.Float(np.asarray(t, np.float32).ravel()) for t in images]
+
+
 def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> Path:
-    """iter_NNNN.ply and a target | current | |difference| strip per preview view."""
+    """iter_NNNN.ply and a target | current | |difference| strip per preview view, at the
+    stage's resolution (``targets``: the stage's) with pixels enlarged to the film's size."""
     path = files.checkpoint(iteration)
     write_mesh(path, problem.vertices(), problem.F)
     if problem.texture:  # the recovered texture: albedo.exr (linear) and albedo.png, per checkpoint a preview
@@ -666,7 +713,9 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
     with dr.suspend_grad():
         for v in exp.optimize.preview_views:
             current = render_view(problem.scene, v, 16, seed=exp.seed)
-            fileio.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(targets[v], current))
+            k = problem.factor
+            full = [np.repeat(np.repeat(image, k, axis=0), k, axis=1) for image in (targets[v], current)]
+            fileio.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(*full))
     return path
 
 

@@ -158,11 +158,23 @@ def run_fingerprint(exp: Experiment) -> str:
     get one). The contents of mesh and image files are not part of it."""
     opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
     h = hashlib.sha256()
-    for part in (asdict(exp.scene), estimator_identity(exp.estimator), asdict(opt)):
+    for part in (asdict(exp.scene), estimator_identity(exp.estimator), optimize_identity(opt)):
         text = json.dumps(part, default=str, sort_keys=True)
         h.update(text.replace(str(exp.base_dir), "<experiment folder>").encode())  # the checkout may move
     h.update(str(exp.seed).encode())
     return h.hexdigest()[:16]
+
+
+def optimize_identity(opt) -> dict:
+    """The optimize keys a run depends on, written as before stage schedules existed when the run
+    has none: a single λ as its number, and no ``downsample`` when every stage renders at full
+    resolution (so the fingerprints of earlier runs are unchanged)."""
+    d = asdict(opt)
+    if len(opt.lambda_) == 1:
+        d["lambda_"] = opt.lambda_[0]
+    if all(k == 1 for k in opt.downsample):
+        d.pop("downsample")
+    return d
 
 
 def estimator_identity(est) -> dict:

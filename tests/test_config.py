@@ -154,6 +154,14 @@ def test_every_emitter_type(tmp_path):
     (lambda d: d.update(estimator={"engine": "mitsuba", "mitsuba_shadows": "yes"}), "estimator.mitsuba_shadows",
      "expected true or false"),
     (lambda d: d["scene"]["emitters"][0].update(radiance=-1), "scene.emitters[0].radiance", "non-negative"),
+    (lambda d: d.update(optimize={"object": "ball", "remesh": {"at": [10], "vertices": [900]}, "lambda": [40, 20, 10]}),
+     "optimize.lambda", "a list of 2 (one per remesh stage"),
+    (lambda d: d.update(optimize={"object": "ball", "downsample": 5}), "optimize.downsample",
+     "5 does not divide the film's 24×16 pixels"),
+    (lambda d: d.update(optimize={"object": "ball", "remesh": {"at": [10], "vertices": [900]}, "downsample": [2, 0]}),
+     "optimize.downsample[1]", "integer >= 1"),
+    (lambda d: d.update(optimize={"object": "ball", "remesh": {"at": [10], "vertices": [900]}, "downsample": [3, 1]}),
+     "optimize.downsample[0]", "3 does not divide"),
 ])
 def test_invalid_values_name_the_key(tmp_path, mutate, key, words):
     d = experiment()
@@ -201,3 +209,20 @@ def test_every_shipped_experiment_file_is_valid():
     cpu = {f.name for f in (root / "paper" / "cpu").glob("*.yaml")}
     paper = {f.name for f in (root / "paper" / "paper").glob("*.yaml")}
     assert cpu == paper and {"fig9_bunny.yaml", "fig10_glass.yaml", "fig10_shadow.yaml"} <= cpu
+
+
+def test_stage_schedules_parse_as_one_value_or_one_per_remesh_stage(tmp_path):
+    """lambda and downsample: a single value holds for every stage; a list gives one per stage."""
+    from psdr_cli.optimize import stage_at, stage_value
+    from psdr_cli.runs import optimize_identity
+    one = parse(experiment(optimize={"object": "ball"}), tmp_path).optimize
+    assert one.lambda_ == (20.0,) and one.downsample == (1,)
+    identity = optimize_identity(one)  # written as before schedules existed: old runs keep their fingerprint
+    assert identity["lambda_"] == 20.0 and "downsample" not in identity
+    opt = parse(experiment(optimize={"object": "ball", "remesh": {"at": [10, 20], "vertices": [900, 1200]},
+                                     "lambda": [40, 20, 10], "downsample": [4, 2, 1]}), tmp_path).optimize
+    assert opt.lambda_ == (40.0, 20.0, 10.0) and opt.downsample == (4, 2, 1)
+    assert [stage_at(opt, i) for i in (0, 9, 10, 19, 20, 99)] == [0, 0, 1, 1, 2, 2]
+    assert [stage_value(opt.lambda_, s) for s in (0, 1, 2)] == [40.0, 20.0, 10.0]
+    assert stage_value(one.lambda_, 2) == 20.0
+    assert optimize_identity(opt)["downsample"] == (4, 2, 1)

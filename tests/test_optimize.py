@@ -553,3 +553,54 @@ def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path):
     data["optimize"]["learning_rate_final"] = 0
     r = run_cli("optimize", write(tmp_path, data, "bad.yaml"), timeout=60)
     assert r.returncode != 0 and "optimize.learning_rate_final" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_path):
+    """With the box pixel filter, the mean of k × k pixels of a W × H render is the pixel of a
+    W/k × H/k render (optimize.downsample): they agree to the renders' noise, while taking every
+    k-th pixel instead does not."""
+    from psdr_cli import backend
+    from psdr_cli.config import load_experiment
+    from psdr_cli.optimize import downsample, stage_experiment
+    from psdr_cli.render import render_view
+    from psdr_cli.scene import build_scene
+    data = copy.deepcopy(TINY)
+    data["scene"]["film"] = {"width": 32, "height": 32}
+    data["optimize"].update(downsample=[2, 1])
+    exp = load_experiment(write(tmp_path, data))
+    backend.activate(exp)
+    fine = render_view(build_scene(exp), 0, 256, seed=1)
+    coarse = render_view(build_scene(stage_experiment(exp, 0)), 0, 1024, seed=2)
+    assert coarse.shape == (16, 16, 3) and fine.shape == (32, 32, 3)
+    box = np.abs(downsample(fine, 2) - coarse).mean()
+    picked = np.abs(fine[::2, ::2] - coarse).mean()
+    assert box < 0.5 * picked, (box, picked)
+    assert box < 0.05 * coarse.mean(), (box, coarse.mean())
+
+
+@pytest.mark.slow
+def test_coarse_to_fine_and_lambda_schedule_resume_exactly(tmp_path):
+    """downsample [2, 1] and lambda [40, 10] with a remesh at 4: the first stage runs on 8² images
+    (the log's loss is that of the coarse images), the second on 16²; a run stopped at the stage
+    change and resumed repeats the uninterrupted run's losses and final mesh, and every preview
+    has the film's size."""
+    from PIL import Image
+    from psdr_cli import api
+    from psdr_cli.config import load_experiment
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=8, checkpoint_every=2, downsample=[2, 1], remesh={
+        "method": "instant", "initial": 150, "at": [4], "vertices": [250]}, **{"lambda": [40, 10]})
+    runs = {}
+    for label in ("whole", "stopped"):
+        data["name"] = label
+        exp = load_experiment(write(tmp_path, data, f"{label}.yaml"))
+        if label == "stopped":
+            api.optimize(exp, iterations=4, warn=lambda m: None)
+            api.optimize(exp, resume=True, warn=lambda m: None)
+        else:
+            api.optimize(exp, warn=lambda m: None)
+        runs[label] = exp.run_dir
+    assert [r["loss"] for r in log_rows(runs["whole"])] == [r["loss"] for r in log_rows(runs["stopped"])]
+    assert (runs["whole"] / "final.ply").read_bytes() == (runs["stopped"] / "final.ply").read_bytes()
+    sizes = {Image.open(p).size for p in (runs["whole"] / "previews").glob("iter_*_view_000.png")}
+    assert len(sizes) == 1, sizes  # stage 0's 8² previews are enlarged to the 16² film's size
