@@ -28,6 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .jitarray import jit_array
 from .topology import weld
 
 #: A box larger than this many broad-phase cells along an axis is compared with every box
@@ -233,7 +234,7 @@ def intersection_segments(vertices: list, faces: list, rel_min_length: float = 1
 def plane_crossing(P, ids):
     """p = a + t (b − a) with t = ((c − a)·n)/((b − a)·n), n = (d − c) × (e − c), differentiable
     in the flat vertex buffer ``P``; ``ids`` are the five vertex-id arrays (a, b, c, d, e)."""
-    a, b, c, d, e = (dr.gather(mi.Point3f, P, mi.UInt32(np.ascontiguousarray(i, np.uint32))) for i in ids)
+    a, b, c, d, e = (dr.gather(mi.Point3f, P, jit_array(mi.UInt32, i)) for i in ids)
     n = dr.cross(d - c, e - c)
     denom = dr.dot(b - a, n)
     t = dr.dot(c - a, n) / dr.select(denom != 0, denom, 1.0)

@@ -41,6 +41,7 @@ from . import backend, meshes
 from .config import (BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig, Where,
                      check_experiment, check_scene)
 from .errors import ConfigError
+from .jitarray import jit_array
 from .obj_parts import expand_objects
 
 #: Emitter classes psdr handles → the YAML emitter type they correspond to.
@@ -365,13 +366,13 @@ def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = Fal
         props["emitter"] = emitter
     m = mi.Mesh(name, len(V), len(F), props, normals is not None or smooth, texcoords is not None)
     params = mi.traverse(m)
-    params["vertex_positions"] = mi.Float(np.ascontiguousarray(V, np.float32).ravel())
-    params["faces"] = mi.UInt32(np.ascontiguousarray(F, np.uint32).ravel())
+    params["vertex_positions"] = jit_array(mi.Float, np.ravel(V))
+    params["faces"] = jit_array(mi.UInt32, np.ravel(F))
     if texcoords is not None:
-        params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(texcoords, np.float32).ravel())
+        params["vertex_texcoords"] = jit_array(mi.Float, np.ravel(texcoords))
     params.update()
     if normals is not None:  # after the update, which recomputes normals from the positions
-        params["vertex_normals"] = mi.Float(np.ascontiguousarray(normals, np.float32).ravel())
+        params["vertex_normals"] = jit_array(mi.Float, np.ravel(normals))
         params.update()
     return m
 

@@ -42,6 +42,7 @@ from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
 from .estimators.passes import pass_seed
 from .gradient import Settings, make_guides, uses_guides
+from .jitarray import jit_array
 from .parameters import Parameter
 from .remesh import remesh
 from .render import render_view
@@ -239,7 +240,7 @@ def adam_import(opt, key, saved):
     def restore(a, like):
         if dr.is_tensor_v(like):  # a texture: (H, W, C)
             return type(like)(np.asarray(a, np.float32).reshape(like.shape))
-        return dr.unravel(type(like), mi.Float(np.ravel(a))) if dr.depth_v(like) > 1 else type(like)(np.ravel(a))
+        return dr.unravel(type(like), jit_array(mi.Float, np.ravel(a))) if dr.depth_v(like) > 1 else jit_array(type(like), np.ravel(a))
     opt.state[key] = (value, flag, lr, (type(t0)([t]), restore(m, m0), restore(v, v0), extra))
 
 
@@ -287,11 +288,11 @@ class Problem:
         # LargeSteps welds and orders the vertices by position: a resumed run rebuilds it from the
         # same vertices as the original so that the saved u means the same thing
         self.basis = np.asarray(V if basis is None else basis, np.float64)
-        self.steps = mi.ad.LargeSteps(mi.Float(self.basis.astype(np.float32).ravel()),
+        self.steps = mi.ad.LargeSteps(jit_array(mi.Float, self.basis.ravel()),
                                       self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
         self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
         # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
-        self.opt["u"] = mi.Float(np.asarray(u, np.float32)) if u is not None else \
+        self.opt["u"] = jit_array(mi.Float, u) if u is not None else \
             self.steps.to_differential(self.params[self.key])
         self.albedo_key = self.envmap = None
         if self.cfg.albedo:
@@ -348,7 +349,7 @@ class Problem:
         (H, W, 3) tensor, an RGB colour, or a grey value (a grey reflectance stays grey)."""
         a = np.clip(np.asarray(a, np.float64), 0.0, 1.0)
         if self.texture:
-            return mi.TensorXf(np.ascontiguousarray(a, np.float32))
+            return jit_array(mi.TensorXf, a)
         a = a.ravel()
         if isinstance(self.params[self.albedo_key], mi.Color3f):  # RGB texture
             return mi.Color3f(*(float(x) for x in np.broadcast_to(a, 3)))
@@ -432,7 +433,7 @@ def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.F
     """Primal render P of ``view`` (flat W·H·3, no AD) from samples of its own random stream, for
     the derivative of :func:`l1_loss`."""
     image = render_view(scene, view, spp, seed=pass_seed(seed, view, iteration, ADJOINT_STREAM))
-    return mi.Float(np.asarray(image, np.float32).ravel())
+    return jit_array(mi.Float, np.ravel(image))
 
 
 def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) -> mi.Float:
@@ -681,7 +682,7 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
     seeded, so they are the same guides). The scene is left for :meth:`Problem.apply` to reset."""
     cfg = exp.optimize
     with dr.suspend_grad():
-        problem.params[problem.key] = mi.Float(np.asarray(V, np.float32).ravel())
+        problem.params[problem.key] = jit_array(mi.Float, np.ravel(V))
         if problem.albedo_key and "albedo" in values:
             problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])
         if problem.envmap and "envmap_angle" in values:
@@ -697,7 +698,7 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
 def stage_images(targets, k: int):
     """The targets at downsampling factor ``k``: (H/k, W/k, 3) arrays and flat ``mi.Float`` copies."""
     images = [downsample(t, k) for t in targets]
-    return images, [mi.Float(np.asarray(t, np.float32).ravel()) for t in images]
+    return images, [jit_array(mi.Float, np.ravel(t)) for t in images]
 
 
 def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> Path:

@@ -22,6 +22,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..edge_sort import Chains, sort_edges
+from ..jitarray import jit_array
 from ..topology import build_topology, weld
 
 #: BSDFs through which a ray grazing a concave edge can continue (concave edges kept).
@@ -96,8 +97,8 @@ class BoundaryEdges:
             chains = sort_edges(V, wid[cols[0]], wid[cols[1]], max_turn, max_length)
             cols = [c[chains.order] for c in cols]
             opens = opens[chains.order]
-        return BoundaryEdges(names, [mi.UInt32(c) for c in cols], mi.Bool(opens), n, meshes,
-                             mi.Bool(chains.flip), chains)
+        return BoundaryEdges(names, [jit_array(mi.UInt32, c) for c in cols], jit_array(mi.Bool, opens), n, meshes,
+                             jit_array(mi.Bool, chains.flip), chains)
 
     def breakpoints(self, P) -> np.ndarray:
         """u1 values where chains start (and 1.0): x^B(u1) is continuous between two of them."""

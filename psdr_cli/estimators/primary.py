@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 from . import interior
 from ..intersections import Segments, intersection_segments, segment_points
+from ..jitarray import jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
 from .camera import Projection, camera_ray, film_pixel
@@ -153,7 +154,7 @@ def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, sc
     v0, v1, f0, f1, m, strict, inner, weight = primary_edge_ids(edges, V, camera_origin, scattering, sampling)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
-    gather = lambda i: dr.gather(mi.Point3f, P, mi.UInt32(i.astype(np.uint32)))  # noqa: E731
+    gather = lambda i: dr.gather(mi.Point3f, P, jit_array(mi.UInt32, i))  # noqa: E731
     return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool), weight=weight)
 
 
@@ -227,6 +228,15 @@ def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scat
                   *(np.concatenate([getattr(a, k), getattr(b, k)])
                     for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1",
                               "weight")))
+
+
+def gather_curve_points(q: mi.Point2f, k: mi.UInt32) -> mi.Point2f:
+    """q[k] for the projected end points q of the curves (AD). Its reverse-mode scatter goes into
+    an array as wide as the curve list, which is small, so Dr.Jit's automatic choice would expand
+    it into per-thread copies indexed thread·n + k with n (different every iteration) a literal
+    of the kernel, compiled again every iteration; a local pre-reduction (``ReduceMode.Local``)
+    has no such constant."""
+    return dr.gather(mi.Point2f, q, k, mode=dr.ReduceMode.Local)
 
 
 def edge_depth(ray, p0, p1):
@@ -345,7 +355,7 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
     q0, z0 = proj(curves.p0)
     q1, z1 = proj(curves.p1)
     with dr.suspend_grad():
-        weight = mi.Float(curves.weight.astype(np.float32))
+        weight = jit_array(mi.Float, curves.weight)
         front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
         mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
         total = float(dr.sum(mass)[0])
@@ -353,7 +363,7 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         return img
     distr = mi.DiscreteDistribution(mass)
     k, s = distr.sample_reuse(sampler.next_1d())
-    qa, qb = dr.gather(mi.Point2f, q0, k), dr.gather(mi.Point2f, q1, k)
+    qa, qb = gather_curve_points(q0, k), gather_curve_points(q1, k)
     q = qa + s * (qb - qa)
     with dr.suspend_grad():
         qd = dr.detach(q)
@@ -361,17 +371,17 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         n_s = mi.Vector2f(-t.y, t.x)
         ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height)
         eps = SIDE_EPS * max(width, height)
-        own = [dr.gather(mi.UInt32, mi.UInt32(getattr(curves, a).astype(np.uint32)), k)
+        own = [dr.gather(mi.UInt32, jit_array(mi.UInt32, getattr(curves, a)), k)
                for a in ("shape0", "face0", "shape1", "face1")]
         offsets = [mi.Float(-eps), mi.Float(eps)]
         if np.any(curves.normal0):  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
-            normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(mi.Float(getattr(curves, a)[:, i].astype(np.float32))
+            normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
                                                             for i in range(3))), k) for a in ("normal0", "normal1")]
             offsets = crossing_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                                        *normals, own, width, height, ok)
         rays = [camera_ray(sensor, qd + o * n_s, width, height, ok) for o in offsets]
-        strict = dr.gather(mi.Bool, mi.Bool(curves.strict), k)
-        inner = dr.gather(mi.Bool, mi.Bool(curves.inner), k)
+        strict = dr.gather(mi.Bool, jit_array(mi.Bool, curves.strict), k)
+        inner = dr.gather(mi.Bool, jit_array(mi.Bool, curves.inner), k)
         ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                            dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok)
         # common random numbers: both sides trace the same samples, so their difference keeps

@@ -1,0 +1,71 @@
+"""Kernels are compiled once: an optimisation's reverse passes reuse the kernels of the first.
+
+Dr.Jit maps numpy arrays instead of copying them, and a load from memory that is not 64-byte
+aligned is a different kernel (``psdr_cli.jitarray``); arrays rebuilt every iteration (edge
+lists, curve ids, adjoint images) used to recompile kernels in most iterations."""
+import copy
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from psdr_cli import backend
+from psdr_cli.config import load_experiment
+from psdr_cli.engines import Engine
+from psdr_cli.estimators.boundary_sampling import edge_list
+from psdr_cli.gradient import Settings
+from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
+from psdr_cli.optimize import Problem, adjoint_image, ground_truth, initial_shape, l1_loss
+from test_optimize import TINY, write
+
+
+def jit_kernels() -> set:
+    """Hashes of the kernels launched since the last call."""
+    return {str(h.get("hash")) for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT}
+
+
+def test_aligned_copy_starts_on_a_cache_line_and_keeps_the_values():
+    for n, dtype in ((1, np.uint32), (7, np.float32), (1001, np.bool_), (33, np.int32)):
+        a = (np.arange(n) % 3).astype(dtype)
+        b = aligned_copy(a, dtype)
+        assert b.ctypes.data % ALIGNMENT == 0 and b.dtype == dtype and (b == a).all()
+
+
+def test_reverse_passes_after_the_first_compile_nothing_new(tmp_path):
+    """Nine iterations of the psdr engine (interior, primary and direct terms, an adjoint render,
+    the shape moving every step) cycling through three views: from the second round on, every
+    iteration launches only kernels that the same view launched in the first round (a camera's
+    transform is part of its kernels)."""
+    data = copy.deepcopy(TINY)
+    data["scene"]["film"] = {"width": 24, "height": 24}
+    data["optimize"].update(remesh={"method": "none"}, adjoint_spp=2, learning_rate=0.02)
+    exp = load_experiment(write(tmp_path, data))
+    backend.activate(exp)
+    x = jit_array(mi.UInt32, np.array([3, 1, 2]))
+    assert isinstance(x, mi.UInt32) and list(x) == [3, 1, 2]
+    reference = ground_truth(exp)
+    problem = Problem(exp, *initial_shape(exp, reference), None, {})
+    settings = Settings.from_experiment(exp).with_estimator(guiding="none")
+    engine = Engine(settings, exp.estimator.terms)
+    target = jit_array(mi.Float, np.full(24 * 24 * 3, 0.1))
+    name = exp.optimize.object
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        launched = []
+        for it in range(9):
+            problem.apply()
+            problem.scene.objects[name].vertices, problem.scene.objects[name].faces = problem.vertices(), problem.F
+            edges = edge_list(problem.scene, exp.estimator, False)
+            jit_kernels()
+            adjoint = adjoint_image(problem.scene, it % 3, 2, exp.seed, it)
+            loss = l1_loss(engine.image(problem, edges, it % 3, it, None), target, adjoint)
+            dr.backward(loss)
+            problem.opt.step()
+            launched.append(jit_kernels())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+        problem.release()
+    global LAUNCHED; LAUNCHED = launched
+    new = [len(launched[it] - launched[it % 3]) for it in range(3, 9)]
+    assert not any(new), f"kernels not launched by the view's first iteration, iterations 3-8: {new}"
