@@ -1089,6 +1089,11 @@ def parse_remesh(value, where) -> RemeshConfig:
     return r
 
 
+def stage_count_error(where: Where, stages: int, got: int) -> ConfigError:
+    return where.fail(f"expected one value, or a list of {stages} (one per remesh stage: the initial shape and "
+                      f"each entry of remesh.at), got a list of {got}")
+
+
 def per_stage(parse_item: Parser, stages: int) -> Parser:
     """One value for the whole run, or a list of one value per remesh stage (the initial shape,
     then each entry of ``remesh.at``), as a tuple."""
@@ -1096,8 +1101,7 @@ def per_stage(parse_item: Parser, stages: int) -> Parser:
         if not isinstance(value, list):
             return (parse_item(value, where),)
         if len(value) != stages:
-            raise where.fail(f"expected one value, or a list of {stages} (one per remesh stage: the initial "
-                             f"shape and each entry of remesh.at), got a list of {len(value)}")
+            raise stage_count_error(where, stages, len(value))
         return tuple(parse_item(v, where.child(i)) for i, v in enumerate(value))
     return parse
 
@@ -1270,6 +1274,22 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
     return exp
 
 
+def check_stages(exp: Experiment):
+    """The per-stage keys of ``optimize`` (``lambda``, ``downsample``) against the remesh schedule
+    and the film: one value, or one per stage; each factor divides the film's width and height.
+    Run at parse time and again by ``optimize``, for experiments changed in code after parsing."""
+    opt, where = exp.optimize, Where(str(exp.file), "optimize")
+    stages = 1 + len(opt.remesh.at)
+    for name, values in (("lambda", opt.lambda_), ("downsample", opt.downsample)):
+        if len(values) not in (1, stages):
+            raise stage_count_error(where.child(name), stages, len(values))
+    for i, k in enumerate(opt.downsample):
+        key = where.child("downsample")
+        if exp.scene.width % k or exp.scene.height % k:
+            raise (key.child(i) if len(opt.downsample) > 1 else key).fail(
+                f"{k} does not divide the film's {exp.scene.width}×{exp.scene.height} pixels")
+
+
 def check_experiment(exp: Experiment):
     """Checks that need the scene's object names, views and emitters. An XML scene or a split
     OBJ object is checked once it has been read (:func:`psdr_cli.mitsuba_scene.resolve`)."""
@@ -1288,11 +1308,7 @@ def check_experiment(exp: Experiment):
         if bad and not exp.optimize.target_images:
             raise where.child("optimize").child("preview_views").fail(
                 f"view {bad[0]} does not exist (the scene has views 0..{len(exp.scene.cameras) - 1})")
-        for i, k in enumerate(exp.optimize.downsample):
-            key = where.child("optimize").child("downsample")
-            if exp.scene.width % k or exp.scene.height % k:
-                raise (key.child(i) if len(exp.optimize.downsample) > 1 else key).fail(
-                    f"{k} does not divide the film's {exp.scene.width}×{exp.scene.height} pixels")
+        check_stages(exp)
         if exp.optimize.envmap_rotation and not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("optimize").child("envmap_rotation").fail("needs an envmap or sky emitter")
     if exp.parameter and exp.parameter.camera is not None and exp.parameter.camera >= len(exp.scene.cameras):

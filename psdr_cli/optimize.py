@@ -36,7 +36,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, fileio, meshes, mitsuba_scene, plots
-from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, ParameterConfig
+from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, ParameterConfig, check_stages
 from .engines import Engine
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
@@ -416,6 +416,7 @@ def stage_experiment(exp, stage: int):
     k = stage_value(exp.optimize.downsample, stage)
     if k == 1:
         return exp
+    exp = mitsuba_scene.resolve(exp)  # an XML scene's film is only known once it is read
     return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
 
 
@@ -490,6 +491,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     if total < 1:
         raise PsdrError(f"--iterations: expected a positive number, got {total}")
     backend.activate(exp)
+    exp = mitsuba_scene.resolve(exp)  # the film an XML scene gives, before stages scale it
+    check_stages(exp)
     files = RunFiles(exp.run_dir)
     with lock_run(files), backend.optimization_threads():
         return _optimize(exp, files, total, iterations, resume, progress, warn)
@@ -554,7 +557,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     if progress:
         progress.start(total, start)
     guides = guide_snapshot = None
-    guided = uses_guides(settings, terms, exp.scene.width * exp.scene.height)
+    guided = uses_guides(settings, terms, pixel_count(problem))
     if state is not None and state.guide_V is not None and guided:
         # the guides in use when the run stopped, rebuilt from the shape they were built from
         guide_snapshot = (state.guide_V, state.guide_values)
@@ -576,6 +579,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
                 problem = Problem(exp, V2, F2, cameras, problem.values(), stage=stage_at(cfg, it))
                 if problem.factor != factor:
                     stage_targets, target_arrays = stage_images(targets, problem.factor)
+                    guided = uses_guides(settings, terms, pixel_count(problem))
                 guides = None
             problem.apply()
             problem.scene.objects[cfg.object].vertices = problem.vertices()
@@ -693,6 +697,12 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
         problem.scene.objects[cfg.object].faces = problem.F
         edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
         return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
+
+
+def pixel_count(problem) -> int:
+    """Pixels of the film the current stage renders (what ``guiding: auto`` decides by)."""
+    width, height = problem.scene.resolution
+    return width * height
 
 
 def stage_images(targets, k: int):

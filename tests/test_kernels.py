@@ -66,6 +66,5 @@ def test_reverse_passes_after_the_first_compile_nothing_new(tmp_path):
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, flag)
         problem.release()
-    global LAUNCHED; LAUNCHED = launched
     new = [len(launched[it] - launched[it % 3]) for it in range(3, 9)]
     assert not any(new), f"kernels not launched by the view's first iteration, iterations 3-8: {new}"

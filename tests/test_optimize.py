@@ -604,3 +604,21 @@ def test_coarse_to_fine_and_lambda_schedule_resume_exactly(tmp_path):
     assert (runs["whole"] / "final.ply").read_bytes() == (runs["stopped"] / "final.ply").read_bytes()
     sizes = {Image.open(p).size for p in (runs["whole"] / "previews").glob("iter_*_view_000.png")}
     assert len(sizes) == 1, sizes  # stage 0's 8² previews are enlarged to the 16² film's size
+
+
+def test_stage_lists_are_checked_again_when_code_changes_the_experiment(tmp_path):
+    """An experiment changed after parsing (as the benchmarks do: another remesh schedule, another
+    film) is checked again by optimize: one-line errors, not a traceback or a silent mismatch."""
+    from dataclasses import replace
+    from psdr_cli import api
+    from psdr_cli.config import RemeshConfig, load_experiment
+    from psdr_cli.errors import PsdrError
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(downsample=[2, 1], **{"lambda": [40, 10]})
+    exp = load_experiment(write(tmp_path, data))
+    fewer = replace(exp, optimize=replace(exp.optimize, remesh=RemeshConfig("instant", 150, (), ())))
+    with pytest.raises(PsdrError, match=r"optimize.lambda: expected one value, or a list of 1"):
+        api.optimize(fewer, warn=lambda m: None)
+    odd = replace(exp, scene=replace(exp.scene, width=15))
+    with pytest.raises(PsdrError, match=r"optimize.downsample\[0\]: 2 does not divide the film's 15×16"):
+        api.optimize(odd, warn=lambda m: None)
