@@ -265,7 +265,7 @@ class Problem:
     """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
 
     def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None, stage: int = 0):
-        self.exp, self.cfg, self.stage = exp, exp.optimize, stage
+        self.exp, self.cfg = exp, exp.optimize
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if uv is None else np.asarray(uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
@@ -721,10 +721,10 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
         fileio.write_rgb_exr(files.albedo, texture, {"psdr.iteration": str(iteration)})
         fileio.write_preview(files.albedo.with_suffix(".png"), texture)
         fileio.write_preview(files.previews / f"iter_{iteration:04d}_albedo.png", texture)
+    k = problem.factor
     with dr.suspend_grad():
         for v in exp.optimize.preview_views:
             current = render_view(problem.scene, v, 16, seed=exp.seed)
-            k = problem.factor
             full = [np.repeat(np.repeat(image, k, axis=0), k, axis=1) for image in (targets[v], current)]
             fileio.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(*full))
     return path

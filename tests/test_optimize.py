@@ -580,10 +580,9 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
 
 @pytest.mark.slow
 def test_coarse_to_fine_and_lambda_schedule_resume_exactly(tmp_path):
-    """downsample [2, 1] and lambda [40, 10] with a remesh at 4: the first stage runs on 8² images
-    (the log's loss is that of the coarse images), the second on 16²; a run stopped at the stage
-    change and resumed repeats the uninterrupted run's losses and final mesh, and every preview
-    has the film's size."""
+    """downsample [2, 1] and lambda [40, 10] with a remesh at 4 (stage 0 on 8² images, stage 1 on
+    16²): a run stopped at the stage change and resumed repeats the uninterrupted run's losses and
+    final mesh, and the previews of both stages have the film's size."""
     from PIL import Image
     from psdr_cli import api
     from psdr_cli.config import load_experiment
