@@ -21,10 +21,8 @@ import mitsuba as mi
 from . import gradient
 from .config import EstimatorConfig
 from .estimators.passes import pass_seed
+from .estimators.registry import MITSUBA_STREAM
 from .gradient import Settings
-
-#: Random-number stream of Mitsuba's renders (distinct from psdr's terms' streams 1..4).
-MITSUBA_STREAM = 9
 
 
 def mitsuba_integrator_name(est: EstimatorConfig, max_depth: int) -> str:

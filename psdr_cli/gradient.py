@@ -1,10 +1,10 @@
 """Gradient images: every term of dI/dθ = interior + primary + direct + indirect, in passes.
 
-``term_image`` is the one dispatcher from a term name to its estimator. It returns a flat
-W·H·3 AD image for one pass: the interior term's primal value is the rendered image, the
-boundary terms' primal value is 0 (they only carry derivatives). The same images serve forward
-mode (θ → gradient image, :func:`forward_gradient`) and reverse mode (image loss → scene
-parameters, :func:`ad_image` + ``dr.backward``).
+``term_image`` computes one pass of a term by its :class:`~psdr_cli.estimators.term.Term`
+(looked up in :mod:`psdr_cli.estimators.registry`): a flat W·H·3 AD image whose primal value is
+the rendered image for the interior term and 0 for the boundary terms (they only carry
+derivatives). The same images serve forward mode (θ → gradient image, :func:`forward_gradient`)
+and reverse mode (image loss → scene parameters, :func:`ad_image` + ``dr.backward``).
 """
 from __future__ import annotations
 
@@ -18,15 +18,11 @@ import numpy as np
 
 from . import backend, fileio
 from .camera_motion import check_camera_motion, with_all_edges
-from .config import TERMS, EstimatorConfig, Experiment, option_number, option_spp, parse_terms, parse_views
+from .config import EstimatorConfig, Experiment, option_number, option_spp, parse_terms, parse_views
 from .errors import PsdrError
-from .estimators import interior
+from .estimators import registry
 from .estimators.boundary_sampling import BoundaryEdges, edge_list
-from .estimators.camera import camera_rays
-from .estimators.direct import direct_boundary
-from .estimators.indirect import indirect_boundary
-from .estimators.passes import AD_LANES, make_sampler, pass_seed, passes_for
-from .estimators.primary import primary_boundary
+from .estimators.passes import AD_LANES, pass_seed, passes_for
 from .guiding import auto
 from .guiding.targets import Guides, build_guides
 from .parameters import Parameter
@@ -84,13 +80,11 @@ class Settings:
 
     def samples(self, term: str) -> int:
         """Samples per pixel of ``term``."""
-        e = self.estimator
-        return {"interior": e.spp, "primary": e.primary_spp}.get(term, e.boundary_spp)
+        return getattr(self.estimator, registry.term(term).samples_key)
 
     def with_samples(self, term: str, spp: int) -> "Settings":
         """A copy in which ``term`` has ``spp`` samples per pixel."""
-        key = {"interior": "spp", "primary": "primary_spp"}.get(term, "boundary_spp")
-        return self.with_estimator(**{key: spp})
+        return self.with_estimator(**{registry.term(term).samples_key: spp})
 
 
 @dataclass
@@ -126,15 +120,6 @@ def term_passes(term: str, settings: Settings, pixels: int, min_passes: int = 1)
     return passes_for(settings.samples(term), pixels, AD_LANES, max(settings.estimator.passes, min_passes))
 
 
-def interior_image(scene, sensor, spp: int, seed: int, max_depth: int):
-    """Mean of ``spp`` material-form path samples per pixel (flat W·H·3, AD)."""
-    width, height = sensor.film().size()
-    sampler = make_sampler(seed, width * height * spp)
-    ray, weight = camera_rays(sensor, sampler, width, height, spp)
-    L = weight * interior.radiance(scene, sampler, ray, max_depth, ad=True)
-    return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
-
-
 def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings, parameter=None) -> Guides:
     """Guides of the direct and indirect terms for ``views`` (empty when no term is guided;
     ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`). With the scalar
@@ -161,30 +146,16 @@ def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed
     """One pass of ``term`` for camera ``view`` with ``spp`` samples per pixel (flat W·H·3, AD).
 
     ``scene`` is a :class:`psdr_cli.scene.Scene`; its AD state (θ or vertex gradients) must be
-    set before the call. ``guides`` (:class:`psdr_cli.guiding.targets.Guides`) guide the
-    direct and indirect terms."""
-    mi_scene, sensor = scene.mi_scene, scene.sensors[view]
-    width, height = scene.resolution
-    if term == "interior":
-        return interior_image(mi_scene, sensor, spp, seed, settings.max_depth)
-    n = spp * width * height
-    sampler = make_sampler(seed, n)
-    P = edges.positions(mi.traverse(mi_scene)) if edges.count else None
-    if term == "primary":
-        return primary_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth,
-                                settings.estimator.primary_sampling)
-    if term == "direct":
-        return direct_boundary(mi_scene, sensor, edges, P, n, sampler, settings.sampling,
-                               guides.direct if guides else None)
-    if term == "indirect":
-        return indirect_boundary(mi_scene, sensor, edges, P, n, sampler, settings.max_depth,
-                                 guides.indirect if guides else None)
-    raise ValueError(f"unknown term {term!r}")
+    set before the call. ``guides`` (:class:`psdr_cli.guiding.targets.Guides`) hold the guides
+    of the guided terms."""
+    guide = guides.get(term) if guides else None
+    return registry.term(term).estimate(scene, edges, view, spp, seed, settings.estimator, settings.max_depth,
+                                        guide)
 
 
-def stream(term: str) -> int:
-    """Random-number stream of a term (terms never share samples)."""
-    return 1 + TERMS.index(term)
+def term_seed(settings: Settings, view: int, pass_index: int, term: str) -> int:
+    """Sampler seed of pass ``pass_index`` of ``term`` for camera ``view`` (the term's own stream)."""
+    return pass_seed(settings.seed, view, pass_index, registry.term(term).stream)
 
 
 @dataclass
@@ -210,8 +181,7 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
         theta = mi.Float(0.0)
         dr.enable_grad(theta)
         parameter.apply(theta)
-        img = term_image(scene, edges, view, term, spp, pass_seed(settings.seed, view, p, stream(term)), settings,
-                         guides)
+        img = term_image(scene, edges, view, term, spp, term_seed(settings, view, p, term), settings, guides)
         dr.forward(theta)
         images.append(np.asarray(dr.grad(img), np.float64).reshape(height, width, 3))
         primal += np.asarray(dr.detach(img), np.float64).reshape(height, width, 3) * spp / total
@@ -234,8 +204,8 @@ def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int
     img = dr.zeros(mi.Float, width * height * 3)
     for term in terms:
         spp = term_passes(term, settings, width * height)[0]
-        img = img + term_image(scene, edges, view, term, spp,
-                               pass_seed(settings.seed, view, pass_index, stream(term)), settings, guides)
+        img = img + term_image(scene, edges, view, term, spp, term_seed(settings, view, pass_index, term), settings,
+                               guides)
     return img * scale
 
 

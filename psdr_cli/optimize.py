@@ -41,6 +41,7 @@ from .engines import Engine
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
 from .estimators.passes import pass_seed
+from .estimators.registry import ADJOINT_STREAM
 from .gradient import Settings, make_guides, uses_guides
 from .jitarray import jit_array
 from .parameters import Parameter
@@ -49,10 +50,6 @@ from .render import render_view
 from .runs import (RunFiles, append_log, clear_run, lock_run, move_aside, read_log, run_fingerprint,
                    saved_fingerprint, variant_experiments, write_log, write_mesh)
 from .scene import build_scene, object_mesh
-
-
-#: Random-number stream of the adjoint renders (:func:`adjoint_image`; the terms use 1..4, Mitsuba 9).
-ADJOINT_STREAM = 10
 
 
 # --------------------------------------------------------------------------------------------

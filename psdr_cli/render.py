@@ -20,6 +20,7 @@ from .config import Experiment, option_spp, parse_views
 from .estimators import interior
 from .estimators.camera import camera_rays
 from .estimators.passes import make_sampler, pass_seed, passes_for
+from .estimators.registry import RENDER_STREAM
 from .scene import build_scene
 
 def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
@@ -46,7 +47,7 @@ def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None
     with dr.suspend_grad():
         for p, n in enumerate(passes_for(spp, width * height)):
             total += render_pass(scene.mi_scene, sensor, width, height, n, max_depth,
-                                 pass_seed(seed, view, p))
+                                 pass_seed(seed, view, p, RENDER_STREAM))
             if progress:
                 progress(n)
     return (total / spp).astype(np.float32)

@@ -7,9 +7,9 @@ import pytest
 
 from conftest import REPO
 from psdr_cli.api import setup
-from psdr_cli.config import EstimatorConfig, load_experiment
+from psdr_cli.config import TERMS, EstimatorConfig, load_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
-from psdr_cli.gradient import TERMS, Settings, ad_image, forward_gradient
+from psdr_cli.gradient import Settings, ad_image, forward_gradient
 from psdr_cli.parameters import Parameter
 from psdr_cli.reference import block_sums, mean_and_error, mitsuba_projective
 from psdr_cli.scene import build_scene

@@ -12,7 +12,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .interior import bend_shading_normal
+from .shading_frame import bend_shading_normal
 
 
 def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int, spp: int):

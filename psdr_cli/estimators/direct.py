@@ -38,6 +38,7 @@ from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in
                                 pdf_wedge, primary_sample, ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
 from .interior import environment_motion, turn
+from .term import Term, boundary_pass
 
 
 
@@ -199,3 +200,14 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
     return img
+
+
+def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
+             guide=None) -> mi.Float:
+    """One pass of the direct term (:class:`~.term.Term` signature) with ``estimator.sampling``;
+    ``guide`` maps a technique to its guide."""
+    n, sampler, P = boundary_pass(scene, edges, spp, seed)
+    return direct_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, estimator.sampling, guide)
+
+
+TERM = Term("direct", samples_key="boundary_spp", stream=3, guided=True, estimate=estimate)

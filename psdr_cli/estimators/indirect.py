@@ -36,6 +36,7 @@ from .interior import environment_motion, turn
 from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
                                 ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
+from .term import Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
 
@@ -171,3 +172,13 @@ def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, 
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, live)
     return img
+
+
+def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
+             guide=None) -> mi.Float:
+    """One pass of the indirect term (:class:`~.term.Term` signature)."""
+    n, sampler, P = boundary_pass(scene, edges, spp, seed)
+    return indirect_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth, guide)
+
+
+TERM = Term("indirect", samples_key="boundary_spp", stream=4, guided=True, estimate=estimate)

@@ -33,6 +33,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .camera import camera_rays
+from .passes import make_sampler
+from .shading_frame import bend_shading_normal
+from .term import Term
 from .terminator import PlaneSample, has_smooth_meshes, terminator_term
 
 
@@ -45,33 +49,6 @@ def ratio(x):
     """x / detach(x), 1 where the detached value is 0: primal 1, derivative d(log x)."""
     xd = dr.detach(x)
     return dr.select(xd != 0, x / dr.select(xd != 0, xd, 1.0), 1.0)
-
-
-#: Smallest |cos| between a shading normal and the viewing direction (see ``bend_shading_normal``).
-MIN_SHADING_COS = 0.02
-
-
-def bend_shading_normal(si: mi.SurfaceInteraction3f):
-    """Keep interpolated shading normals facing the viewer: with s = sign(n_g·ω_i) and
-    c = s·(n_s·ω_i), a normal with c < δ becomes normalize(n_s + s(δ − c) ω_i).
-
-    Without this, the region near a smooth mesh's silhouette where n_s turns away from the viewer
-    renders black (BSDFs reject ω_i below the shading hemisphere), and the edge of that band is
-    an image discontinuity that follows no mesh edge, so no boundary term could account for it.
-    The bend is continuous (no change at c = δ) and leaves flat shading (n_s = n_g) untouched
-    unless the view is within δ of grazing."""
-    valid = si.is_valid()
-    wi = si.to_world(si.wi)
-    smooth = dr.norm(si.sh_frame.n - si.n) > 1e-6
-    s = dr.sign(dr.dot(si.n, wi))
-    c = s * dr.dot(si.sh_frame.n, wi)
-    bend = valid & smooth & (c < MIN_SHADING_COS)
-    n = dr.normalize(si.sh_frame.n + s * (MIN_SHADING_COS - c) * wi)
-    frame = mi.Frame3f(dr.select(bend, n, si.sh_frame.n))
-    # Misses keep their fields untouched (their wi is the world direction the environment reads)
-    si.wi = dr.select(bend, frame.to_local(wi), si.wi)
-    si.sh_frame = dr.select(bend, frame, si.sh_frame)
-    return si
 
 
 def triangle_area(si: mi.SurfaceInteraction3f):
@@ -219,3 +196,17 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     for p in parts[1:]:
         total = total + p
     return total
+
+
+def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth: int, guide=None) -> mi.Float:
+    """One pass of the interior term (:class:`~.term.Term` signature): the mean of ``spp``
+    material-form path samples per pixel (flat W·H·3, AD), whose primal value is the render."""
+    sensor = scene.sensors[view]
+    width, height = sensor.film().size()
+    sampler = make_sampler(seed, width * height * spp)
+    ray, weight = camera_rays(sensor, sampler, width, height, spp)
+    L = weight * radiance(scene.mi_scene, sampler, ray, max_depth, ad=True)
+    return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
+
+
+TERM = Term("interior", samples_key="spp", stream=1, guided=False, estimate=estimate)

@@ -37,6 +37,7 @@ from ..jitarray import jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
 from .camera import Projection, camera_ray, film_pixel
+from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
 #: (6.4e-5 px at 32 px, 1e-3 px at 512 px: ≥ 16 float32 ulps of the pixel coordinate). The
@@ -399,3 +400,15 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
     for c in range(3):
         dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
     return img
+
+
+def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
+             guide=None) -> mi.Float:
+    """One pass of the primary term (:class:`~.term.Term` signature), edges drawn by
+    ``estimator.primary_sampling``."""
+    n, sampler, P = boundary_pass(scene, edges, spp, seed)
+    return primary_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth,
+                            estimator.primary_sampling)
+
+
+TERM = Term("primary", samples_key="primary_spp", stream=2, guided=False, estimate=estimate)

@@ -17,10 +17,12 @@ Other values of ``estimator.guiding`` (none, grid, kdtree) apply to every term u
 """
 from __future__ import annotations
 
+from ..estimators.registry import GUIDED
+
 #: lanes of one boundary pass (W·H·boundary_spp) from which a boundary term is guided
 MIN_LANES = 1 << 16
-#: the terms a guide can serve
-GUIDED_TERMS = ("direct", "indirect")
+#: the terms a guide can serve (``Term.guided``)
+GUIDED_TERMS = GUIDED
 
 
 def choose(term: str, lanes: int) -> str:

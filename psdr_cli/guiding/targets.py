@@ -8,8 +8,6 @@ evaluation, a noisy but unbiased stand-in for the photon-map estimate of the pap
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -17,6 +15,7 @@ import numpy as np
 from ..estimators.direct import direct_motion_target, direct_target
 from ..estimators.indirect import indirect_target
 from ..estimators.passes import make_sampler
+from ..estimators.registry import TERMS
 from . import auto
 from .grid import build_grid
 from .kdtree import build_kdtree, share_profiles
@@ -72,16 +71,28 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
     return evaluate
 
 
-@dataclass
-class Guides:
-    """The guides of one estimate: ``direct[technique]`` and ``indirect`` (None: unguided)."""
-    direct: dict = field(default_factory=dict)
-    indirect: object = None
+class Guides(dict):
+    """The guides of one estimate by term name: ``guides["direct"]`` maps a technique (light, dir)
+    to its guide, ``guides["indirect"]`` is one guide (of the ``dir`` technique); a term without an
+    entry is unguided. ``guides.<term>`` reads ``guides.get(<term>)``."""
+
+    def __getattr__(self, name):
+        if name in _TERM_NAMES:
+            return self.get(name)
+        raise AttributeError(name)
 
     def all(self):
-        """[(label, guide)] for reports."""
-        out = [(f"direct/{t}", g) for t, g in self.direct.items()]
-        return out + ([("indirect/dir", self.indirect)] if self.indirect is not None else [])
+        """[(label, guide)] for reports, e.g. ``direct/light``."""
+        out = []
+        for term, guide in self.items():
+            if isinstance(guide, dict):
+                out += [(f"{term}/{t}", g) for t, g in guide.items()]
+            elif guide is not None:
+                out.append((f"{term}/dir", guide))
+        return out
+
+
+_TERM_NAMES = frozenset(t.name for t in TERMS)
 
 
 def initial_samples(estimator, pixels: int) -> int:
@@ -126,6 +137,7 @@ def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int
     if edges.count == 0 or all(k == "none" for k in kinds.values()):
         return guides
     prior = prior or Guides()
+    direct = {}
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
     mis = sampling == "mis"
     if kinds.get("direct", "none") != "none":
@@ -133,13 +145,14 @@ def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int
         try:
             for i, t in enumerate(("light", "dir") if mis else (sampling,)):
                 f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, theta)
-                guides.direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
-                                               prior.direct.get(t))
+                direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
+                                        (prior.get("direct") or {}).get(t))
         finally:
             if parameter is not None:
                 parameter.reset()
-        guides.direct = share_profiles(guides.direct, breaks, estimator.kdtree.technique_share)
+        guides["direct"] = share_profiles(direct, breaks, estimator.kdtree.technique_share)
     if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
-        guides.indirect = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels, prior.indirect)
+        guides["indirect"] = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels,
+                                         prior.get("indirect"))
     return guides
