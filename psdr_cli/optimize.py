@@ -47,8 +47,8 @@ from .jitarray import jit_array
 from .parameters import Parameter
 from .remesh import remesh
 from .render import render_view
-from .runs import (RunFiles, append_log, clear_run, lock_run, move_aside, read_log, run_fingerprint,
-                   saved_fingerprint, variant_experiments, write_log, write_mesh)
+from .runs import (RunFiles, append_log, clear_run, lock_run, move_aside, read_log, run_record, same_experiment,
+                   variant_experiments, write_log, write_mesh)
 from .scene import build_scene, object_mesh
 
 
@@ -501,7 +501,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     state = State.load(files.state) if resume and files.state.exists() else None
     if resume and state is None:
         warn(f"--resume: no saved state in {files.root}; starting from the beginning")
-    if state is not None and saved_fingerprint(files) not in (None, run_fingerprint(exp)):
+    if state is not None and not same_experiment(files, exp):
         kept = move_aside(files)
         warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; the old run is kept "
              f"in {kept}, starting from the beginning")
@@ -534,7 +534,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     else:
         V, F, start, values, seconds_so_far = state.V, state.F, state.iteration, state.values, state.seconds
         uv = state.uv
-    fileio.write_json(files.run, {"fingerprint": run_fingerprint(exp)})  # fresh, unchanged, or saved before fingerprints
+    fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
     result = OptimizeResult(files.root, resumed_from=start)
     # the shape of iteration `start` before its remesh, if one is due: the stage of start − 1
     problem = Problem(exp, V, F, cameras, values, *((state.u, state.basis) if state is not None else (None, None)), uv=uv,

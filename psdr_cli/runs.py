@@ -3,7 +3,7 @@
 A run of an experiment lives in ``<output>/<name>/`` (with ``optimize.variants``: one folder per
 variant, ``<output>/<name>/<label>/``) and holds
 
-    run.json            fingerprint of the experiment the run belongs to (:func:`run_fingerprint`)
+    run.json            fingerprint of the experiment the run belongs to (:func:`run_record`)
     state.npz           everything needed to continue (written atomically after every iteration)
     log.csv             one row per completed iteration (:data:`LOG_FIELDS`)
     checkpoints/        iter_NNNN.ply every ``checkpoint_every`` iterations (iter_0000: the start)
@@ -32,7 +32,7 @@ import shutil
 import time
 import warnings
 from contextlib import contextmanager
-from dataclasses import asdict, replace
+from dataclasses import MISSING, fields, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -149,27 +149,108 @@ def write_mesh(path: Path, V, F):
 # --------------------------------------------------------------------------------------------
 # Fingerprint
 # --------------------------------------------------------------------------------------------
+#: Version of :func:`run_fingerprint`, recorded in run.json next to the fingerprint.
+FINGERPRINT_VERSION = 2
+#: Optimize keys that only extend or observe a run: changing them continues the same run.
+OBSERVING_KEYS = ("iterations", "seconds", "checkpoint_every", "preview_views", "variants")
+#: Estimator keys read only by the Mitsuba engine, and only by the psdr engine.
+MITSUBA_ONLY_KEYS = ("mitsuba_integrator", "mitsuba_spp", "mitsuba_shadows")
+PSDR_ONLY_KEYS = ("primary_sampling",)
+
+
 def run_fingerprint(exp: Experiment) -> str:
-    """Hash of what a run's result depends on: scene, estimator, seed and the optimize section
-    except the keys that only extend or observe it (iterations, seconds, checkpoint_every,
-    preview_views) and the Mitsuba-engine keys of a psdr-engine run (which it never reads), with
-    paths relative to the experiment's folder. ``--resume`` continues a
-    run only while this is unchanged (runs saved before fingerprints existed are continued and
-    get one). The contents of mesh and image files are not part of it."""
-    opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
+    """Hash of what a run's result depends on: the scene, estimator and optimize sections and the
+    seed, written by :func:`non_default` (a key at its default is left out, so a key added with a
+    default changes no fingerprint), without the optimize keys that only extend or observe a run
+    (:data:`OBSERVING_KEYS`) and the estimator keys the run's engine does not read, with paths
+    relative to the experiment's folder. ``--resume`` continues a run only while this is
+    unchanged. The contents of mesh and image files are not part of it."""
+    est = non_default(exp.estimator)
+    for key in MITSUBA_ONLY_KEYS if exp.estimator.engine == "psdr" else PSDR_ONLY_KEYS:
+        est.pop(key, None)
+    opt = non_default(exp.optimize)
+    for key in OBSERVING_KEYS:
+        opt.pop(key, None)
+    return _digest(exp, (non_default(exp.scene), est, opt))
+
+
+def _digest(exp: Experiment, parts) -> str:
     h = hashlib.sha256()
-    for part in (asdict(exp.scene), estimator_identity(exp.estimator), optimize_identity(opt)):
+    for part in parts:
         text = json.dumps(part, default=str, sort_keys=True)
         h.update(text.replace(str(exp.base_dir), "<experiment folder>").encode())  # the checkout may move
     h.update(str(exp.seed).encode())
     return h.hexdigest()[:16]
 
 
-def optimize_identity(opt) -> dict:
-    """The optimize keys a run depends on, written as before stage schedules existed when the run
-    has none: a single λ as its number, and no ``downsample`` when every stage renders at full
-    resolution (so the fingerprints of earlier runs are unchanged)."""
-    d = asdict(opt)
+def non_default(value):
+    """A config dataclass as a dict without the fields whose value equals the field's default,
+    recursively (lists, tuples and dicts of dataclasses included); other values as they are."""
+    if is_dataclass(value) and not isinstance(value, type):
+        return {f.name: non_default(getattr(value, f.name)) for f in fields(value)
+                if not _is_default(f, getattr(value, f.name))}
+    if isinstance(value, (list, tuple)):
+        return [non_default(v) for v in value]
+    if isinstance(value, dict):
+        return {k: non_default(v) for k, v in value.items()}
+    return value
+
+
+def _is_default(f, value) -> bool:
+    if f.default is not MISSING:
+        default = f.default
+    elif f.default_factory is not MISSING:
+        default = f.default_factory()
+    else:
+        return False  # a required field
+    return _canonical(value) == _canonical(default)
+
+
+def _canonical(value) -> str:
+    """JSON text of :func:`non_default` of a value (tuples and lists alike), so that arrays and
+    nested dataclasses compare by what the fingerprint holds of them."""
+    return json.dumps(non_default(value), default=str, sort_keys=True)
+
+
+def run_record(exp: Experiment) -> dict:
+    """The contents of run.json: the fingerprint of ``exp`` and its version."""
+    return {"fingerprint": run_fingerprint(exp), "fingerprint_version": FINGERPRINT_VERSION}
+
+
+def same_experiment(files: RunFiles, exp: Experiment) -> bool:
+    """Whether the run in ``files`` belongs to ``exp``: its run.json holds the fingerprint of
+    ``exp`` of the version it records (run.json without a version: :func:`fingerprint_v1`). A run
+    folder without a readable run.json is taken as belonging to it."""
+    try:
+        record = json.loads(files.run.read_text())
+        saved = record["fingerprint"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return True
+    version = record.get("fingerprint_version", 1)
+    if version == FINGERPRINT_VERSION:
+        return saved == run_fingerprint(exp)
+    if version == 1:
+        return saved == fingerprint_v1(exp)
+    return False
+
+
+# --------------------------------------------------------------------------------------------
+# Fingerprint version 1 (run.json without "fingerprint_version"): read only, kept unchanged so
+# that such runs can be resumed. It hashes every field that existed in version 1 (V1_FIELDS);
+# a field added since is hashed only when it differs from its default.
+# --------------------------------------------------------------------------------------------
+def fingerprint_v1(exp: Experiment) -> str:
+    """Version-1 fingerprint: scene, estimator, seed and the optimize section except iterations,
+    seconds, checkpoint_every, preview_views and variants (:func:`estimator_identity_v1`,
+    :func:`optimize_identity_v1`), paths relative to the experiment's folder."""
+    opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
+    return _digest(exp, (_asdict_v1(exp.scene), estimator_identity_v1(exp.estimator), optimize_identity_v1(opt)))
+
+
+def optimize_identity_v1(opt) -> dict:
+    """Version-1 optimize keys: a single λ as its number, no ``downsample`` when every stage
+    renders at full resolution."""
+    d = _asdict_v1(opt)
     if len(opt.lambda_) == 1:
         d["lambda_"] = opt.lambda_[0]
     if all(k == 1 for k in opt.downsample):
@@ -177,24 +258,60 @@ def optimize_identity(opt) -> dict:
     return d
 
 
-def estimator_identity(est) -> dict:
-    """The estimator keys a run depends on: all of them but ``primary_sampling`` with ``engine:
-    mitsuba``; without the engine keys otherwise (a psdr run's fingerprint is what it was before
-    engines existed), and without ``primary_sampling: length`` (the sampling before that key)."""
-    d = asdict(est)
+def estimator_identity_v1(est) -> dict:
+    """Version-1 estimator keys: without the engine keys with ``engine: psdr``, without
+    ``primary_sampling`` with ``engine: mitsuba`` or ``primary_sampling: length``."""
+    d = _asdict_v1(est)
     if est.engine == "psdr":
         for key in ("engine", "mitsuba_integrator", "mitsuba_spp", "mitsuba_shadows"):
             d.pop(key)
     if est.engine == "mitsuba" or est.primary_sampling == "length":
-        d.pop("primary_sampling")  # not read by Mitsuba; "length" is what runs did before the key existed
+        d.pop("primary_sampling")
     return d
 
 
-def saved_fingerprint(files: RunFiles) -> str | None:
-    try:
-        return json.loads(files.run.read_text())["fingerprint"]
-    except (OSError, ValueError, KeyError):
-        return None
+def _asdict_v1(value):
+    """``dataclasses.asdict`` without the fields that are not in :data:`V1_FIELDS` and hold their
+    default."""
+    if is_dataclass(value) and not isinstance(value, type):
+        known = V1_FIELDS.get(type(value).__name__, ())
+        return {f.name: _asdict_v1(getattr(value, f.name)) for f in fields(value)
+                if f.name in known or not _is_default(f, getattr(value, f.name))}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_asdict_v1(v) for v in value)
+    if isinstance(value, dict):
+        return {k: _asdict_v1(v) for k, v in value.items()}
+    return value
+
+
+#: The fields of the config dataclasses when version 1 was current.
+V1_FIELDS = {
+    "SceneConfig": ("width", "height", "max_depth", "cameras", "emitters", "objects", "mitsuba"),
+    "CameraConfig": ("origin", "target", "up", "fov"),
+    "EmitterConfig": ("type", "key", "radiance", "center", "normal", "size", "file", "scale", "rotate_deg",
+                      "sun_direction", "turbidity", "albedo", "sun_scale", "sky_scale"),
+    "ObjectConfig": ("name", "mesh", "key", "transform", "bsdf", "edges", "smooth", "bsdf_given", "parts"),
+    "MeshSpec": ("key", "file", "shape", "params", "repair", "part", "split"),
+    "TransformConfig": ("translate", "rotate_axis", "rotate_deg", "scale"),
+    "BsdfConfig": ("type", "params"),
+    "BitmapConfig": ("file", "filter_type", "wrap_mode", "raw", "data"),
+    "MitsubaSource": ("file", "params", "film", "edges", "up", "up_given", "cameras_given", "max_depth_given",
+                      "digest", "resolved"),
+    "EstimatorConfig": ("spp", "primary_spp", "boundary_spp", "terms", "sampling", "guiding", "passes",
+                        "guide_epsilon", "edge_sort", "primary_sampling", "engine", "mitsuba_integrator",
+                        "mitsuba_spp", "mitsuba_shadows", "chains", "grid", "kdtree"),
+    "ChainConfig": ("max_turn", "max_length"),
+    "GridConfig": ("resolution", "samples_per_cell"),
+    "KdTreeConfig": ("samples_per_node", "initial_samples", "refine_ratio", "interval_share", "technique_share",
+                     "threshold", "max_depth", "max_leaves"),
+    "OptimizeConfig": ("object", "target_images", "target_mesh", "target_spp", "init", "init_transform", "remesh",
+                       "iterations", "batch_size", "learning_rate", "learning_rate_final", "lambda_", "downsample",
+                       "guide_every", "adjoint_spp", "checkpoint_every", "preview_views", "albedo", "albedo_init",
+                       "albedo_learning_rate", "albedo_texture", "envmap_rotation", "envmap_axis",
+                       "envmap_init_deg", "envmap_learning_rate", "seconds", "variants", "target_seed"),
+    "RemeshConfig": ("method", "initial", "at", "vertices"),
+    "Variant": ("label", "guiding", "sampling", "edge_sort", "seed", "passes", "engine"),
+}
 
 
 def clear_run(files: RunFiles):

@@ -1,0 +1,91 @@
+"""Run fingerprints: a key added with its default changes none, and run folders whose run.json
+holds a version-1 fingerprint (no ``fingerprint_version``) are still resumed."""
+import copy
+import csv
+import json
+import shutil
+from dataclasses import field, make_dataclass, replace
+
+from conftest import REPO, run_cli
+from psdr_cli.config import parse_experiment
+from psdr_cli.runs import fingerprint_v1, run_fingerprint
+from test_optimize import TINY
+
+#: A run written by psdr with version-1 fingerprints: tiny.yaml, 2 iterations (run.json, state, log, targets).
+SAVED_V1 = REPO / "tests" / "data" / "resume_v1"
+
+
+def tiny_cases():
+    """{name: experiment data}: TINY and variants that set engine, stage and guide keys."""
+    mitsuba = copy.deepcopy(TINY)
+    mitsuba["estimator"] = {"engine": "mitsuba", "mitsuba_spp": 4, "primary_sampling": "jump"}
+    staged = copy.deepcopy(TINY)
+    staged["estimator"].update(guiding="kdtree", primary_sampling="jump", kdtree={"initial_samples": 4096})
+    staged["optimize"].update({"lambda": [30, 10], "downsample": [2, 1], "learning_rate": 0.02})
+    single = copy.deepcopy(TINY)
+    single["optimize"]["lambda"] = 30
+    return {"tiny": copy.deepcopy(TINY), "mitsuba": mitsuba, "staged": staged, "lambda": single}
+
+
+def with_new_key(config, default=7):
+    """A copy of a config dataclass instance whose class has one more field, ``new_key``, set to
+    ``default`` (a subclass of the same name, as if the key had been added to config.py)."""
+    cls = make_dataclass(type(config).__name__, [("new_key", int, field(default=default))], bases=(type(config),))
+    return cls(**{f: getattr(config, f) for f in config.__dataclass_fields__})
+
+
+def test_fingerprints_of_both_versions_are_unchanged(tmp_path):
+    """The version-1 values were written by the release that introduced them (its run.json files
+    must still resume); the version-2 values pin today's fingerprints."""
+    v1 = {"tiny": "d576a7a191fe311d", "mitsuba": "29107c6ca5c19686", "staged": "f5134c9678762de6",
+          "lambda": "7fdae8034ecf8cb5"}
+    v2 = {"tiny": "50f91c45b863fcc9", "mitsuba": "1562ecac51c7428f", "staged": "965a7a9214c602fe",
+          "lambda": "b07c5439a8d601b5"}
+    for name, data in tiny_cases().items():
+        exp = parse_experiment(data, tmp_path / f"{name}.yaml", cwd=tmp_path)
+        assert (fingerprint_v1(exp), run_fingerprint(exp)) == (v1[name], v2[name]), name
+
+
+def test_a_new_key_at_its_default_changes_no_fingerprint(tmp_path):
+    """Adding a key (top level or nested) with its default leaves both versions' fingerprints
+    as they were; the key set to another value changes them."""
+    for name, data in tiny_cases().items():
+        exp = parse_experiment(data, tmp_path / f"{name}.yaml", cwd=tmp_path)
+        before = (fingerprint_v1(exp), run_fingerprint(exp))
+        changed = [replace(exp, estimator=with_new_key(exp.estimator)),
+                   replace(exp, estimator=replace(exp.estimator, kdtree=with_new_key(exp.estimator.kdtree))),
+                   replace(exp, optimize=with_new_key(exp.optimize)),
+                   replace(exp, scene=with_new_key(exp.scene))]
+        for new in changed:
+            assert (fingerprint_v1(new), run_fingerprint(new)) == before, name
+        other = replace(exp, optimize=replace(with_new_key(exp.optimize), new_key=8))
+        assert fingerprint_v1(other) != before[0] and run_fingerprint(other) != before[1], name
+
+
+def log_losses(run):
+    with open(run / "log.csv", newline="") as f:
+        return [row["loss"] for row in csv.DictReader(f)]
+
+
+def test_a_run_with_a_version_1_fingerprint_resumes(tmp_path):
+    """The saved run continues (resumed from 2, its log kept) and gets a version-2 run.json; the
+    same run under a changed experiment starts afresh."""
+    shutil.copytree(SAVED_V1, tmp_path / "a")
+    run = tmp_path / "a" / "output" / "tiny"
+    assert "fingerprint_version" not in json.loads((run / "run.json").read_text())
+    saved = log_losses(run)
+    r = run_cli("optimize", "tiny.yaml", "--resume", "--iterations", "3", cwd=tmp_path / "a")  # output: output
+    out = (r.stdout + r.stderr).replace("\n", " ")
+    assert r.returncode == 0 and "changed" not in out and "resumed from 2" in out, out
+    losses = log_losses(run)
+    assert len(losses) == 3 and losses[:2] == saved
+    record = json.loads((run / "run.json").read_text())
+    exp = parse_experiment(copy.deepcopy(TINY), tmp_path / "x.yaml", cwd=tmp_path)  # the keys of tiny.yaml
+    assert record["fingerprint_version"] == 2 and len(record["fingerprint"]) == 16
+    assert record["fingerprint"] != fingerprint_v1(exp)
+    shutil.copytree(SAVED_V1, tmp_path / "b")
+    cfg = tmp_path / "b" / "tiny.yaml"
+    cfg.write_text(cfg.read_text().replace("batch_size: 1", "batch_size: 2"))
+    r = run_cli("optimize", cfg, "--resume", "--iterations", "3", cwd=tmp_path / "b")
+    out = (r.stdout + r.stderr).replace("\n", " ")
+    assert r.returncode == 0 and "changed since" in out and "resumed from 0" in out, out
