@@ -19,7 +19,7 @@ import mitsuba as mi
 from .config import TERMS, EstimatorConfig
 from .estimators.boundary_sampling import BoundaryEdges
 from .gradient import Settings, ad_image, term_passes
-from .plugin_scene import differentiable_meshes, mesh_moves, object_mesh
+from .plugin_scene import differentiable_meshes
 from .render import render_view
 
 
@@ -31,14 +31,6 @@ class SceneView:
     resolution: tuple
     objects: dict
     config: object
-
-
-def mesh_objects(scene: mi.Scene, params=None, differentiable_only: bool = True) -> dict:
-    """{shape id: ObjectMesh} of the triangle meshes (with gradients enabled, by default), read
-    from the shapes themselves (``params`` may be reduced by ``params.keep`` or be θ itself)."""
-    return {s.id(): object_mesh(s) for s in scene.shapes()
-            if isinstance(s, mi.Mesh) and "vertex_positions" in mi.traverse(s)
-            and (mesh_moves(s) or not differentiable_only)}
 
 
 _CLASSES = {}

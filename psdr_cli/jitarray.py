@@ -5,12 +5,12 @@ Dr.Jit (1.x, LLVM backend) does not copy a numpy array given to an array constru
 the load ``align 64`` when the address is a multiple of 64 bytes and ``align 1`` otherwise, and
 that is part of the kernel's source, so of its hash. numpy aligns its allocations to 16 bytes
 only: the same traced code, fed freshly converted index arrays (edge lists, curve ids, adjoint
-images) every iteration, became a different kernel whenever one of them landed on another
-alignment, and was compiled again: 2–4 kernels per reverse pass (0.16–0.37 s of a 0.53–0.78 s
-gradient) in the first iterations on a fixed bunny shape (1642 vertices, four views, one thread),
-until the on-disk kernel cache holds every variant (a 300-iteration run of
-``configs/reconstruct_bunny.yaml`` from an empty cache compiled 156 kernels before, 121 now, in
-the same 109 s: on a warm cache the cost is gone either way).
+images) every iteration, becomes a different kernel whenever one of them lands on another
+alignment, and is compiled again. Measured without aligned copies: 2–4 kernels per reverse pass
+(0.16–0.37 s of a 0.53–0.78 s gradient) in the first iterations on a fixed bunny shape (1642
+vertices, four views, one thread), until the on-disk kernel cache holds every variant (a
+300-iteration run of ``configs/reconstruct_bunny.yaml`` from an empty cache compiles 156 kernels
+without them and 121 with them, in the same 109 s: on a warm cache the cost is gone either way).
 
 :func:`jit_array` copies the values into a 64-byte aligned numpy buffer first (the mapped array
 keeps that buffer alive), so every load is ``align 64`` and a kernel is compiled once per run.

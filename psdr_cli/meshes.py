@@ -250,7 +250,7 @@ def load_mesh_uv(spec: MeshSpec, file: str, keep_uv: bool = True):
     """(V, F, UV) of an object's ``mesh:`` entry, validated; UV is None for a mesh without texture
     coordinates. A file mesh with UVs keeps one vertex per position/UV pair (split at UV seams, as
     Mitsuba needs them) when ``keep_uv``; otherwise (and without UVs) it is welded by position
-    and its UVs dropped, as untextured objects always were."""
+    and its UVs dropped, like an untextured object's."""
     where = Where(file, spec.key)
     uv = None
     if spec.file is not None:

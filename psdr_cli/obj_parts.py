@@ -102,10 +102,6 @@ def read_part(path: Path, name: str):
     raise KeyError(f"no part '{name}' in {Path(path).name} (parts: {', '.join(p.name for p in parts) or 'none'})")
 
 
-def part_names(path: Path) -> list:
-    return [p.name for p in read_obj(path)[1]]
-
-
 def object_name(obj: str, part: str) -> str:
     """Scene-object name of a part: ``<object>_<part>`` with characters other than letters,
     digits, ``-`` and ``_`` replaced by ``_`` (Mitsuba ids may not contain ``.``)."""

@@ -174,7 +174,7 @@ class State:
     adam: dict = field(default_factory=dict)     # name -> (t, m, v)
     values: dict = field(default_factory=dict)   # extra unknowns: albedo (3,), envmap angle (1,)
     seconds: float = 0.0                         # optimisation time so far
-    u: np.ndarray | None = None                  # large-steps latent (V = solve(u) exactly as before)
+    u: np.ndarray | None = None                  # large-steps latent (V = solve(u) reproduces the saved V exactly)
     basis: np.ndarray | None = None              # vertices LargeSteps was built from (orders u)
     guide_V: np.ndarray | None = None            # vertices the current guides were built from
     guide_values: dict = field(default_factory=dict)  # extra unknowns when they were built

@@ -55,11 +55,6 @@ def normalise(V):
     return (V - centre) / scale, centre, scale
 
 
-def open_edges(V, F) -> int:
-    t = build_topology(V, F)
-    return int(t.open.sum()) + t.nonmanifold
-
-
 def defects(V, F) -> list[str]:
     """What makes (V, F) unusable as an optimised surface (empty when nothing): non-finite
     vertices, too few faces, degenerate faces, open or non-manifold edges, and interior edges

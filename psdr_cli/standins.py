@@ -1,5 +1,6 @@
-"""Procedural stand-ins for the published meshes on which gradients were wrong without warning
-(issue 13), shared by ``tests/test_real_mesh_gradients.py`` and ``benchmarks/gradients.py``:
+"""Procedural stand-ins for published meshes, with the features that make their gradients hard
+(dense bumpy surfaces, intersecting shells, a moving camera), shared by
+``tests/test_real_mesh_gradients.py`` and ``benchmarks/gradients.py``:
 
 - a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side; cut open into a
   dome, or sunk into the floor;

@@ -257,12 +257,12 @@ def edge_visible(scene, rays, p0, p1, own, strict, inner, active):
     ``inner`` edge (both faces towards the camera) a side must hit the surface at the edge: one of
     its faces or a face at its depth (a neighbour sharing an end point). A miss or a farther hit
     there means the face on that side is thinner than the side offset, next to a silhouette edge
-    that already carries this discontinuity (accepting it counted the silhouette twice).
+    that already carries this discontinuity (accepting it would count the silhouette twice).
 
-    A point counts as hidden as soon as one side hits a foreign surface in front of it. (The
-    former rule, "one side suffices", let through hidden edges next to a silhouette, just behind
-    a grazing front face, and over-counted silhouette pixels of dense flat meshes by up to 2×.) ``own`` = (shape0, face0, shape1,
-    face1) as UInt32 arrays."""
+    A point counts as hidden as soon as one side hits a foreign surface in front of it: accepting
+    a point seen from one side only would let through hidden edges next to a silhouette, just
+    behind a grazing front face, and over-count silhouette pixels of dense flat meshes by up to
+    2×. ``own`` = (shape0, face0, shape1, face1) as UInt32 arrays."""
     t_edge = edge_depth(rays[0], p0, p1)
     every, some = mi.Bool(True), mi.Bool(False)
     for ray in rays:

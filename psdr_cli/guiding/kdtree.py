@@ -47,8 +47,6 @@ from .guide import CORNERS, Guide, GuideStats
 RIDGE = 1e-6
 #: smallest uniform share of the guide that places the refinement samples
 EXPLORE = 0.25
-#: zero-valued samples kept for the fits, per non-zero sample (:func:`thin_zeros`)
-ZERO_KEEP = 0.0
 
 
 class KdTreeGuide(Guide):
@@ -333,23 +331,11 @@ def split_axes(q, x, group, want, sums):
     return best
 
 
-def thin_zeros(rng, f, keep: float):
-    """Zero-valued samples kept at random: (selection, n) with n = 1/q for a kept zero, q =
-    min(1, keep · #non-zero / #zero), n = 1 for non-zero samples. Weighting kept zeros by n keeps
-    every per-node sum unbiased while a sparse target's fits run on ~(1 + keep) × #non-zero
-    samples instead of all of them."""
-    nonzero = f > 0
-    q = min(1.0, keep * nonzero.sum() / max((~nonzero).sum(), 1))
-    sel = nonzero | (rng.random(len(f)) < q)
-    return sel, np.where(nonzero[sel], 1.0, 1.0 / q)
-
-
-def make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, keep: float = 0.0):
+def make_tree(top, breaks, u, f, w, epsilon, interval_share, growth):
     """KdTreeGuide grown from weighted samples (``growth``: samples_per_node, threshold,
-    max_depth, max_leaves) with zeros thinned to ``keep`` × the non-zero count (0: all kept),
-    leaves blended with their interval's mean."""
-    sel, n = thin_zeros(rng, f, keep) if keep > 0 else (slice(None), np.ones(len(f)))
-    t = grow(top, breaks, u[sel], f[sel], w[sel] * n, n, *growth)
+    max_depth, max_leaves), each standing for one sample, leaves blended with their interval's mean."""
+    n = np.ones(len(f))
+    t = grow(top, breaks, u, f, w * n, n, *growth)
     lo, hi = np.array(t.lo), np.array(t.hi)
     corners = blend_interval_mean(lo, hi, np.array(t.corners), breaks, interval_share)
     stats = GuideStats("kdtree", max_depth=t.deepest, intervals=len(breaks) - 1)
@@ -386,12 +372,12 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
         f = evaluate(target, u)
         w = 1.0 / d0
         if n1 > 0 and f.any():
-            first = explorer(make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, ZERO_KEEP))
+            first = explorer(make_tree(top, breaks, u, f, w, epsilon, interval_share, growth))
             u2, g2 = first.sample_np(n1, rng)
             f = np.r_[f, evaluate(target, u2)]
             w = 1.0 / np.r_[d0 + n1 * first.pdf_batch(u), uniform_density(u2, breaks, counts) + n1 * g2]
             u = np.r_[u, u2]
-    guide = make_tree(top, breaks, u, f, w, epsilon, interval_share, growth, rng, ZERO_KEEP)
+    guide = make_tree(top, breaks, u, f, w, epsilon, interval_share, growth)
     stats = guide.stats
     stats.evaluations = len(f)
     stats.memory_bytes = guide.memory_bytes()

@@ -103,16 +103,15 @@ def initial_samples(estimator, pixels: int) -> int:
     return n if n > 0 else int(np.clip(pixels * estimator.boundary_spp // AUTO_SHARE, *AUTO_RANGE))
 
 
-def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int, prior=None):
-    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings; a
-    Kd-tree ``prior`` (the previous guide of the same target) makes the build a one-batch refresh."""
+def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int):
+    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings."""
     if kind == "grid":
         g = estimator.grid
         return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
     k = estimator.kdtree
     return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
                         estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
-                        k.refine_ratio, prior=prior if getattr(prior, "kind", None) == "kdtree" else None)
+                        k.refine_ratio)
 
 
 def applied_theta(parameter):
@@ -126,17 +125,15 @@ def applied_theta(parameter):
 
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
-                 seed: int = 0, prior: Guides | None = None, parameter=None) -> Guides:
+                 seed: int = 0, parameter=None) -> Guides:
     """Guides for the direct and indirect terms among ``terms``, each of the kind
-    :func:`auto.resolve` gives for ``estimator.guiding``; ``prior`` (the previous guides of an
-    optimisation) turns Kd-tree builds into one-batch refreshes; ``parameter`` (the scalar θ of
-    a forward-mode gradient) puts the velocity into the direct term's target."""
+    :func:`auto.resolve` gives for ``estimator.guiding``; ``parameter`` (the scalar θ of a
+    forward-mode gradient) puts the velocity into the direct term's target."""
     guides = Guides()
     pixels = int(np.prod(scene.resolution))
     kinds = auto.resolve(estimator.guiding, terms, pixels, estimator.boundary_spp)
     if edges.count == 0 or all(k == "none" for k in kinds.values()):
         return guides
-    prior = prior or Guides()
     direct = {}
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
     mis = sampling == "mis"
@@ -145,14 +142,12 @@ def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int
         try:
             for i, t in enumerate(("light", "dir") if mis else (sampling,)):
                 f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, theta)
-                direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels,
-                                        (prior.get("direct") or {}).get(t))
+                direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels)
         finally:
             if parameter is not None:
                 parameter.reset()
         guides["direct"] = share_profiles(direct, breaks, estimator.kdtree.technique_share)
     if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
-        guides["indirect"] = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels,
-                                         prior.get("indirect"))
+        guides["indirect"] = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels)
     return guides
