@@ -71,8 +71,10 @@ table2: $(STAMP)
 	$(BIN)/psdr table2 configs/paper/$(SCALE)/fig9_bunny.yaml configs/paper/$(SCALE)/fig10_glass.yaml \
 		configs/paper/$(SCALE)/fig10_shadow.yaml --out docs/results/table2.md
 
+# The suite runs on every core (pytest-xdist; PYTEST_WORKERS=0 runs it in one process).
+PYTEST_WORKERS ?= auto
 test: $(DEPS)
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup tests
 
 clean:
 	rm -rf $(VENV) runs build *.egg-info

@@ -57,3 +57,37 @@ def run_cli(*args, cwd=None, timeout=600):
     env.pop("PSDR_DEBUG", None)
     return subprocess.run([sys.executable, "-m", "psdr_cli", *map(str, args)], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)
+
+
+# --------------------------------------------------------------------------------------------
+# Parallel runs (pytest-xdist, `make test` runs `-n auto --dist loadgroup`)
+# --------------------------------------------------------------------------------------------
+def shared_fixtures(item) -> list:
+    """Names of the module-scoped fixtures ``item`` requests: tests that share one run in one
+    worker, or each worker would build it again."""
+    defs = getattr(item, "_fixtureinfo", None)
+    if defs is None:
+        return []
+    return sorted(name for name, fixture_defs in defs.name2fixturedefs.items()
+                  if fixture_defs[-1].scope == "module")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Group the tests that share a module-scoped fixture (``xdist_group``), and run the groups
+    and tests that hold a ``slow`` test first, so that no long check starts last and keeps
+    one worker busy alone at the end (the order is only a schedule: every test still runs)."""
+    groups = {}
+    for item in items:
+        names = shared_fixtures(item)
+        if names:
+            group = f"{item.module.__name__}:{'+'.join(names)}"
+            item.add_marker(pytest.mark.xdist_group(group))
+            groups.setdefault(group, []).append(item)
+    slow_groups = {g for g, members in groups.items() if any(m.get_closest_marker("slow") for m in members)}
+
+    def starts_late(item):
+        marks = [m.args[0] if m.args else m.kwargs.get("name") for m in item.iter_markers("xdist_group")]
+        return not (item.get_closest_marker("slow") or slow_groups.intersection(marks))
+
+    items.sort(key=starts_late)

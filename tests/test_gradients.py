@@ -59,6 +59,7 @@ def runs(tmp_path_factory):
 # Known (docs/gradients.md): at sample counts well above these, paths of three segments in the
 # Cornell box differ slightly from Mitsuba's prb_projective and from finite differences (floor and
 # right-wall tiles, ~0.2 per 4×4 tile); at two segments they agree. This check runs as specified.
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(RUNS))
 def test_total_gradient_matches_finite_differences(runs, name):
     proc, view = runs[name]
@@ -81,6 +82,7 @@ def test_cornell_image_sum_matches_finite_differences(runs):
     assert abs(s["z"]) < 3 and view["fd_agreement"]["blocks"]["signal"] >= 10, s
 
 
+@pytest.mark.slow
 def test_indirect_term_is_needed_in_the_cornell_box(runs, tmp_path):
     """Leaving the indirect term out makes the Cornell-box check fail: the indirect estimator
     carries a real, significant part of the derivative."""
@@ -111,6 +113,7 @@ def test_outputs_of_grad(runs):
         assert (folder / name).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_environment_rotation_matches_finite_differences(tmp_path):
     """θ rotates the sky (and its sun) about z: interior term plus the moving shadows of the sun."""
     cfg = yaml.safe_load(open(VALIDATION / "bunny.yaml"))
@@ -122,6 +125,7 @@ def test_environment_rotation_matches_finite_differences(tmp_path):
     assert_agrees(view)
 
 
+@pytest.mark.slow
 def test_indirect_term_carries_light_that_arrives_by_way_of_a_wall():
     """configs/validation/indirect.yaml: the floor the camera sees is lit only via a wall, and a
     black ball moving between light and wall changes that light. On the lower part of the image

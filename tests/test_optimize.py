@@ -303,6 +303,7 @@ def test_fresh_run_clears_the_previous_runs_state(tmp_path):
     assert json.loads((exp.run_dir / "optimize.json").read_text())["iterations"] == 1
 
 
+@pytest.mark.slow
 def test_variants_time_budget_report_and_table2(tmp_path):
     """optimize.variants runs one folder per variant; optimize.seconds ends each run at the first
     iteration past the budget (and --resume then adds nothing); `psdr evaluate` on the experiment

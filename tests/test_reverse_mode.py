@@ -98,6 +98,7 @@ def test_reverse_mode_vertex_optimisation_lowers_the_loss(silhouette):
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:3]), losses
 
 
+@pytest.mark.slow
 def test_direct_lighting_in_the_cornell_box_matches_mitsuba_prb_projective():
     """Second independent-estimator check, with shadows: the Cornell box at max_depth 2 (the
     moving smooth sphere casts a shadow; primary + direct + interior terms). Tiles agree with
