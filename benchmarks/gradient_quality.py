@@ -44,7 +44,7 @@ import mitsuba as mi  # noqa: E402
 import pymeshlab  # noqa: E402
 from psdr_cli import backend  # noqa: E402
 from psdr_cli import optimize as opt  # noqa: E402
-from psdr_cli.config import load_experiment  # noqa: E402
+from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.engines import mitsuba_image, mitsuba_integrator  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.estimators.passes import pass_seed  # noqa: E402

@@ -64,7 +64,8 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 from psdr_cli import api, standins  # noqa: E402
 from psdr_cli.compare import rel_mse  # noqa: E402
-from psdr_cli.config import TERMS, load_experiment  # noqa: E402
+from psdr_cli.config import TERMS  # noqa: E402
+from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.gradient import forward_gradient, prepare  # noqa: E402
 from psdr_cli.reference import agreement, block_sums, fd_resolution, finite_difference, mitsuba_projective  # noqa: E402

@@ -17,29 +17,24 @@ from pathlib import Path
 
 from . import backend
 from . import compare as comparison
-from . import config
 from . import evaluate as evaluation
+from . import experiment
 from . import gradient
-from . import mitsuba_scene
 from . import optimize as optimization
 from . import render as rendering
 from . import runs
 from . import sweep
 from .config import Experiment
 from .guiding import stats
+from .mitsuba_scene import warn_stderr
 from .sweep import RayOptions  # noqa: F401  (re-exported: api.RayOptions)
 
 
-def load_experiment(path, warn=mitsuba_scene.warn_stderr) -> Experiment:
+def load_experiment(path, warn=warn_stderr) -> Experiment:
     """Read and validate an experiment file, then its scene: a Mitsuba XML scene is read (one
     ``warn`` line per item psdr renders but cannot differentiate) and split OBJ objects are
-    expanded, so that object names, views and emitters are known."""
-    return mitsuba_scene.resolve(config.load_experiment(path), warn)
-
-
-def resolved(exp: Experiment) -> Experiment:
-    """``exp`` with its scene read (a no-op for experiments from :func:`load_experiment`)."""
-    return mitsuba_scene.resolve(exp)
+    expanded, so that object names, views and emitters are known (:mod:`psdr_cli.experiment`)."""
+    return experiment.load_experiment(path, warn)
 
 
 def setup(exp: Experiment) -> str:
@@ -49,20 +44,20 @@ def setup(exp: Experiment) -> str:
 
 def render(exp: Experiment, spp: int | None = None, views=None, out: Path | None = None, progress=None):
     """``psdr render``: EXR + PNG per view in ``<output>/<name>/render/``; returns a RenderResult."""
-    return rendering.render_experiment(resolved(exp), spp, views, out, progress)
+    return rendering.render_experiment(exp, spp, views, out, progress)
 
 
 def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
                     scene=None, progress=None) -> dict:
     """Forward-mode gradient images dI/dθ of one view, {term: TermEstimate}; writes nothing."""
-    return gradient.gradient_images(resolved(exp), view, terms, spp, min_passes, scene, progress)
+    return gradient.gradient_images(exp, view, terms, spp, min_passes, scene, progress)
 
 
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None):
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
     ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings."""
-    return gradient.grad_experiment(resolved(exp), spp, terms, views, out, fd, fd_spp, progress, warn)
+    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn)
 
 
 def guiding_lines(exp: Experiment, labels=None, terms=None) -> list:
@@ -75,20 +70,20 @@ def guiding_lines(exp: Experiment, labels=None, terms=None) -> list:
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):
     """``psdr guide-stats``: guides built with and without edge sorting; a GuideStatsResult."""
-    return stats.guide_stats(resolved(exp), kinds, views, out, progress)
+    return stats.guide_stats(exp, kinds, views, out, progress)
 
 
 def compare(exp: Experiment, out: Path | None = None, progress=None, ray: "sweep.RayOptions | None" = None):
     """``psdr compare``: the experiment's ``compare:`` section; a CompareResult. With ``ray``: one
     Ray task per variant, ``progress(label)`` giving one progress object per task."""
     if ray is not None:
-        return sweep.compare_sweep(resolved(exp), out, ray, progress)
-    return comparison.run_comparison(resolved(exp), out, progress)
+        return sweep.compare_sweep(exp, out, ray, progress)
+    return comparison.run_comparison(exp, out, progress)
 
 
 def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print):
     """``psdr optimize`` of one run (an experiment without variants, or one variant's run)."""
-    return optimization.optimize(resolved(exp), iterations=iterations, resume=resume, progress=progress, warn=warn)
+    return optimization.optimize(exp, iterations=iterations, resume=resume, progress=progress, warn=warn)
 
 
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
@@ -97,8 +92,8 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
     ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving
     one progress object (``start``, ``advance``) per run."""
     if ray is not None:
-        return sweep.optimize_sweep(resolved(exp), labels, iterations, resume, ray, progress, warn)
-    return optimization.optimize_variants(resolved(exp), labels, iterations, resume, progress, warn)
+        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress, warn)
+    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn)
 
 
 def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,

@@ -343,8 +343,8 @@ class MitsubaSource:
 
     ``params``: ``$name`` substitutions; ``film``: (width, height) replacing the XML film's size;
     ``edges``: {shape id: bool} overrides; ``up``: the scene's up axis (default of camera ``up``
-    and of rotation axes); ``up_given``: whether the file set it. ``digest`` and ``resolved``
-    are filled once the XML has been read."""
+    and of rotation axes); ``up_given``: whether the file set it. ``digest`` is filled when the
+    experiment is loaded (:mod:`psdr_cli.experiment`), once the XML has been read."""
     file: Path
     params: dict = field(default_factory=dict)
     film: tuple | None = None
@@ -354,7 +354,6 @@ class MitsubaSource:
     cameras_given: bool = False
     max_depth_given: bool = False
     digest: str = ""
-    resolved: bool = False
 
 
 @dataclass
@@ -366,14 +365,6 @@ class SceneConfig:
     emitters: list
     objects: list
     mitsuba: MitsubaSource | None = None   # an XML scene: cameras, emitters, objects come from it
-
-    @property
-    def resolved(self) -> bool:
-        """False until an XML scene has been read and split OBJ objects expanded into their parts
-        (:func:`psdr_cli.mitsuba_scene.resolve`); object names are only known then."""
-        if self.mitsuba is not None:
-            return self.mitsuba.resolved
-        return not any(o.mesh.split or (o.mesh.part is not None and not o.bsdf_given) for o in self.objects)
 
 
 @dataclass
@@ -893,7 +884,7 @@ def parse_scene(base: Path) -> Parser:
 
 
 def check_scene(scene: SceneConfig, file: str):
-    """Unique object names and at most one environment emitter (also after a scene is resolved)."""
+    """Unique object names and at most one environment emitter (also once an XML scene has been read)."""
     names = set()
     for obj in scene.objects:
         if obj.name in names:
@@ -1243,8 +1234,10 @@ def parse_evaluate(base: Path) -> Parser:
 # --------------------------------------------------------------------------------------------
 # Entry points
 # --------------------------------------------------------------------------------------------
-def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
-    """Validate an already-loaded YAML document. ``file`` names the source in messages."""
+def parse(data, file: Path, cwd: Path | None = None) -> Experiment:
+    """Validate an already-loaded YAML document. ``file`` names the source in messages. The
+    experiment as the file states it: its scene is read, and the checks that need object names
+    run, by :func:`psdr_cli.experiment.parse_experiment`, which every user of an experiment loads with."""
     file = Path(file)
     where = Where(str(file), "")
     sec = Section(data, where)
@@ -1269,8 +1262,6 @@ def parse_experiment(data, file: Path, cwd: Path | None = None) -> Experiment:
     sec.done()
     if "/" in exp.name or exp.name in (".", ".."):
         raise where.child("name").fail(f"expected a plain folder name, got '{exp.name}'")
-    if exp.scene.resolved:
-        check_experiment(exp)
     return exp
 
 
@@ -1292,7 +1283,7 @@ def check_stages(exp: Experiment):
 
 def check_experiment(exp: Experiment):
     """Checks that need the scene's object names, views and emitters. An XML scene or a split
-    OBJ object is checked once it has been read (:func:`psdr_cli.mitsuba_scene.resolve`)."""
+    OBJ object is checked once it has been read (:func:`psdr_cli.experiment.parse_experiment`)."""
     where = Where(str(exp.file), "")
     if exp.parameter and exp.parameter.object:
         names = [o.name for o in exp.scene.objects]
@@ -1346,8 +1337,9 @@ class UniqueKeyLoader(yaml.SafeLoader):
 UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, UniqueKeyLoader.construct_mapping)
 
 
-def load_experiment(path) -> Experiment:
-    """Read and validate an experiment file."""
+def read_file(path) -> Experiment:
+    """Read and validate an experiment file, as :func:`parse` (its scene not yet read:
+    :func:`psdr_cli.experiment.load_experiment` loads it whole)."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -1364,4 +1356,4 @@ def load_experiment(path) -> Experiment:
         raise ConfigError(path, where, f"invalid YAML: {problem}") from None
     if data is None:
         raise ConfigError(path, "", "the file is empty (expected a mapping with at least 'scene')")
-    return parse_experiment(data, path)
+    return parse(data, path)

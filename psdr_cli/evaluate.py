@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import backend, fileio, plots
-from .config import load_experiment
+from .config import read_file
 from .errors import PsdrError
 from .meshes import face_areas, read_mesh_file
 from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
@@ -203,7 +203,7 @@ def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = 
     if len(configs) > 1:
         raise PsdrError("evaluate: give at most one experiment file")
     if configs:
-        exp = load_experiment(configs[0])
+        exp = read_file(configs[0])  # its runs and evaluate: section (the scene is not needed)
         if exp.evaluate:
             reference = reference or exp.evaluate.reference
             samples = samples or exp.evaluate.samples

@@ -38,11 +38,9 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, meshes
-from .config import (BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig, Where,
-                     check_experiment, check_scene)
+from .config import BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig, SceneConfig, Where
 from .errors import ConfigError
 from .jitarray import jit_array
-from .obj_parts import expand_objects
 
 #: Emitter classes psdr handles → the YAML emitter type they correspond to.
 EMITTERS = {"AreaLight": "area", "EnvironmentMapEmitter": "envmap", "ConstantBackgroundEmitter": "constant",
@@ -308,23 +306,12 @@ def object_config(name: str, o: XmlObject, src) -> ObjectConfig:
                         edges=src.edges.get(name, True), smooth=o.normals is not None)
 
 
-def resolve(exp: Experiment, warn=warn_stderr) -> Experiment:
-    """The experiment with its scene read: an XML scene's cameras (unless ``scene.cameras`` is
-    given), film size, emitters and objects filled in, split OBJ objects expanded into their
-    parts; then the checks that need object names run (:func:`psdr_cli.config.check_experiment`).
-    An already resolved experiment is returned unchanged. ``warn`` receives one line per item
-    psdr renders but cannot differentiate."""
-    scene = exp.scene
-    if scene.resolved:
-        return exp
-    if scene.mitsuba is None:
-        scene = expand_objects(scene, str(exp.file))
-        check_scene(scene, str(exp.file))
-        exp = replace(exp, scene=scene)
-        check_experiment(exp)
-        return exp
-    backend.activate(exp)
-    src = scene.mitsuba
+def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
+    """The experiment's scene with its XML read: cameras (unless ``scene.cameras`` is given), film
+    size, emitters and objects filled in (called once, when the experiment is loaded:
+    :mod:`psdr_cli.experiment`). ``warn`` receives one line per item psdr renders but cannot
+    differentiate."""
+    scene, src = exp.scene, exp.scene.mitsuba
     xs = read_scene(exp)
     for message in xs.warnings:
         warn(message)
@@ -336,20 +323,17 @@ def resolve(exp: Experiment, warn=warn_stderr) -> Experiment:
         _GEOMETRY[(xs.digest, name)] = (o.V, o.F)
         objects.append(cfg)
     max_depth = scene.max_depth if src.max_depth_given or xs.max_depth is None else xs.max_depth
-    scene = replace(scene, width=width, height=height, max_depth=max_depth,
-                    cameras=scene.cameras if src.cameras_given else xs.cameras, emitters=xs.emitters,
-                    objects=objects, mitsuba=replace(src, digest=xs.digest, resolved=True))
-    check_scene(scene, str(exp.file))
-    exp = replace(exp, scene=scene)
-    check_experiment(exp)
-    return exp
+    return replace(scene, width=width, height=height, max_depth=max_depth,
+                   cameras=scene.cameras if src.cameras_given else xs.cameras, emitters=xs.emitters,
+                   objects=objects, mitsuba=replace(src, digest=xs.digest))
 
 
 def object_geometry(obj: ObjectConfig):
-    """World-space (V, F) of an XML object (after :func:`resolve`)."""
+    """World-space (V, F) of an XML object (after :func:`scene_config`)."""
     key = (obj.mesh.params.get("digest"), obj.mesh.params.get("id"))
     if key not in _GEOMETRY:
-        raise ConfigError(obj.mesh.key, "", "the XML scene has not been read (resolve the experiment first)")
+        raise ConfigError(obj.mesh.key, "", "the XML scene has not been read (load the experiment with "
+                          "psdr_cli.experiment.load_experiment)")
     return _GEOMETRY[key]
 
 
@@ -389,7 +373,7 @@ def sensor_dicts(xs: XmlScene, width: int, height: int) -> list:
 
 def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):
     """(``mi.load_dict`` entries without the integrator, {id: (V, F)} of the objects) of a
-    resolved XML experiment. ``overrides``: {id: (V, F)} replacing meshes (flat or, for shapes
+    loaded XML experiment. ``overrides``: {id: (V, F)} replacing meshes (flat or, for shapes
     with normals, smooth shading computed by Mitsuba); ``sensors``: sensor dicts replacing the
     XML's."""
     xs = read_scene(exp)

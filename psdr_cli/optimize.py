@@ -35,7 +35,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import backend, fileio, meshes, mitsuba_scene, plots
+from . import backend, fileio, meshes, plots
 from .config import BitmapConfig, BsdfConfig, CameraConfig, Experiment, ParameterConfig, check_stages
 from .engines import Engine
 from .errors import PsdrError
@@ -48,7 +48,7 @@ from .parameters import Parameter
 from .remesh import remesh
 from .render import render_view
 from .runs import (RunFiles, append_log, clear_run, lock_run, move_aside, read_log, run_record, same_experiment,
-                   variant_experiments, write_log, write_mesh)
+                   scene_identity, variant_experiments, write_log, write_mesh)
 from .scene import build_scene, object_mesh
 
 
@@ -101,7 +101,7 @@ def target_seed(exp) -> int:
 def target_key(exp, reference, spp: int) -> str:
     """Hash of everything a cached target image depends on (bitmap textures' contents included)."""
     h = hashlib.sha256()
-    h.update(json.dumps(asdict(exp.scene), default=str, sort_keys=True).encode())
+    h.update(json.dumps(scene_identity(asdict(exp.scene)), default=str, sort_keys=True).encode())
     h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
     h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
     h.update(f"{spp}:{target_seed(exp)}".encode())
@@ -375,7 +375,6 @@ def texture_experiment(exp, texture):
     """``exp`` with the optimised object's reflectance (diffuse) or base colour (principled)
     replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``),
     looked up with the object's own bitmap's ``filter_type`` and ``wrap_mode`` if it has one."""
-    exp = mitsuba_scene.resolve(exp)
     if exp.scene.mitsuba is not None:
         raise PsdrError(f"{exp.file}: optimize.albedo.texture: not available for objects of a Mitsuba XML scene")
     obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
@@ -413,7 +412,6 @@ def stage_experiment(exp, stage: int):
     k = stage_value(exp.optimize.downsample, stage)
     if k == 1:
         return exp
-    exp = mitsuba_scene.resolve(exp)  # an XML scene's film is only known once it is read
     return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
 
 
@@ -488,7 +486,6 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     if total < 1:
         raise PsdrError(f"--iterations: expected a positive number, got {total}")
     backend.activate(exp)
-    exp = mitsuba_scene.resolve(exp)  # the film an XML scene gives, before stages scale it
     check_stages(exp)
     files = RunFiles(exp.run_dir)
     with lock_run(files), backend.optimization_threads():

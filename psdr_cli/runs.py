@@ -171,7 +171,16 @@ def run_fingerprint(exp: Experiment) -> str:
     opt = non_default(exp.optimize)
     for key in OBSERVING_KEYS:
         opt.pop(key, None)
-    return _digest(exp, (non_default(exp.scene), est, opt))
+    return _digest(exp, (scene_identity(non_default(exp.scene)), est, opt))
+
+
+def scene_identity(d: dict) -> dict:
+    """A scene's dict (``asdict`` or :func:`non_default`) with ``mitsuba.resolved: true``, the flag
+    an XML scene's source carried once read, before experiments were loaded whole: fingerprints
+    and cached targets of runs saved then still match."""
+    if d.get("mitsuba"):
+        d["mitsuba"] = {**d["mitsuba"], "resolved": True}
+    return d
 
 
 def _digest(exp: Experiment, parts) -> str:
@@ -244,7 +253,8 @@ def fingerprint_v1(exp: Experiment) -> str:
     seconds, checkpoint_every, preview_views and variants (:func:`estimator_identity_v1`,
     :func:`optimize_identity_v1`), paths relative to the experiment's folder."""
     opt = replace(exp.optimize, iterations=0, seconds=None, checkpoint_every=0, preview_views=(), variants=())
-    return _digest(exp, (_asdict_v1(exp.scene), estimator_identity_v1(exp.estimator), optimize_identity_v1(opt)))
+    return _digest(exp, (scene_identity(_asdict_v1(exp.scene)), estimator_identity_v1(exp.estimator),
+                         optimize_identity_v1(opt)))
 
 
 def optimize_identity_v1(opt) -> dict:

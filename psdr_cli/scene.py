@@ -202,10 +202,9 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
     ``objects`` may override meshes by name (``{name: (V, F)}`` or ``(V, F, UV)``, e.g. the
     current shape of an optimisation; a (V, F) override keeps the object's UVs when F is the
     object's own triangle list, i.e. the same vertices moved); ``cameras`` may replace the camera
-    list. An object whose BSDF has a bitmap texture must have UVs. An XML scene (``scene.mitsuba``) is
-    read by :mod:`psdr_cli.mitsuba_scene`; split OBJ objects are expanded into their parts.
+    list. An object whose BSDF has a bitmap texture must have UVs. ``exp`` is whole, as loaded
+    (:mod:`psdr_cli.experiment`): an XML scene read, split OBJ objects expanded into their parts.
     """
-    exp = mitsuba_scene.resolve(exp)
     if exp.scene.mitsuba is not None:
         return build_xml_scene(exp, objects or {}, cameras)
     cfg = exp.scene
@@ -240,7 +239,7 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
 
 
 def build_xml_scene(exp: Experiment, objects: dict, cameras: list | None) -> Scene:
-    """The Mitsuba scene of a resolved XML experiment (see :mod:`psdr_cli.mitsuba_scene`)."""
+    """The Mitsuba scene of a loaded XML experiment (see :mod:`psdr_cli.mitsuba_scene`)."""
     cfg = exp.scene
     unknown = [name for name in objects if name not in {o.name for o in cfg.objects}]
     if unknown:

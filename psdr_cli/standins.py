@@ -23,7 +23,8 @@ import numpy as np
 import yaml
 
 from . import meshes
-from .config import Experiment, load_experiment
+from .config import Experiment
+from .experiment import load_experiment
 
 LIGHT_SIDE = {"type": "area", "center": [1.6, 0.3, 1.2], "normal": [-0.8, -0.1, -0.3], "size": [0.5, 0.5],
               "radiance": 20}

@@ -3,7 +3,8 @@ import math
 
 import pytest
 
-from psdr_cli.config import TERMS, load_experiment, orbit_cameras, parse_experiment
+from psdr_cli.config import TERMS, orbit_cameras
+from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.errors import ConfigError
 
 from conftest import experiment
@@ -200,7 +201,7 @@ def test_every_shipped_experiment_file_is_valid():
     """All experiment files in configs/ (demo, validation, benchmarks, both paper scales) parse,
     and each paper reproduction exists at both scales."""
     from pathlib import Path
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     root = Path(__file__).resolve().parent.parent / "configs"
     files = sorted(root.rglob("*.yaml"))
     assert len(files) > 10

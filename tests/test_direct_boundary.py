@@ -7,7 +7,7 @@ import pytest
 from scipy.ndimage import binary_dilation
 
 from psdr_cli.api import setup
-from psdr_cli.config import parse_experiment
+from psdr_cli.experiment import parse_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
 from psdr_cli.estimators.direct import direct_boundary
 from psdr_cli.render import make_sampler, render_view

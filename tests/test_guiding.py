@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from psdr_cli import api
-from psdr_cli.config import parse_experiment, with_estimator
+from psdr_cli.config import with_estimator
+from psdr_cli.experiment import parse_experiment
 from psdr_cli.gradient import forward_gradient, make_guides, prepare
 from psdr_cli.guiding import auto, build_grid, build_kdtree
 from psdr_cli.guiding.kdtree import KdTreeGuide

@@ -10,7 +10,7 @@ import mitsuba as mi
 import numpy as np
 
 from psdr_cli import backend
-from psdr_cli.config import load_experiment
+from psdr_cli.experiment import load_experiment
 from psdr_cli.engines import Engine
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.gradient import Settings

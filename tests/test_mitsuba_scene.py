@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from psdr_cli import api, meshes
-from psdr_cli.config import parse_experiment
+from psdr_cli.experiment import parse_experiment
 from psdr_cli.errors import ConfigError
 from psdr_cli.render import render_view
 from psdr_cli.scene import build_scene
@@ -153,8 +153,6 @@ def test_scene_up_sets_camera_and_rotation_defaults(tmp_path):
     exp = parse_experiment(d, tmp_path / "e.yaml", cwd=tmp_path)
     assert exp.parameter.axis == (0.0, 1.0, 0.0)
     assert all(c.up == (0.0, 1.0, 0.0) and abs(c.origin[1]) < 1e-9 for c in exp.scene.cameras)
-    assert not exp.scene.resolved   # names are checked once the XML has been read
-    exp = api.resolved(exp)
     assert len(exp.scene.cameras) == 2 and exp.scene.width == 24
 
 
@@ -189,8 +187,6 @@ def test_obj_groups_split_into_objects_with_mtl_colours(tmp_path):
                                 "transform": {"translate": [3, 0, 0]}}]},
          "parameter": {"kind": "translate", "object": "chair_back"}}
     exp = parse_experiment(d, tmp_path / "e.yaml", cwd=tmp_path)
-    assert not exp.scene.resolved
-    exp = api.resolved(exp)
     objs = {o.name: o for o in exp.scene.objects}
     assert list(objs) == ["chair_seat", "chair_back", "seat"]
     assert objs["chair_seat"].bsdf.params["reflectance"] == (0.8, 0.1, 0.1)   # from the MTL
@@ -208,4 +204,4 @@ def test_obj_groups_split_into_objects_with_mtl_colours(tmp_path):
     d["scene"]["objects"][1]["mesh"]["part"] = "legs"
     with pytest.raises(ConfigError, match=r"scene\.objects\[1\]\.mesh\.file: no part 'legs' in chair\.obj "
                                           r"\(parts: seat, back\)"):
-        build_scene(api.resolved(parse_experiment(d, tmp_path / "e.yaml", cwd=tmp_path)))
+        build_scene(parse_experiment(d, tmp_path / "e.yaml", cwd=tmp_path))

@@ -135,7 +135,7 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch):
     """A non-finite gradient leaves the mesh untouched and is logged as skipped."""
     import drjit as dr
     from psdr_cli import api, gradient
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=3, remesh={"method": "none"})
     exp = load_experiment(write(tmp_path, data))
@@ -219,7 +219,7 @@ def test_albedo_and_environment_rotation_are_recovered(tmp_path):
     """With the true shape as the start, the joint unknowns move to the truth: albedo 0.3 → 0.6,
     environment rotation 20° → 0°."""
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=40, batch_size=3, learning_rate=1e-6, remesh={"method": "none"},
                             init={"mesh": {"shape": "bunny", "size": 0.8, "faces": 400}},
@@ -258,7 +258,7 @@ def test_guided_optimisation_rebuilds_its_guides_on_schedule(tmp_path):
     """With estimator.guiding set, guides are built at iteration 0 and every guide_every
     iterations (their time is logged in seconds_guiding), and the run completes."""
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["estimator"].update(guiding="kdtree", edge_sort=True, kdtree={"initial_samples": 4096})
     data["optimize"].update(iterations=5, guide_every=2, remesh={"method": "none"})
@@ -273,7 +273,7 @@ def test_guided_optimisation_rebuilds_its_guides_on_schedule(tmp_path):
 def test_rgb_albedo_moments_survive_resume(tmp_path):
     """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     from psdr_cli.optimize import State
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0]["bsdf"] = {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}
@@ -292,7 +292,7 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
 
 def test_fresh_run_clears_the_previous_runs_state(tmp_path):
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=2, remesh={"method": "none"}, checkpoint_every=1)
     exp = load_experiment(write(tmp_path, data))
@@ -377,7 +377,7 @@ def test_reports_refuse_unfinished_runs(tmp_path):
 
 def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
-    from psdr_cli.config import parse_experiment
+    from psdr_cli.experiment import parse_experiment
     from psdr_cli.optimize import target_key, variant_experiments
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
@@ -415,7 +415,7 @@ def test_a_failing_remesher_never_ends_a_run(tmp_path, monkeypatch):
     and finishes."""
     import pymeshlab
     from psdr_cli import api, remesh
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
 
     def broken(*args, **kwargs):
         raise pymeshlab.PyMeshLabException("Failed to apply filter: meshing_re_orient_faces_coherently")
@@ -463,7 +463,7 @@ def test_mitsuba_engine_lowers_the_shape_error(tmp_path):
     batches and LargeSteps) grows a small sphere towards a larger target sphere within a few
     iterations, and the loss falls."""
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0].update(mesh={"shape": "sphere", "radius": 0.35, "subdivisions": 2},
                                        transform={"translate": [0, 0, 0.4]})
@@ -539,7 +539,7 @@ def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path):
     """A run with learning_rate_final takes smaller late steps than one without (its vertices move
     less over the last three iterations), and a non-positive value is a one-line error."""
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     finals = {}
     for label, extra in (("const", {}), ("decay", {"learning_rate_final": 0.001})):
         data = copy.deepcopy(TINY)
@@ -561,7 +561,7 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
     W/k × H/k render (optimize.downsample): they agree to the renders' noise, while taking every
     k-th pixel instead does not."""
     from psdr_cli import backend
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     from psdr_cli.optimize import downsample, stage_experiment
     from psdr_cli.render import render_view
     from psdr_cli.scene import build_scene
@@ -586,7 +586,7 @@ def test_coarse_to_fine_and_lambda_schedule_resume_exactly(tmp_path):
     final mesh, and the previews of both stages have the film's size."""
     from PIL import Image
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=8, checkpoint_every=2, downsample=[2, 1], remesh={
         "method": "instant", "initial": 150, "at": [4], "vertices": [250]}, **{"lambda": [40, 10]})
@@ -611,7 +611,8 @@ def test_stage_lists_are_checked_again_when_code_changes_the_experiment(tmp_path
     film) is checked again by optimize: one-line errors, not a traceback or a silent mismatch."""
     from dataclasses import replace
     from psdr_cli import api
-    from psdr_cli.config import RemeshConfig, load_experiment
+    from psdr_cli.config import RemeshConfig
+    from psdr_cli.experiment import load_experiment
     from psdr_cli.errors import PsdrError
     data = copy.deepcopy(TINY)
     data["optimize"].update(downsample=[2, 1], **{"lambda": [40, 10]})

@@ -47,7 +47,7 @@ def rows(run: Path) -> list:
 
 def sequential(tmp_path, data):
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     (tmp_path / "seq").mkdir()
     exp = load_experiment(write(tmp_path / "seq", data))
     return exp, dict(api.optimize_variants(exp, warn=lambda m: None))
@@ -76,7 +76,7 @@ def assert_same_runs(a: Path, b: Path, labels, rtol=1e-4):
 @pytest.mark.parametrize("files", ["shared", "copy"])
 def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, files):
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     seq_exp, seq = sequential(tmp_path, SWEEP)
     (tmp_path / "ray").mkdir()
     exp = load_experiment(write(tmp_path / "ray", SWEEP))
@@ -124,7 +124,7 @@ def test_a_killed_worker_is_retried_and_resumes(tmp_path, local_ray):
     from their saved states; every iteration is logged once and the losses are the uninterrupted
     run's (to the resume tolerance of test_optimize)."""
     from psdr_cli import api
-    from psdr_cli.config import load_experiment
+    from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(SWEEP)
     data["optimize"]["iterations"] = 16
     seq_exp, seq = sequential(tmp_path, data)
@@ -183,7 +183,7 @@ def test_ray_compare_matches_the_sequential_run(tmp_path, local_ray):
     """`psdr compare --ray` (reference and each variant one task) writes the sequential run's files
     with the same numbers (equal samples: no timing in the result)."""
     from psdr_cli import api
-    from psdr_cli.config import parse_experiment
+    from psdr_cli.experiment import parse_experiment
     from test_guiding import SHADOW
     data = copy.deepcopy(SHADOW)
     data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct"], "kdtree": {"initial_samples": 4096}}

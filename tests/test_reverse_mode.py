@@ -7,7 +7,8 @@ import pytest
 
 from conftest import REPO
 from psdr_cli.api import setup
-from psdr_cli.config import TERMS, EstimatorConfig, load_experiment
+from psdr_cli.config import TERMS, EstimatorConfig
+from psdr_cli.experiment import load_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
 from psdr_cli.gradient import Settings, ad_image, forward_gradient
 from psdr_cli.parameters import Parameter

@@ -7,7 +7,7 @@ import shutil
 from dataclasses import field, make_dataclass, replace
 
 from conftest import REPO, run_cli
-from psdr_cli.config import parse_experiment
+from psdr_cli.experiment import parse_experiment
 from psdr_cli.runs import fingerprint_v1, run_fingerprint
 from test_optimize import TINY
 

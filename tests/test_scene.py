@@ -8,7 +8,7 @@ import pytest
 
 from psdr_cli import fileio as io, meshes
 from psdr_cli.api import setup
-from psdr_cli.config import parse_experiment
+from psdr_cli.experiment import parse_experiment
 from psdr_cli.render import render_view
 from psdr_cli.scene import build_scene
 

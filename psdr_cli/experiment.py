@@ -1,0 +1,41 @@
+"""An experiment, whole when loaded: the file parsed and validated (:mod:`psdr_cli.config`),
+then its scene read: a Mitsuba XML scene's cameras, film, emitters and objects filled in
+(:mod:`psdr_cli.mitsuba_scene`, one ``warn`` line per item psdr renders but cannot
+differentiate), split OBJ objects expanded into their parts (:mod:`psdr_cli.obj_parts`); then
+the checks that need object names, views and emitters run. Everything that uses an experiment
+loads it here, so no later step has to ask whether its scene has been read.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from . import backend, config, mitsuba_scene
+from .config import Experiment, check_experiment, check_scene
+from .mitsuba_scene import warn_stderr
+from .obj_parts import expand_objects
+
+
+def load_experiment(path, warn=warn_stderr) -> Experiment:
+    """Read, validate and complete an experiment file (see the module docstring)."""
+    return complete(config.read_file(path), warn)
+
+
+def parse_experiment(data, file: Path, cwd: Path | None = None, warn=warn_stderr) -> Experiment:
+    """An already-loaded YAML document as a complete experiment; ``file`` names the source in
+    messages and anchors relative paths."""
+    return complete(config.parse(data, file, cwd), warn)
+
+
+def complete(exp: Experiment, warn=warn_stderr) -> Experiment:
+    """``exp`` as parsed, with its scene read and the checks that need object names run."""
+    scene = exp.scene
+    if scene.mitsuba is None:
+        scene = expand_objects(scene, str(exp.file))
+    else:
+        backend.activate(exp)
+        scene = mitsuba_scene.scene_config(exp, warn)
+    check_scene(scene, str(exp.file))
+    exp = replace(exp, scene=scene)
+    check_experiment(exp)
+    return exp
