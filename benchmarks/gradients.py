@@ -27,7 +27,7 @@ Outputs (written atomically, refreshed after every scene): ``<out>/gradients.jso
     .venv/bin/python benchmarks/gradients.py --quick    # smoke run (≈ 1 min)
     .venv/bin/python benchmarks/gradients.py --wait-idle 120   # wait out other jobs before timing
 
-Real-mesh stand-ins (``psdr_cli.standins``, the scenes of ``tests/test_real_mesh_gradients.py``):
+Real-mesh stand-ins (``tests/standins.py``, the scenes of ``tests/test_real_mesh_gradients.py``):
 
     .venv/bin/python benchmarks/gradients.py --standins              # every stand-in, ≈ 5 min
     .venv/bin/python benchmarks/gradients.py --standins eyes camera_rotate
@@ -58,11 +58,13 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests"))  # standins: the real-mesh stand-in scenes the tests share
 
 import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
-from psdr_cli import api, standins  # noqa: E402
+import standins  # noqa: E402
+from psdr_cli import api  # noqa: E402
 from psdr_cli.compare import rel_mse  # noqa: E402
 from psdr_cli.config import TERMS  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
@@ -688,7 +690,7 @@ def standin_markdown(report: dict) -> str:
          f"Dr.Jit {mach['drjit']}. Commit `{report['git']['commit'][:10]}`"
          f"{' (uncommitted changes)' if report['git']['dirty'] else ''}. All numbers are in "
          "`gradients_real_meshes.json`.", "",
-         "Scenes: `psdr_cli/standins.py` (those of `tests/test_real_mesh_gradients.py`), 32×32 px, 4×4 tiles. "
+         "Scenes: `tests/standins.py` (those of `tests/test_real_mesh_gradients.py`), 32×32 px, 4×4 tiles. "
          "Ours: every term at the experiment's sample counts, 8 passes. Mitsuba: `prb_projective` (guiding off) at "
          f"{STANDIN_MI_SPP} spp in 8 batches, same scene, same `max_depth`. FD: central differences with "
          "common random numbers in 8 batches. Verdict: `psdr_cli.verdict` (sum |z| < 3, ≥ 90 % tiles within "

@@ -15,7 +15,7 @@ from psdr_cli import api
 from psdr_cli.config import with_estimator
 from psdr_cli.estimators.primary import JUMP_ANGLE, JUMP_MIN_WEIGHT, jump_weights
 from psdr_cli.reference import block_sums, mean_and_error
-from psdr_cli.standins import blob_cfg, bumpy_blob, load
+from standins import blob_cfg, bumpy_blob, load
 from psdr_cli.topology import build_topology
 
 PASSES = 24

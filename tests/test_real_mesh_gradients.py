@@ -28,7 +28,7 @@ from psdr_cli.errors import PsdrError
 from psdr_cli.intersections import intersection_segments
 from psdr_cli.reference import agreement, block_max, block_sums, fd_resolution, finite_difference, mean_and_error
 from psdr_cli.render import render_view
-from psdr_cli.standins import (blob_cfg, book, bumpy_blob, camera_cfg, eye_cfg, head_with_eye, joined_boxes, load,
+from standins import (blob_cfg, book, bumpy_blob, camera_cfg, eye_cfg, head_with_eye, joined_boxes, load,
                                off_axis, open_dome, part_cfg, resting_blob, turned_cube)
 from psdr_cli.verdict import agrees, describe
 
