@@ -32,12 +32,12 @@ import shutil
 import time
 import warnings
 from contextlib import contextmanager
-from dataclasses import MISSING, fields, is_dataclass, replace
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from . import fileio
+from . import fileio, plots
 from .config import Experiment, with_estimator
 from .errors import PsdrError, PsdrWarning
 from .meshes import write_ply
@@ -441,3 +441,114 @@ def run_summary(folder: Path) -> dict:
             "seconds_guiding": mean("seconds_guiding"), "seconds_rendering": mean("seconds_rendering"),
             "seconds_post": mean("seconds_post"), "vertices": int(rows[-1]["vertices"]),
             "guide_bytes": max(int(r.get("guide_bytes") or 0) for r in rows), "views": info.get("views")}
+
+
+# --------------------------------------------------------------------------------------------
+# The saved state, checkpoints and previews, the loss plot
+# --------------------------------------------------------------------------------------------
+@dataclass
+class State:
+    """Everything needed to continue a run: mesh, optimiser moments, extra unknowns."""
+    iteration: int
+    V: np.ndarray
+    F: np.ndarray
+    adam: dict = field(default_factory=dict)     # name -> (t, m, v)
+    values: dict = field(default_factory=dict)   # extra unknowns: albedo (3,), envmap angle (1,)
+    seconds: float = 0.0                         # optimisation time so far
+    u: np.ndarray | None = None                  # large-steps latent (V = solve(u) reproduces the saved V exactly)
+    basis: np.ndarray | None = None              # vertices LargeSteps was built from (orders u)
+    guide_V: np.ndarray | None = None            # vertices the current guides were built from
+    guide_values: dict = field(default_factory=dict)  # extra unknowns when they were built
+    uv: np.ndarray | None = None                 # per-vertex texture coordinates (albedo.texture)
+
+    def save(self, path: Path):
+        """Written atomically; refuses NaN or infinite values (nothing non-finite is ever saved)."""
+        arrays = {"V": self.V, "F": self.F, "u": self.u, "basis": self.basis}
+        if self.uv is not None:
+            arrays["uv"] = self.uv
+        if self.guide_V is not None:
+            arrays["guide_V"] = self.guide_V
+            for k, v in self.guide_values.items():
+                arrays[f"guidevalue_{k}"] = v
+        for k, (t, m, v) in self.adam.items():
+            arrays[f"adam_{k}_m"], arrays[f"adam_{k}_v"] = m, v
+        for k, v in self.values.items():
+            arrays[f"value_{k}"] = v
+        for k, a in arrays.items():
+            fileio.check_finite(path, a, f"state '{k}'")
+        meta = {"iteration": self.iteration, "seconds": self.seconds,
+                "adam_t": {k: int(t) for k, (t, _, _) in self.adam.items()}}
+        with fileio.atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+
+    @staticmethod
+    def load(path: Path) -> "State":
+        try:
+            with np.load(path) as z:
+                meta = json.loads(bytes(z["meta"]).decode())
+                adam = {k: (t, z[f"adam_{k}_m"], z[f"adam_{k}_v"]) for k, t in meta["adam_t"].items()}
+                values = {k[6:]: z[k] for k in z.files if k.startswith("value_")}
+                guide_values = {k[11:]: z[k] for k in z.files if k.startswith("guidevalue_")}
+                state = State(meta["iteration"], z["V"], z["F"], adam, values, meta.get("seconds", 0.0),
+                              z["u"], z["basis"], z["guide_V"] if "guide_V" in z.files else None, guide_values,
+                              z["uv"] if "uv" in z.files else None)
+                arrays = [state.V, state.u, state.basis, *values.values(), *([state.uv] if state.uv is not None else []),
+                          *(a for _, m, v in adam.values() for a in (m, v))]
+        except Exception as exc:  # noqa: BLE001 - a damaged state file
+            raise PsdrError(f"{path}: cannot read the saved state ({type(exc).__name__}); "
+                            f"delete it to start over") from None
+        if not all(np.isfinite(np.asarray(a, float)).all() for a in arrays):
+            raise PsdrError(f"{path}: the saved state holds NaN or infinite values; delete it to start over")
+        return state
+
+
+def resumable_state(files: RunFiles, exp: Experiment, total: int, resume: bool, warn) -> State | None:
+    """With ``resume``: the run's saved state, if there is one and it belongs to ``exp`` (a run of
+    a changed experiment is moved aside); None for a fresh start."""
+    state = State.load(files.state) if resume and files.state.exists() else None
+    if resume and state is None:
+        warn(f"--resume: no saved state in {files.root}; starting from the beginning")
+    if state is not None and not same_experiment(files, exp):
+        kept = move_aside(files)
+        warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; the old run is kept "
+             f"in {kept}, starting from the beginning")
+        state = None
+    if state is not None and state.iteration > total:
+        raise PsdrError(f"--iterations: {total} is fewer than the {state.iteration} iterations the run in "
+                        f"{files.root} has done (ask for at least {state.iteration}, or start afresh without --resume)")
+    return state
+
+
+def write_checkpoint(files: RunFiles, iteration: int, V, F, texture=None, previews: dict | None = None,
+                     zoom: int = 1) -> Path:
+    """checkpoints/iter_NNNN.ply; with ``texture`` (the recovered albedo texture, linear RGB)
+    albedo.exr, albedo.png and its preview; per preview view {v: (target, current)} a target |
+    current | |difference| strip with pixels enlarged ``zoom`` times (a downsampled stage's
+    images at the film's size)."""
+    path = files.checkpoint(iteration)
+    write_mesh(path, V, F)
+    if texture is not None:
+        fileio.write_rgb_exr(files.albedo, texture, {"psdr.iteration": str(iteration)})
+        fileio.write_preview(files.albedo.with_suffix(".png"), texture)
+        fileio.write_preview(files.previews / f"iter_{iteration:04d}_albedo.png", texture)
+    for v, images in (previews or {}).items():
+        full = [np.repeat(np.repeat(image, zoom, axis=0), zoom, axis=1) for image in images]
+        fileio.write_preview(files.previews / f"iter_{iteration:04d}_view_{v:03d}.png", strip(*full))
+    return path
+
+
+def strip(target, current, zoom: int = 3):
+    """target | current | |difference| side by side, pixels enlarged ``zoom`` times, linear RGB."""
+    gap = np.ones((target.shape[0], 2, 3))
+    row = np.concatenate([target, gap, current, gap, np.abs(target - current)], axis=1)
+    return np.repeat(np.repeat(row, zoom, axis=0), zoom, axis=1)
+
+
+def plot_loss(files: RunFiles, rows: list):
+    if not rows:
+        return
+    it = np.array([int(r["iteration"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    plots.lines(files.root / "loss.png", {"L1 loss": (it, loss)}, "iteration", "image L1 loss",
+                "psdr optimize", logy=True)

@@ -1,0 +1,137 @@
+"""One iteration of an optimisation: the mini-batch rendered with AD, the L1 loss and its
+adjoint, the guides refreshed on their schedule, and one Adam step (skipped on a non-finite
+gradient)."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .estimators.boundary_sampling import edge_list
+from .estimators.passes import pass_seed
+from .estimators.registry import ADJOINT_STREAM
+from .gradient import make_guides
+from .jitarray import jit_array
+from .render import render_view
+from .stages import batch_views, learning_rate_at
+
+
+
+@dataclass
+class Step:
+    """What one iteration measured: its loss, whether its update was skipped, and the times
+    (``time.perf_counter``) at which guiding, rendering and the update began and it ended."""
+    loss: float
+    skipped: bool
+    t_guide: float
+    t_render: float
+    t_post: float
+    t_end: float
+
+
+class GuideCache:
+    """The guides in use and the shape and unknowns they were built from (saved with the state,
+    so that a resumed run rebuilds the same guides)."""
+
+    def __init__(self, guides=None, snapshot=None):
+        self.guides, self.snapshot = guides, snapshot
+
+    @classmethod
+    def resumed(cls, problem, exp, settings, state, stage) -> "GuideCache":
+        """The guides in use when the run stopped, rebuilt from the shape they were built from
+        (none for a fresh run, or a stage that is not guided)."""
+        if state.guide_V is None or not stage.guided:
+            return cls()
+        guides = rebuild_guides(problem, exp, settings, state.guide_V, state.guide_values, len(stage.arrays),
+                                exp.estimator.terms)
+        return cls(guides, (state.guide_V, state.guide_values))
+
+    def refresh(self, problem, edges, views: int, terms, settings):
+        with dr.suspend_grad():
+            self.guides = make_guides(problem.scene, edges, list(range(views)), terms, settings)
+        self.snapshot = (problem.vertices(), problem.values())
+
+    def memory_bytes(self) -> int:
+        return sum(g.stats.memory_bytes for _, g in self.guides.all()) if self.guides else 0
+
+
+def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, total: int, warn) -> Step:
+    """Iteration ``it`` of a ``total``-iteration run on the shape of ``problem``."""
+    cfg = exp.optimize
+    terms, n_views = exp.estimator.terms, len(stage.arrays)
+    problem.apply()
+    problem.scene.objects[cfg.object].vertices = problem.vertices()
+    problem.scene.objects[cfg.object].faces = problem.F
+    edges = edge_list(problem.scene, exp.estimator, settings.edge_sort) if engine.needs_edges else None
+    t_guide = time.perf_counter()
+    anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
+    if stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0):
+        guides.refresh(problem, edges, n_views, terms, settings)
+    t_render = time.perf_counter()
+    views = batch_views(exp.seed, it, n_views, cfg.batch_size)
+    loss = mi.Float(0.0)
+    for v in views:
+        img = engine.image(problem, edges, v, it, guides.guides)
+        adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, exp.seed, it) if cfg.adjoint_spp else None
+        loss += l1_loss(img, stage.arrays[v], adjoint) / len(views)
+    dr.backward(loss)
+    loss_value = float(loss[0])
+    t_post = time.perf_counter()
+    grads = [np.asarray(dr.grad(problem.opt[k])) for k in problem.opt.keys()]
+    skipped = not all(np.isfinite(g).all() for g in grads) or not math.isfinite(loss_value)
+    if skipped:
+        warn(f"iteration {it}: non-finite gradient or loss; update skipped")
+        for k in problem.opt.keys():
+            dr.set_grad(problem.opt[k], 0.0)
+    else:
+        if cfg.learning_rate_final is not None:
+            problem.opt.set_learning_rate(learning_rate_at(cfg, it, total))
+        problem.opt.step()
+    return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
+
+
+def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms):
+    """The guides of ``problem`` as they were built from vertices ``V`` and unknowns ``values``
+    (a resumed run continues with the guides the interrupted run was using; guide building is
+    seeded, so they are the same guides). The scene is left for :meth:`Problem.apply` to reset."""
+    cfg = exp.optimize
+    with dr.suspend_grad():
+        problem.params[problem.key] = jit_array(mi.Float, np.ravel(V))
+        if problem.albedo_key and "albedo" in values:
+            problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])
+        if problem.envmap and "envmap_angle" in values:
+            problem.envmap.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
+        else:
+            problem.params.update()
+        problem.scene.objects[cfg.object].vertices = np.asarray(V, np.float64)
+        problem.scene.objects[cfg.object].faces = problem.F
+        edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
+        return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
+
+
+def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.Float:
+    """Primal render P of ``view`` (flat W·H·3, no AD) from samples of its own random stream, for
+    the derivative of :func:`l1_loss`."""
+    image = render_view(scene, view, spp, seed=pass_seed(seed, view, iteration, ADJOINT_STREAM))
+    return jit_array(mi.Float, np.ravel(image))
+
+
+def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) -> mi.Float:
+    """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I.
+
+    With ``adjoint`` P (an independent primal render of the same view) the value is mean |P − T|
+    and the derivative mean sign(P − T)·∂I. Taking the sign from the AD image I itself (n
+    samples) gives the exact gradient of E|I_n − T|, the L1 loss of a noisy render: a different
+    objective, minimised where the median (not the mean) of the n-sample pixel estimate meets
+    the target, whose gradient also shrinks wherever the residual is small next to the noise. A
+    P of more samples, independent of those of ∂I, brings the estimate close to the gradient of
+    the noise-free image's L1 loss at the cost of a forward render (docs/optimize.md, "Gradient
+    quality per second")."""
+    if adjoint is None:
+        return dr.mean(dr.abs(image - target))
+    sign = dr.sign(adjoint - target)
+    return dr.mean(dr.abs(adjoint - target)) + dr.mean(sign * (image - dr.detach(image)))

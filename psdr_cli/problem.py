@@ -1,0 +1,196 @@
+"""The differentiable state of an optimisation: the scene with the current shape, the "large
+steps" latent u = (I + λL) x of its vertices, Adam over u and the extra unknowns (albedo or
+albedo texture, environment rotation)."""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .config import BitmapConfig, BsdfConfig, ParameterConfig
+from .errors import PsdrError
+from .jitarray import jit_array
+from .parameters import Parameter
+from .remesh import remesh
+from .runs import State
+from .scene import build_scene
+from .stages import stage_at, stage_experiment, stage_value
+
+
+class Problem:
+    """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
+
+    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None, stage: int = 0):
+        self.exp, self.cfg = exp, exp.optimize
+        self.factor = stage_value(self.cfg.downsample, stage)
+        self.uv = None if uv is None else np.asarray(uv, np.float64)
+        self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
+        built = stage_experiment(exp, stage)
+        if self.texture:
+            if self.uv is None:
+                raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
+            init = state_values.get("albedo")
+            W, H = self.cfg.albedo_texture
+            if init is not None:
+                init = np.asarray(init, np.float64).reshape(H, W, 3)
+            else:
+                init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
+            built = texture_experiment(built, np.clip(init, 0.0, 1.0))
+        mesh = (V, F) if self.uv is None else (V, F, self.uv)
+        self.scene = build_scene(built, objects={self.cfg.object: mesh}, cameras=cameras)
+        self.params = mi.traverse(self.scene.mi_scene)
+        self.key = f"{self.cfg.object}.vertex_positions"
+        self.F = np.asarray(F, np.int64)
+        # LargeSteps welds and orders the vertices by position: a resumed run rebuilds it from the
+        # same vertices as the original so that the saved u means the same thing
+        self.basis = np.asarray(V if basis is None else basis, np.float64)
+        self.steps = mi.ad.LargeSteps(jit_array(mi.Float, self.basis.ravel()),
+                                      self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
+        self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
+        # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
+        self.opt["u"] = jit_array(mi.Float, u) if u is not None else \
+            self.steps.to_differential(self.params[self.key])
+        self.albedo_key = self.envmap = None
+        if self.cfg.albedo:
+            suffixes = ("reflectance.data", "base_color.data") if self.texture else \
+                ("reflectance.value", "base_color.value")
+            keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.") and k.endswith(suffixes)]
+            if not keys:
+                raise PsdrError(f"{exp.file}: optimize.albedo: the object's BSDF has no constant "
+                                f"reflectance/base_color to optimise (give 'texture: [W, H]' for a bitmap)")
+            self.albedo_key = keys[0]
+            if self.texture:  # the scene holds the initial texture already
+                self.opt["albedo"] = self.albedo_value(self.texture_image())
+            else:
+                init = state_values.get("albedo")
+                if init is None:
+                    init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
+                self.opt["albedo"] = self.albedo_value(init)
+            self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
+        if self.cfg.envmap_rotation:
+            self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
+            init = state_values.get("envmap_angle")
+            self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
+                                                else math.radians(self.cfg.envmap_init_deg))
+            self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
+
+    @classmethod
+    def from_state(cls, exp, state: State, cameras) -> "Problem":
+        """The problem of a saved (or initial) state, its Adam moments restored: the shape of
+        iteration ``state.iteration`` before its remesh, if one is due (the stage of the
+        iteration before)."""
+        problem = cls(exp, state.V, state.F, cameras, state.values, state.u, state.basis, uv=state.uv,
+                      stage=stage_at(exp.optimize, max(state.iteration - 1, 0)))
+        for k, saved in state.adam.items():
+            if k in problem.opt.keys():
+                adam_import(problem.opt, k, saved)
+        return problem
+
+    def apply(self):
+        """Write the optimiser's variables into the scene (AD-attached)."""
+        self.params[self.key] = self.steps.from_differential(self.opt["u"])
+        if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
+            self.params[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
+        if self.envmap:
+            self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
+        else:
+            self.params.update()
+
+    def release(self):
+        """Detach the scene from the optimiser's AD graph (nothing may linger in Dr.Jit's global
+        AD state after a run, e.g. for later forward-mode work in the same process)."""
+        with dr.suspend_grad():
+            self.params[self.key] = dr.detach(self.params[self.key])
+            if self.albedo_key:
+                self.params[self.albedo_key] = dr.detach(self.params[self.albedo_key])
+            for k in (self.envmap.keys if self.envmap else ()):
+                self.params[k] = mi.AffineTransform4f(dr.detach(self.params[k].matrix))
+            self.params.update()
+        for k in list(self.opt.keys()):
+            dr.disable_grad(self.opt[k])
+
+    def vertices(self) -> np.ndarray:
+        return np.asarray(dr.detach(self.params[self.key]), np.float64).reshape(-1, 3)
+
+    def albedo_value(self, a):
+        """The albedo ``a`` (numpy, clipped to [0, 1]) as the scene parameter's type: a texture
+        (H, W, 3) tensor, an RGB colour, or a grey value (a grey reflectance stays grey)."""
+        a = np.clip(np.asarray(a, np.float64), 0.0, 1.0)
+        if self.texture:
+            return jit_array(mi.TensorXf, a)
+        a = a.ravel()
+        if isinstance(self.params[self.albedo_key], mi.Color3f):  # RGB texture
+            return mi.Color3f(*(float(x) for x in np.broadcast_to(a, 3)))
+        return mi.Float(float(a.mean()))
+
+    def texture_image(self) -> np.ndarray:
+        """The texture being recovered as the scene uses it: (H, W, 3) linear RGB in [0, 1]."""
+        return np.asarray(dr.detach(self.params[self.albedo_key]), np.float64)
+
+    def values(self) -> dict:
+        out = {}
+        if self.albedo_key:
+            a = np.asarray(self.opt["albedo"], np.float64)
+            out["albedo"] = a.reshape(self.opt["albedo"].shape) if self.texture else a.ravel()
+        if self.envmap:
+            out["envmap_angle"] = np.asarray(self.opt["envmap_angle"], np.float64).ravel()
+        return out
+
+    def export(self, iteration: int, seconds: float) -> State:
+        adam = {k: adam_export(self.opt, k) for k in self.opt.keys()}
+        return State(iteration, self.vertices(), self.F, adam, self.values(), seconds,
+                     np.asarray(self.opt["u"], np.float32), self.basis, uv=self.uv)
+
+
+def texture_experiment(exp, texture):
+    """``exp`` with the optimised object's reflectance (diffuse) or base colour (principled)
+    replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``),
+    looked up with the object's own bitmap's ``filter_type`` and ``wrap_mode`` if it has one."""
+    if exp.scene.mitsuba is not None:
+        raise PsdrError(f"{exp.file}: optimize.albedo.texture: not available for objects of a Mitsuba XML scene")
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    name = {"diffuse": "reflectance", "principled": "base_color"}.get(obj.bsdf.type)
+    if name is None:
+        raise PsdrError(f"{exp.file}: optimize.albedo.texture: the object's BSDF '{obj.bsdf.type}' has no "
+                        f"reflectance or base_color (use diffuse or principled)")
+    given = obj.bsdf.params.get(name)
+    bitmap = BitmapConfig(data=np.asarray(texture, np.float32))
+    if isinstance(given, BitmapConfig):  # the object's own lookup settings
+        bitmap = replace(given, file=None, raw=False, data=bitmap.data)
+    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
+    objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
+    return replace(exp, scene=replace(exp.scene, objects=objects))
+
+
+def adam_export(opt, key):
+    """(t, m, v) of one Adam entry as numpy (``mi.ad.Adam.state[key][3]``)."""
+    t, m, v, _ = opt.state[key][3]
+    return int(np.asarray(t)[0]), np.asarray(m, np.float32), np.asarray(v, np.float32)
+
+
+def adam_import(opt, key, saved):
+    """Restore (t, m, v) into an Adam entry that was just assigned."""
+    value, flag, lr, (t0, m0, v0, extra) = opt.state[key]
+    t, m, v = saved
+    if np.size(m) != np.size(np.asarray(m0)):
+        return  # shape changed (remeshed since): start the moments afresh
+    def restore(a, like):
+        if dr.is_tensor_v(like):  # a texture: (H, W, C)
+            return type(like)(np.asarray(a, np.float32).reshape(like.shape))
+        return dr.unravel(type(like), jit_array(mi.Float, np.ravel(a))) if dr.depth_v(like) > 1 else jit_array(type(like), np.ravel(a))
+    opt.state[key] = (value, flag, lr, (type(t0)([t]), restore(m, m0), restore(v, v0), extra))
+
+
+def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
+    """The problem of iteration ``it``, a remesh of ``remesh.at``: the current shape remeshed to
+    the stage's vertex count, the extra unknowns carried over (the old problem is released)."""
+    cfg = exp.optimize
+    k = cfg.remesh.at.index(it)
+    V2, F2 = remesh(problem.vertices(), problem.F, cfg.remesh.vertices[k], cfg.remesh.method
+                    if cfg.remesh.method != "none" else "isotropic",
+                    warn=lambda m: warn(f"iteration {it}: {m}"))
+    problem.release()
+    return Problem(exp, V2, F2, cameras, problem.values(), stage=stage_at(cfg, it))

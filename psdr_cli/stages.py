@@ -1,0 +1,90 @@
+"""The schedule of an optimisation: its remesh stages, what changes at each (λ, the film's
+downsampling), the learning rate over the run and the mini-batch of each iteration."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import mitsuba as mi
+import numpy as np
+
+from .gradient import uses_guides
+from .jitarray import jit_array
+
+
+def stage_at(cfg, iteration: int) -> int:
+    """Remesh stage of the shape that ``iteration`` optimises: the number of entries a > 0 of
+    ``remesh.at`` with a ≤ iteration (the remesh at a happens at the start of iteration a; stage 0
+    is the initial shape)."""
+    return sum(1 for a in cfg.remesh.at if 0 < a <= iteration)
+
+
+def stage_value(values: tuple, stage: int):
+    """The value of a per-stage key (``lambda``, ``downsample``) at ``stage``; a single value holds
+    for every stage."""
+    return values[min(stage, len(values) - 1)]
+
+
+def stage_experiment(exp, stage: int):
+    """``exp`` with the film of ``stage``: W/k × H/k pixels for ``downsample`` k."""
+    k = stage_value(exp.optimize.downsample, stage)
+    if k == 1:
+        return exp
+    return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
+
+
+def downsample(image: np.ndarray, k: int) -> np.ndarray:
+    """Mean of every k × k block of pixels of an (H, W, C) image. With the box pixel filter every
+    render uses, a pixel of the W/k × H/k film integrates exactly the area of its k² pixels at
+    W × H, so this is the target a render at the lower resolution would estimate."""
+    if k == 1:
+        return image
+    H, W, C = image.shape
+    return image.reshape(H // k, k, W // k, k, C).mean(axis=(1, 3))
+
+
+def stage_images(targets, k: int):
+    """The targets at downsampling factor ``k``: (H/k, W/k, 3) arrays and flat ``mi.Float`` copies."""
+    images = [downsample(t, k) for t in targets]
+    return images, [jit_array(mi.Float, np.ravel(t)) for t in images]
+
+
+def learning_rate_at(cfg, iteration: int, total: int) -> float:
+    """Adam's step at ``iteration`` of a ``total``-iteration run: ``learning_rate`` up to the last
+    remesh s (the last of ``remesh.at`` before ``total``, else 0), then the geometric decay
+    lr(i) = lr · (lr_final / lr)^((i − s) / (total − 1 − s)), reaching ``learning_rate_final``
+    at the last iteration; constant when ``learning_rate_final`` is unset."""
+    lr, final = cfg.learning_rate, cfg.learning_rate_final
+    s = max([a for a in cfg.remesh.at if a < total] + [0])
+    if final is None or iteration <= s or total - 1 <= s:
+        return lr
+    return lr * (final / lr) ** (min(iteration - s, total - 1 - s) / (total - 1 - s))
+
+
+def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
+    """The mini-batch of iteration ``iteration``: a function of (seed, iteration) only."""
+    rng = np.random.default_rng([seed, iteration])
+    return sorted(rng.choice(count, size=min(size, count), replace=False).tolist())
+
+
+@dataclass
+class Stage:
+    """What a remesh stage renders against: its downsampling factor, the targets at that factor
+    ((H/k, W/k, 3) arrays and flat ``mi.Float`` copies), and whether its film is guided."""
+    factor: int
+    images: list
+    arrays: list
+    guided: bool
+
+
+def stage_of(problem, targets, settings, terms, previous: Stage | None = None) -> Stage:
+    """The stage ``problem`` renders (``previous`` again while its downsampling is unchanged)."""
+    if previous is not None and previous.factor == problem.factor:
+        return previous
+    images, arrays = stage_images(targets, problem.factor)
+    return Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixel_count(problem)))
+
+
+def pixel_count(problem) -> int:
+    """Pixels of the film the current stage renders (what ``guiding: auto`` decides by)."""
+    width, height = problem.scene.resolution
+    return width * height

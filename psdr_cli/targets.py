@@ -1,0 +1,155 @@
+"""What an optimisation fits and where it starts: the ground-truth shape, the target images
+(rendered once from it and cached in the run folder, or EXR files from ``psdr render``) and
+the initial shape."""
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+from dataclasses import asdict
+
+import numpy as np
+
+from . import fileio, meshes
+from .config import BitmapConfig, CameraConfig
+from .errors import PsdrError
+from .remesh import remesh
+from .render import render_view
+from .runs import RunFiles, State, scene_identity, write_mesh
+from .scene import build_scene, object_mesh
+
+
+def load_targets(exp, files: RunFiles):
+    """(target images, cameras or None, ground truth (V, F) or None) of a run: ``target.images``,
+    or renders of the ground truth (written to the run folder as ``reference.ply``)."""
+    cfg = exp.optimize
+    cameras = reference = None
+    if cfg.target_images:
+        targets, cameras = image_targets(exp)
+    else:
+        reference = ground_truth(exp)
+        write_mesh(files.reference, *reference)  # the shape this run's targets come from
+        targets = render_targets(exp, files, reference)
+    bad = [v for v in cfg.preview_views if v >= len(targets)]
+    if bad:
+        raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{len(targets) - 1})")
+    return targets, cameras, reference
+
+
+def initial_state(exp, files: RunFiles, reference, warn) -> State:
+    """The state of a fresh run: the initial shape, remeshed (``remesh.initial``) unless
+    ``remesh.method: none``, written as checkpoint 0."""
+    cfg = exp.optimize
+    V, F, uv = initial_shape_uv(exp, reference)
+    if cfg.remesh.method != "none":
+        V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
+        uv = None  # (optimize.albedo.texture refuses remeshing: config.parse_optimize)
+    write_mesh(files.checkpoint(0), V, F)
+    return State(0, V, F, uv=uv)
+
+
+def ground_truth(exp):
+    """World-space (V, F) of the target shape: ``target.mesh`` (placed with the object's
+    transform) or the object's own mesh in the scene."""
+    cfg = exp.optimize
+    obj = next(o for o in exp.scene.objects if o.name == cfg.object)
+    if cfg.target_mesh is None:
+        return object_mesh(obj, str(exp.file))
+    V, F = meshes.load_mesh(cfg.target_mesh, str(exp.file))
+    return meshes.apply_transform(V, meshes.transform_matrix(obj.transform)), F
+
+
+def initial_shape(exp, reference):
+    """(V, F) of ``init`` (with its transform), or a sphere around the reference's bounding box."""
+    return initial_shape_uv(exp, reference)[:2]
+
+
+def initial_shape_uv(exp, reference):
+    """(V, F, UV or None) of the initial shape (:func:`initial_shape`); with ``albedo.texture`` the
+    default sphere is a UV sphere, and a given ``init`` must have UVs."""
+    cfg = exp.optimize
+    texture = cfg.albedo and cfg.albedo_texture is not None
+    if cfg.init is not None:
+        V, F, uv = meshes.load_mesh_uv(cfg.init, str(exp.file), keep_uv=texture)
+        if texture and uv is None:
+            raise PsdrError(f"{exp.file}: optimize.init.mesh: has no UV coordinates, which optimize.albedo.texture "
+                            f"needs (e.g. {{shape: sphere, resolution: 16, uv: true}}, or an OBJ with 'vt')")
+        return meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform)), F, uv
+    if reference is None:
+        raise PsdrError(f"{exp.file}: optimize.init: required when the targets are images "
+                        f"(e.g. init: {{mesh: {{shape: sphere, radius: 0.5}}}})")
+    V, F = reference
+    lo, hi = V.min(0), V.max(0)
+    radius = 0.5 * float((hi - lo).max())
+    Vs, Fs, uv = meshes.uv_sphere(radius, 16) if texture else (*meshes.sphere(radius=radius, subdivisions=3), None)
+    return Vs + (lo + hi) / 2, Fs, uv
+
+
+def target_seed(exp) -> int:
+    """Seed of the target renders: the experiment's (for a variant, the base experiment's, so
+    that every run of an ablation fits the same images)."""
+    return exp.seed if exp.optimize.target_seed is None else exp.optimize.target_seed
+
+
+def target_key(exp, reference, spp: int) -> str:
+    """Hash of everything a cached target image depends on (bitmap textures' contents included)."""
+    h = hashlib.sha256()
+    h.update(json.dumps(scene_identity(asdict(exp.scene)), default=str, sort_keys=True).encode())
+    h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
+    h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
+    h.update(f"{spp}:{target_seed(exp)}".encode())
+    for obj in exp.scene.objects:  # the textures' contents (a repainted texture makes new targets)
+        for value in obj.bsdf.params.values():
+            if isinstance(value, BitmapConfig) and value.file is not None and value.file.is_file():
+                h.update(value.file.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def render_targets(exp, files: RunFiles, reference, progress=None):
+    """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
+    in ``targets/`` (reused while the scene, the ground truth and spp are unchanged)."""
+    cfg = exp.optimize
+    key = target_key(exp, reference, cfg.target_spp)
+    paths = [files.targets / f"view_{v:03d}.exr" for v in range(len(exp.scene.cameras))]
+    cached = all(p.exists() for p in paths) and all(
+        fileio.read_exr(p)["__header__"].get("psdr.target_key") == key for p in paths)
+    if cached:
+        return [fileio.read_rgb_exr(p).astype(np.float64) for p in paths]
+    scene = build_scene(exp, objects={cfg.object: reference})
+    images = []
+    for v, p in enumerate(paths):
+        image = render_view(scene, v, cfg.target_spp, seed=target_seed(exp) + 7919)
+        cam = exp.scene.cameras[v]
+        fileio.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
+                                    "psdr.camera": {"origin": cam.origin, "target": cam.target, "up": cam.up,
+                                                    "fov": cam.fov}})
+        fileio.write_preview(p.with_suffix(".png"), image)
+        images.append(image)
+        if progress:
+            progress(v)
+    return images
+
+
+def image_targets(exp):
+    """(images, cameras) from ``target.images`` (EXR files written by ``psdr render``)."""
+    pattern = exp.optimize.target_images
+    paths = sorted(glob.glob(pattern))
+    if not paths:
+        raise PsdrError(f"{exp.file}: optimize.target.images: no file matches '{pattern}'")
+    images, cameras = [], []
+    for p in paths:
+        try:
+            exr = fileio.read_exr(p)
+            cam = json.loads(exr["__header__"]["psdr.camera"])
+        except KeyError:
+            raise PsdrError(f"{p}: no 'psdr.camera' header (target images must come from `psdr render`)") from None
+        except Exception as exc:  # noqa: BLE001 - unreadable EXR
+            raise PsdrError(f"{p}: cannot read the EXR target ({str(exc).splitlines()[0] if str(exc) else exc})") from None
+        image = np.stack([exr["R"], exr["G"], exr["B"]], -1).astype(np.float64)
+        if image.shape[:2] != (exp.scene.height, exp.scene.width):
+            raise PsdrError(f"{p}: image is {image.shape[1]}×{image.shape[0]}, but scene.film is "
+                            f"{exp.scene.width}×{exp.scene.height}")
+        images.append(image)
+        cameras.append(CameraConfig(origin=tuple(cam["origin"]), target=tuple(cam["target"]),
+                                    up=tuple(cam["up"]), fov=float(cam["fov"])))
+    return images, cameras
