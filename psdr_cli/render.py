@@ -12,26 +12,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
 from . import backend, fileio
 from .config import Experiment, option_spp, parse_views
-from .estimators import interior
-from .estimators.camera import camera_rays
-from .estimators.passes import make_sampler, pass_seed, passes_for
+from .estimators.interior import render_pass
+from .estimators.passes import pass_seed, passes_for
 from .estimators.registry import RENDER_STREAM
 from .scene import build_scene
-
-def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
-                max_depth: int, seed: int) -> np.ndarray:
-    """Sum over ``spp`` samples of every pixel, as a (H, W, 3) float64 array."""
-    sampler = make_sampler(seed, width * height * spp)
-    ray, weight = camera_rays(sensor, sampler, width, height, spp)
-    L = weight * interior.radiance(scene, sampler, ray, max_depth)
-    sums = [dr.block_sum(L[c], spp) for c in range(3)]
-    dr.eval(sums)
-    return np.stack([np.asarray(s, np.float64) for s in sums], axis=-1).reshape(height, width, 3)
 
 
 def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None = None,

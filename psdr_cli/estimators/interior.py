@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from .camera import camera_rays
 from .passes import make_sampler
@@ -196,6 +197,18 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     for p in parts[1:]:
         total = total + p
     return total
+
+
+def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
+                max_depth: int, seed: int) -> np.ndarray:
+    """One primal pass of the renderer (:func:`psdr_cli.render.render_view`): the sum over ``spp``
+    samples of every pixel, as a (H, W, 3) float64 array."""
+    sampler = make_sampler(seed, width * height * spp)
+    ray, weight = camera_rays(sensor, sampler, width, height, spp)
+    L = weight * radiance(scene, sampler, ray, max_depth)
+    sums = [dr.block_sum(L[c], spp) for c in range(3)]
+    dr.eval(sums)
+    return np.stack([np.asarray(s, np.float64) for s in sums], axis=-1).reshape(height, width, 3)
 
 
 def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth: int, guide=None) -> mi.Float:
