@@ -160,7 +160,8 @@ def grad(config: Path = ConfigArg,
          edge_sort: Optional[bool] = typer.Option(None, "--edge-sort/--no-edge-sort", help="Sort edges into chains (default: estimator.edge_sort)."),
          out_dir: Optional[Path] = OutOption):
     """Gradient image dI/dθ per term (interior, primary, direct, indirect) and their total."""
-    exp = with_estimator(load_experiment(config), sampling=sampling, guiding=guiding, edge_sort=edge_sort,
+    exp = load_experiment(config)
+    exp = with_estimator(exp, sampling=sampling, guiding=guiding, edge_sort=edge_sort,
                          spp=spp, primary_spp=spp, boundary_spp=spp)
     for line in api.guiding_lines(exp, terms=terms):
         out.print(line)
