@@ -1,4 +1,5 @@
-"""Triangle meshes: procedural shapes, files (PLY/OBJ), validation and object transforms.
+"""Triangle meshes: procedural shapes, files (PLY/OBJ), validation and object transforms, and
+the world-space mesh of each scene object (an XML scene's meshes as Mitsuba loaded them).
 
 Everything here is numpy: a mesh is ``(V, F)`` with ``V`` float64 (n, 3) and ``F`` int64 (m, 3).
 """
@@ -6,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,7 @@ import pymeshlab
 import trimesh
 
 from . import obj_parts
-from .config import MAX_COORD, MeshSpec, TransformConfig, Where
+from .config import MAX_COORD, BitmapConfig, Experiment, MeshSpec, ObjectConfig, TransformConfig, Where
 from .errors import ConfigError, PsdrError
 
 
@@ -380,3 +382,65 @@ def write_ply(path, V, F):
         bad = int((~np.isfinite(np.asarray(V, float))).any(axis=1).sum())
         raise PsdrError(f"{path}: not written: the mesh has {bad} vertices with NaN or infinite coordinates")
     trimesh.Trimesh(V, F, process=False).export(str(path), file_type="ply")
+
+
+# --------------------------------------------------------------------------------------------
+# Scene objects: world-space meshes as built (procedural, file or XML meshes, transformed)
+# --------------------------------------------------------------------------------------------
+@dataclass
+class ObjectMesh:
+    """World-space geometry of one scene object as built (before any optimisation)."""
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    edges: bool
+    config: ObjectConfig
+    uv: np.ndarray | None = None   # per-vertex texture coordinates (n, 2), when the mesh has them
+
+
+_GEOMETRY = {}  # (digest, object id) -> (V, F): the XML's meshes, for optimize's ground truth
+
+
+def remember_xml_mesh(digest: str, name: str, V, F):
+    """Keep the world-space (V, F) of object ``name`` of the XML scene ``digest`` (as
+    :func:`psdr_cli.mitsuba_scene.scene_config` reads it) for :func:`object_geometry`."""
+    _GEOMETRY[(digest, name)] = (V, F)
+
+
+def object_geometry(obj: ObjectConfig):
+    """World-space (V, F) of an XML object (after :func:`psdr_cli.mitsuba_scene.scene_config`)."""
+    key = (obj.mesh.params.get("digest"), obj.mesh.params.get("id"))
+    if key not in _GEOMETRY:
+        raise ConfigError(obj.mesh.key, "", "the XML scene has not been read (load the experiment with "
+                          "psdr_cli.experiment.load_experiment)")
+    return _GEOMETRY[key]
+
+
+def has_bitmap(obj: ObjectConfig) -> bool:
+    """Whether the object's BSDF has a bitmap texture (and so needs UV coordinates)."""
+    return any(isinstance(v, BitmapConfig) for v in obj.bsdf.params.values())
+
+
+def object_mesh(obj: ObjectConfig, file: str):
+    """World-space (V, F) of an object: its mesh, validated, then its transform (an XML scene's
+    mesh: as Mitsuba loaded it, in world space)."""
+    return object_mesh_uv(obj, file)[:2]
+
+
+def object_mesh_uv(obj: ObjectConfig, file: str):
+    """:func:`object_mesh` with the mesh's per-vertex texture coordinates: (V, F, UV or None); a
+    file mesh keeps its UVs (and its seam-split vertices) only when the BSDF has a bitmap."""
+    if obj.mesh.shape == "mitsuba":
+        return (*object_geometry(obj), None)
+    V, F, uv = load_mesh_uv(obj.mesh, file, keep_uv=has_bitmap(obj))
+    V = apply_transform(V, transform_matrix(obj.transform))
+    return V, F, uv
+
+
+def build_objects(exp: Experiment) -> dict:
+    """World-space meshes of every object, validated (no Mitsuba needed)."""
+    out = {}
+    for obj in exp.scene.objects:
+        V, F, uv = object_mesh_uv(obj, str(exp.file))
+        out[obj.name] = ObjectMesh(obj.name, V, F, obj.edges, obj, uv)
+    return out

@@ -296,9 +296,6 @@ def read_scene(exp: Experiment) -> XmlScene:
 # --------------------------------------------------------------------------------------------
 # Resolving an experiment: the scene section filled in from the XML (and split OBJ objects)
 # --------------------------------------------------------------------------------------------
-_GEOMETRY = {}  # (digest, object id) -> (V, F): the XML's meshes, for optimize's ground truth
-
-
 def object_config(name: str, o: XmlObject, src) -> ObjectConfig:
     return ObjectConfig(name=name, mesh=MeshSpec(key=f"scene.mitsuba#{name}", shape="mitsuba",
                                                  params={"id": name, "digest": ""}),
@@ -320,21 +317,12 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
     for name, o in xs.objects.items():
         cfg = object_config(name, o, src)
         cfg.mesh.params["digest"] = xs.digest
-        _GEOMETRY[(xs.digest, name)] = (o.V, o.F)
+        meshes.remember_xml_mesh(xs.digest, name, o.V, o.F)
         objects.append(cfg)
     max_depth = scene.max_depth if src.max_depth_given or xs.max_depth is None else xs.max_depth
     return replace(scene, width=width, height=height, max_depth=max_depth,
                    cameras=scene.cameras if src.cameras_given else xs.cameras, emitters=xs.emitters,
                    objects=objects, mitsuba=replace(src, digest=xs.digest))
-
-
-def object_geometry(obj: ObjectConfig):
-    """World-space (V, F) of an XML object (after :func:`scene_config`)."""
-    key = (obj.mesh.params.get("digest"), obj.mesh.params.get("id"))
-    if key not in _GEOMETRY:
-        raise ConfigError(obj.mesh.key, "", "the XML scene has not been read (load the experiment with "
-                          "psdr_cli.experiment.load_experiment)")
-    return _GEOMETRY[key]
 
 
 # --------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ import mitsuba as mi
 import numpy as np
 
 from .estimators.boundary_sampling import TRANSMISSIVE
-from .scene import ObjectMesh
+from .meshes import ObjectMesh
 from .shading import transmits
 
 #: Geometric parameters of non-mesh shapes (and of meshes, besides their vertex buffer).

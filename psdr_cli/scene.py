@@ -11,20 +11,10 @@ from dataclasses import dataclass, field
 import mitsuba as mi
 import numpy as np
 
-from . import fileio, meshes, mitsuba_scene
+from . import fileio, mitsuba_scene
 from .config import BSDF_RANGES, BitmapConfig, EmitterConfig, Experiment, ObjectConfig, SceneConfig
 from .errors import ConfigError
-
-
-@dataclass
-class ObjectMesh:
-    """World-space geometry of one scene object as built (before any optimisation)."""
-    name: str
-    vertices: np.ndarray
-    faces: np.ndarray
-    edges: bool
-    config: ObjectConfig
-    uv: np.ndarray | None = None   # per-vertex texture coordinates (n, 2), when the mesh has them
+from .meshes import ObjectMesh, build_objects, has_bitmap
 
 
 @dataclass
@@ -45,11 +35,6 @@ class Scene:
 
 def _rgb(value):
     return {"type": "rgb", "value": list(value)}
-
-
-def has_bitmap(obj: ObjectConfig) -> bool:
-    """Whether the object's BSDF has a bitmap texture (and so needs UV coordinates)."""
-    return any(isinstance(v, BitmapConfig) for v in obj.bsdf.params.values())
 
 
 def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
@@ -104,22 +89,6 @@ def bsdf_dict(obj: ObjectConfig, file: str = "") -> dict:
         else:
             d[name] = _rgb(value) if isinstance(value, tuple) else value
     return d
-
-
-def object_mesh(obj: ObjectConfig, file: str):
-    """World-space (V, F) of an object: its mesh, validated, then its transform (an XML scene's
-    mesh: as Mitsuba loaded it, in world space)."""
-    return object_mesh_uv(obj, file)[:2]
-
-
-def object_mesh_uv(obj: ObjectConfig, file: str):
-    """:func:`object_mesh` with the mesh's per-vertex texture coordinates: (V, F, UV or None); a
-    file mesh keeps its UVs (and its seam-split vertices) only when the BSDF has a bitmap."""
-    if obj.mesh.shape == "mitsuba":
-        return (*mitsuba_scene.object_geometry(obj), None)
-    V, F, uv = meshes.load_mesh_uv(obj.mesh, file, keep_uv=has_bitmap(obj))
-    V = meshes.apply_transform(V, meshes.transform_matrix(obj.transform))
-    return V, F, uv
 
 
 def mitsuba_mesh(name: str, V, F, bsdf: dict, smooth: bool = False, uv=None):
@@ -185,15 +154,6 @@ def emitter_dict(em: EmitterConfig, file: str) -> dict:
                 "albedo": em.albedo, "sun_scale": em.sun_scale, "sky_scale": em.sky_scale,
                 "to_world": mi.ScalarTransform4f().rotate([0, 0, 1], em.rotate_deg)}
     return {"type": "constant", "radiance": _rgb(em.radiance)}
-
-
-def build_objects(exp: Experiment) -> dict:
-    """World-space meshes of every object, validated (no Mitsuba needed)."""
-    out = {}
-    for obj in exp.scene.objects:
-        V, F, uv = object_mesh_uv(obj, str(exp.file))
-        out[obj.name] = ObjectMesh(obj.name, V, F, obj.edges, obj, uv)
-    return out
 
 
 def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | None = None) -> Scene:

@@ -13,10 +13,11 @@ import numpy as np
 from . import fileio, meshes
 from .config import BitmapConfig, CameraConfig
 from .errors import PsdrError
+from .meshes import object_mesh
 from .remesh import remesh
 from .render import render_view
 from .runs import RunFiles, State, scene_identity, write_mesh
-from .scene import build_scene, object_mesh
+from .scene import build_scene
 
 
 def load_targets(exp, files: RunFiles):
