@@ -1,6 +1,6 @@
-"""One iteration of an optimisation: the mini-batch rendered with AD, the L1 loss and its
-adjoint, the guides refreshed on their schedule, and one Adam step (skipped on a non-finite
-gradient)."""
+"""One iteration of an optimisation: its mini-batch rendered with AD, the L1 loss and its
+adjoint, the guides refreshed on their schedule, and one Adam step at the iteration's learning
+rate (skipped on a non-finite gradient)."""
 from __future__ import annotations
 
 import math
@@ -17,8 +17,6 @@ from .estimators.registry import ADJOINT_STREAM
 from .gradient import make_guides
 from .jitarray import jit_array
 from .render import render_view
-from .stages import batch_views, learning_rate_at
-
 
 
 @dataclass
@@ -92,6 +90,24 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
             problem.opt.set_learning_rate(learning_rate_at(cfg, it, total))
         problem.opt.step()
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
+
+
+def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
+    """The mini-batch of iteration ``iteration``: a function of (seed, iteration) only."""
+    rng = np.random.default_rng([seed, iteration])
+    return sorted(rng.choice(count, size=min(size, count), replace=False).tolist())
+
+
+def learning_rate_at(cfg, iteration: int, total: int) -> float:
+    """Adam's step at ``iteration`` of a ``total``-iteration run: ``learning_rate`` up to the last
+    remesh s (the last of ``remesh.at`` before ``total``, else 0), then the geometric decay
+    lr(i) = lr · (lr_final / lr)^((i − s) / (total − 1 − s)), reaching ``learning_rate_final``
+    at the last iteration; constant when ``learning_rate_final`` is unset."""
+    lr, final = cfg.learning_rate, cfg.learning_rate_final
+    s = max([a for a in cfg.remesh.at if a < total] + [0])
+    if final is None or iteration <= s or total - 1 <= s:
+        return lr
+    return lr * (final / lr) ** (min(iteration - s, total - 1 - s) / (total - 1 - s))
 
 
 def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms):

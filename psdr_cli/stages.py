@@ -1,5 +1,5 @@
-"""The schedule of an optimisation: its remesh stages, what changes at each (λ, the film's
-downsampling), the learning rate over the run and the mini-batch of each iteration."""
+"""The schedule of an optimisation: its remesh stages and what changes at each (λ, the film's
+downsampling, the targets at that resolution, whether the film is guided)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -46,24 +46,6 @@ def stage_images(targets, k: int):
     """The targets at downsampling factor ``k``: (H/k, W/k, 3) arrays and flat ``mi.Float`` copies."""
     images = [downsample(t, k) for t in targets]
     return images, [jit_array(mi.Float, np.ravel(t)) for t in images]
-
-
-def learning_rate_at(cfg, iteration: int, total: int) -> float:
-    """Adam's step at ``iteration`` of a ``total``-iteration run: ``learning_rate`` up to the last
-    remesh s (the last of ``remesh.at`` before ``total``, else 0), then the geometric decay
-    lr(i) = lr · (lr_final / lr)^((i − s) / (total − 1 − s)), reaching ``learning_rate_final``
-    at the last iteration; constant when ``learning_rate_final`` is unset."""
-    lr, final = cfg.learning_rate, cfg.learning_rate_final
-    s = max([a for a in cfg.remesh.at if a < total] + [0])
-    if final is None or iteration <= s or total - 1 <= s:
-        return lr
-    return lr * (final / lr) ** (min(iteration - s, total - 1 - s) / (total - 1 - s))
-
-
-def batch_views(seed: int, iteration: int, count: int, size: int) -> list:
-    """The mini-batch of iteration ``iteration``: a function of (seed, iteration) only."""
-    rng = np.random.default_rng([seed, iteration])
-    return sorted(rng.choice(count, size=min(size, count), replace=False).tolist())
 
 
 @dataclass
