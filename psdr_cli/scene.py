@@ -184,8 +184,8 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
             raise ConfigError(exp.file, om.config.key + ".bsdf", "a bitmap texture needs a mesh with UV "
                               "coordinates (an OBJ with 'vt', a PLY with s/t, a plane, or 'shape: sphere, uv: true')")
         try:
-            d[name] = mitsuba_mesh(name, om.vertices, om.faces, bsdf_dict(om.config, str(exp.file)),
-                                   om.config.smooth, om.uv)
+            bsdf = bsdf_dict(om.config, str(exp.file))
+            d[name] = mitsuba_mesh(name, om.vertices, om.faces, bsdf, om.config.smooth, om.uv)
         except ConfigError:
             raise
         except Exception as exc:  # noqa: BLE001 - Mitsuba rejects a BSDF parameter value
