@@ -30,7 +30,6 @@ views (the loop builds its guides from all views; this variant shows what that c
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -48,7 +47,7 @@ import mitsuba as mi  # noqa: E402
 from psdr_cli import backend  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
-from psdr_cli.fileio import atomic_path  # noqa: E402
+from psdr_cli.fileio import atomic_path, write_json  # noqa: E402
 from psdr_cli.gradient import Settings, ad_image, make_guides  # noqa: E402
 from psdr_cli.meshes import read_mesh_file  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
@@ -219,8 +218,7 @@ def main(argv=None):
     stem = f"guided_gradients_{args.config.stem}"
     with atomic_path(args.out / f"{stem}.md") as tmp:
         Path(tmp).write_text("\n".join(md))
-    with atomic_path(args.out / f"{stem}.json") as tmp:
-        Path(tmp).write_text(json.dumps(results, indent=1))
+    write_json(args.out / f"{stem}.json", results)
     print("\n".join(md))
 
 
