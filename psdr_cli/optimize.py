@@ -38,8 +38,9 @@ from .iteration import (GuideCache, adjoint_image, batch_views, iterate, l1_loss
                         learning_rate_at, rebuild_guides)
 from .problem import Problem, adam_export, adam_import, remeshed_problem, texture_experiment  # noqa: F401
 from .render import render_view
-from .runs import (RunFiles, State, append_log, clear_run, lock_run, plot_loss, read_log,  # noqa: F401
-                   resumable_state, run_record, variant_experiments, write_checkpoint, write_log, write_mesh)
+from .runs import (RunFiles, State, append_log, clear_run, keep_previous_run, lock_run, plot_loss,  # noqa: F401
+                   read_log, resumable_state, run_record, variant_experiments, write_checkpoint, write_log,
+                   write_mesh)
 from .stages import downsample, stage_at, stage_experiment, stage_of, stage_value  # noqa: F401
 from .targets import (ground_truth, image_targets, initial_shape, initial_shape_uv, initial_state,  # noqa: F401
                       load_targets, render_targets, target_key)
@@ -82,8 +83,9 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     cfg = exp.optimize
     state = resumable_state(files, exp, total, resume, warn)
     targets, cameras, reference = load_targets(exp, files)
-    if state is None:
-        clear_run(files)  # a fresh run must never be confused with (or resumed as) an older one
+    if state is None:  # a fresh run: a run found in the folder is moved aside (once the inputs loaded)
+        keep_previous_run(files, warn)
+        clear_run(files)  # what is left (previews of no run) must not be confused with this run's
         state = initial_state(exp, files, reference, warn)
     fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
     start, seconds = state.iteration, state.seconds

@@ -110,6 +110,25 @@ def move_aside(files: RunFiles) -> Path:
     return target
 
 
+def has_results(files: RunFiles) -> bool:
+    """Whether the folder holds anything of a run: a saved state, a log, a summary, a final mesh
+    or a checkpoint."""
+    if any(p.exists() for p in (files.state, files.log, files.summary, files.final)):
+        return True
+    return files.checkpoints.is_dir() and any(files.checkpoints.iterdir())
+
+
+def keep_previous_run(files: RunFiles, warn) -> None:
+    """Before a fresh start: a run found in the folder is moved aside (:func:`move_aside`), never
+    deleted; its targets are copied back (a cache keyed by content, :func:`psdr_cli.targets.target_key`)."""
+    if not has_results(files):
+        return
+    kept = move_aside(files)
+    if (kept / "targets").is_dir():
+        shutil.copytree(kept / "targets", files.targets)
+    warn(f"{files.root} held a previous run; it is kept in {kept}")
+
+
 def variant_experiments(exp: Experiment, labels=None) -> list:
     """[(label, experiment)] of the runs of ``exp``: itself (label None) without
     ``optimize.variants``, else one experiment per variant (all, or those in ``labels``) with
@@ -506,8 +525,10 @@ class State:
 def resumable_state(files: RunFiles, exp: Experiment, total: int, resume: bool, warn) -> State | None:
     """With ``resume``: the run's saved state, if there is one and it belongs to ``exp`` (a run of
     a changed experiment is moved aside); None for a fresh start."""
-    state = State.load(files.state) if resume and files.state.exists() else None
-    if resume and state is None:
+    if not resume:
+        return None
+    state = State.load(files.state) if files.state.exists() else None
+    if state is None:
         warn(f"--resume: no saved state in {files.root}; starting from the beginning")
     if state is not None and not same_experiment(files, exp):
         kept = move_aside(files)
@@ -516,7 +537,8 @@ def resumable_state(files: RunFiles, exp: Experiment, total: int, resume: bool, 
         state = None
     if state is not None and state.iteration > total:
         raise PsdrError(f"--iterations: {total} is fewer than the {state.iteration} iterations the run in "
-                        f"{files.root} has done (ask for at least {state.iteration}, or start afresh without --resume)")
+                        f"{files.root} has done (ask for at least {state.iteration}, or run without --resume to "
+                        f"start afresh: the run is then moved aside, not deleted)")
     return state
 
 

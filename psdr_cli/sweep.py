@@ -22,7 +22,7 @@ Files reach the run folders in one of two ways (``RayOptions.files``):
             folder's new and changed files to the driver every ``sync_seconds`` and at the end,
             through a small actor (:class:`Hub`), and all of them with its result; the driver,
             the only writer of the run folders, writes them atomically (``state.npz`` last, so a saved state never runs
-            ahead of its log) and mirrors a fresh start's :func:`psdr_cli.runs.clear_run`.
+            ahead of its log); a fresh start moves a run it finds aside (:func:`psdr_cli.runs.keep_previous_run`).
 
 ``auto`` is ``shared`` for a local instance and ``copy`` when joining a cluster.
 
@@ -52,7 +52,7 @@ from . import backend, fileio
 from .config import Experiment
 from .errors import PsdrError
 from .optimize import optimize
-from .runs import RunFiles, clear_run, lock_run, variant_experiments
+from .runs import RunFiles, clear_run, keep_previous_run, lock_run, variant_experiments
 
 INSTALL = "pip install 'psdr[ray]'"
 #: Files a copy-mode task needs to continue a run (everything else in a run folder is output only).
@@ -369,7 +369,7 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
         ray = session.ray
         hub = ray.remote(num_cpus=0)(Hub).remote()
         task = ray.remote(max_retries=0)(optimize_task)   # retried below, resuming
-        attempts, applied, pending = {}, {}, {}
+        attempts, applied, pending, kept = {}, {}, {}, set()
 
         def submit(label, resume_run: bool):
             run = runs[label]
@@ -383,6 +383,9 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
 
         def on_files(label, attempt, seq, fresh, files):
             if attempt == attempts[label] and seq > applied[label]:  # late syncs of a finished or dead attempt: dropped
+                if fresh and label not in kept:  # a fresh start moves a run it finds aside, as optimize() does
+                    keep_previous_run(RunFiles(runs[label].run_dir), warn)
+                    kept.add(label)
                 write_files(runs[label].run_dir, fresh, files)
                 applied[label] = seq
 

@@ -290,17 +290,43 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     problem.release()
 
 
-def test_fresh_run_clears_the_previous_runs_state(tmp_path):
+def test_fresh_run_moves_the_previous_run_aside(tmp_path):
+    """A fresh start (no --resume) on a folder holding a run never deletes it: the run is moved
+    aside whole, said in one line, and the new run starts from iteration 0 (its targets reused)."""
     from psdr_cli import api
     from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=2, remesh={"method": "none"}, checkpoint_every=1)
     exp = load_experiment(write(tmp_path, data))
     api.optimize(exp, warn=lambda m: None)
-    assert (exp.run_dir / "checkpoints" / "iter_0002.ply").exists()
-    api.optimize(exp, iterations=1, warn=lambda m: None)
+    before = (exp.run_dir / "final.ply").read_bytes()
+    said = []
+    api.optimize(exp, iterations=1, warn=said.append)
+    kept = [p for p in exp.run_dir.parent.iterdir() if p.name.startswith(f"{exp.run_dir.name}.previous-")]
+    assert len(kept) == 1 and any(str(kept[0]) in m for m in said), said
+    assert (kept[0] / "final.ply").read_bytes() == before and (kept[0] / "checkpoints" / "iter_0002.ply").exists()
     assert not (exp.run_dir / "checkpoints" / "iter_0002.ply").exists()
     assert json.loads((exp.run_dir / "optimize.json").read_text())["iterations"] == 1
+
+
+def test_plain_rerun_of_a_finished_run_keeps_it(tmp_path):
+    """`psdr optimize cfg --iterations 1` (no --resume) on a finished run: exit 0, the finished
+    run kept under a .previous- name with its log and state; --iterations below a saved run's
+    count under --resume still refuses, and its message no longer recommends deleting."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=3, remesh={"method": "none"})
+    cfg = write(tmp_path, data)
+    assert run_cli("optimize", cfg).returncode == 0
+    run = tmp_path / "runs" / data["name"]
+    rows = (run / "log.csv").read_text()
+    r = run_cli("optimize", cfg, "--iterations", "2", "--resume")
+    assert r.returncode == 2 and "moved aside, not deleted" in r.stderr, r.stderr
+    assert (run / "log.csv").read_text() == rows
+    r = run_cli("optimize", cfg, "--iterations", "1")
+    assert r.returncode == 0, r.stderr
+    kept = sorted(run.parent.glob(f"{data['name']}.previous-*"))
+    assert len(kept) == 1 and "kept in" in r.stdout + r.stderr
+    assert (kept[0] / "log.csv").read_text() == rows and (kept[0] / "state.npz").exists()
 
 
 @pytest.mark.slow

@@ -102,6 +102,14 @@ def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, files):
     assert_same_runs(seq_exp.run_dir, exp.run_dir, ["grid", "plain"])
     # no temporary files left (each run's .<label>.lock file stays by design: runs.lock_run)
     assert not [p for p in exp.run_dir.rglob(".*") if p.suffix != ".lock"]
+    # a fresh sweep over finished runs moves them aside (as optimize() does), never deletes them
+    finals = {label: (exp.run_dir / label / "final.ply").read_bytes() for label in results}
+    said = []
+    dict(api.optimize_variants(exp, iterations=1, warn=said.append, ray=api.RayOptions(files=files, sync_seconds=0.0)))
+    for label, final in finals.items():
+        kept = list(exp.run_dir.glob(f"{label}.previous-*"))
+        assert len(kept) == 1 and (kept[0] / "final.ply").read_bytes() == final, (label, said)
+        assert len(rows(exp.run_dir / label)) == 1
 
 
 def task_processes(title: str) -> list:
