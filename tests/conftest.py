@@ -74,14 +74,14 @@ def shared_fixtures(item) -> list:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Group the tests that share a module-scoped fixture (``xdist_group``), and run the groups
+    """Group the tests of a module that request a module-scoped fixture (one ``xdist_group`` per
+    module, so that no fixture is built twice, whichever tests share it), and run the groups
     and tests that hold a ``slow`` test first, so that no long check starts last and keeps
     one worker busy alone at the end (the order is only a schedule: every test still runs)."""
     groups = {}
     for item in items:
-        names = shared_fixtures(item)
-        if names:
-            group = f"{item.module.__name__}:{'+'.join(names)}"
+        if shared_fixtures(item):
+            group = item.module.__name__
             item.add_marker(pytest.mark.xdist_group(group))
             groups.setdefault(group, []).append(item)
     slow_groups = {g for g, members in groups.items() if any(m.get_closest_marker("slow") for m in members)}
