@@ -18,8 +18,9 @@ Files reach the run folders in one of two ways (``RayOptions.files``):
 ``shared``  the workers write into the run folders themselves (a filesystem shared with the
             driver, e.g. NFS, or a local instance): exactly the sequential code path.
 ``copy``    a worker runs in a temporary folder of its own node, seeded with the run folder's
-            resume set (``state.npz``, ``log.csv``, ``run.json``, ``targets/``) and sends the
-            folder's new and changed files to the driver every ``sync_seconds`` and at the end,
+            resume set (``state.npz``, ``log.csv``, ``run.json``, ``targets/``; a fresh start: only
+            ``targets/``) and sends the folder's new and changed files to the driver every
+            ``sync_seconds`` and at the end,
             through a small actor (:class:`Hub`), and all of them with its result; the driver,
             the only writer of the run folders, writes them atomically (``state.npz`` last, so a saved state never runs
             ahead of its log); a fresh start moves a run it finds aside (:func:`psdr_cli.runs.keep_previous_run`).
@@ -376,7 +377,8 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
             attempts[label] = attempts.get(label, -1) + 1
             applied[label] = 0
             request, variant, threads = session.resources(run)
-            snapshot = read_folder(run.run_dir, RESUME_SET) if opts.copy else None
+            # a fresh start needs only the cached targets (the driver moves a run it finds aside)
+            snapshot = read_folder(run.run_dir, RESUME_SET if resume_run else ("targets/",)) if opts.copy else None
             ref = task.options(**request).remote(run, label, iterations, resume_run, hub, attempts[label], snapshot,
                                                  opts.sync_seconds, threads, variant)
             pending[ref] = label
