@@ -216,17 +216,20 @@ def read_mesh_file_uv(path: Path):
     """(V, F, UV) of a PLY or OBJ file, unprocessed; UV (n, 2) are the per-vertex texture
     coordinates as Mitsuba's own loaders read them (OBJ ``vt`` with v flipped, split into one
     vertex per position/UV pair; PLY ``s, t`` or ``u, v`` as stored), or None when the file has
-    none. In Mitsuba's convention v = 0 is the top row of a texture image."""
-    if Path(path).suffix.lower() == ".obj":
+    none. In Mitsuba's convention v = 0 is the top row of a texture image. An OBJ's material
+    library is not read here (its ``Kd`` colours: :mod:`psdr_cli.obj_parts`): trimesh would
+    invent UVs for a file without ``vt`` and pack the UVs of several materials into an atlas."""
+    obj = Path(path).suffix.lower() == ".obj"
+    if obj:
         try:
             Path(path).read_bytes().decode("utf-8")
         except UnicodeDecodeError as exc:
             raise ValueError(f"not a text OBJ file (byte {exc.start} is not UTF-8)") from None
-    mesh = trimesh.load(str(path), force="mesh", process=False)
+    mesh = trimesh.load(str(path), force="mesh", process=False, **({"skip_materials": True} if obj else {}))
     V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
     uv = getattr(mesh.visual, "uv", None)
     uv = None if uv is None or len(uv) != len(V) else np.array(uv, float).reshape(-1, 2)
-    if uv is not None and Path(path).suffix.lower() == ".obj":
+    if uv is not None and obj:
         uv[:, 1] = 1.0 - uv[:, 1]  # as Mitsuba's OBJ loader: vt's v runs up the image, Mitsuba's down
     return V, F, uv
 
