@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import backend, fileio, plots
-from .config import read_file
+from .config import MAX_COORD, read_file
 from .errors import PsdrError
 from .meshes import face_areas, read_mesh_file
 from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
@@ -37,7 +37,8 @@ class Distance:
 
 
 def load(path: Path):
-    """(V, F) of a PLY/OBJ mesh with one-line errors for missing, unreadable or empty files."""
+    """(V, F) of a PLY/OBJ mesh with one-line errors for missing, unreadable or empty files, and
+    for meshes no distance can be measured on (:func:`mesh_problem`)."""
     path = Path(path)
     if not path.exists():
         raise PsdrError(f"{path}: file not found")
@@ -45,9 +46,31 @@ def load(path: Path):
         V, F = read_mesh_file(path)
     except Exception as exc:  # noqa: BLE001 - any parser failure
         raise PsdrError(f"{path}: cannot read mesh ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-    if len(V) == 0 or len(F) == 0:
-        raise PsdrError(f"{path}: mesh is empty ({len(V)} vertices, {len(F)} triangles)")
+    problem = mesh_problem(V, F)
+    if problem:
+        raise PsdrError(f"{path}: {problem}")
     return V, F
+
+
+def mesh_problem(V, F) -> str | None:
+    """Why points cannot be sampled on (V, F), or None: an empty mesh, face indices outside the
+    vertex list, vertices that are not finite or beyond ±MAX_COORD (a far vertex squeezes the rest
+    of the normalised mesh into one point, and the nearest-point search then takes hours), or no
+    surface area."""
+    V, F = np.asarray(V, float), np.asarray(F, np.int64)
+    if len(V) == 0 or len(F) == 0:
+        return f"mesh is empty ({len(V)} vertices, {len(F)} triangles)"
+    if F.min() < 0 or F.max() >= len(V):
+        return f"mesh has face indices outside 0..{len(V) - 1} (e.g. {int(F[(F < 0) | (F >= len(V))][0])})"
+    bad = ~np.isfinite(V).all(axis=1)
+    if bad.any():
+        return f"mesh has {int(bad.sum())} vertices with NaN or infinite coordinates"
+    far = (np.abs(V) > MAX_COORD).any(axis=1)
+    if far.any():
+        return f"mesh has {int(far.sum())} vertices with coordinates beyond ±{MAX_COORD:g} (e.g. {V[far][0].tolist()})"
+    if not face_areas(V, F).sum() > 0:
+        return f"mesh has zero surface area (all {len(F)} triangles are degenerate)"
+    return None
 
 
 def normalisation(V):
@@ -133,6 +156,8 @@ def evaluate_meshes(reference: Path, paths, samples: int = 100_000, seed: int = 
             jobs.append((str(p), p, None, None, None))
     if not jobs:
         raise PsdrError("evaluate: no meshes given (expected mesh files or `psdr optimize` run folders)")
+    for _, path, _, _, _ in jobs:  # every mesh checked before any work (and any progress line)
+        load(path)
     result = EvaluateResult(Path(reference), noise_floor=asdict(noise_floor(ref, samples, seed)))
     if progress:
         progress.start(len(jobs))
