@@ -241,6 +241,32 @@ class GradResult:
 FD_BATCHES = 8
 
 
+#: Finite-difference steps ``--fd h`` must move the scene by between FD_STEP[0] and FD_STEP[1] of
+#: its size: at most a tenth (central differences need a small step), at least what float32
+#: positions resolve.
+FD_STEP = (1e-6, 0.1)
+
+
+def check_fd_step(h: float, scene, parameter: Parameter):
+    """Refuse a step ``h`` that is not small against the scene: in scene units for a translation
+    (against the diagonal of the scene's bounding box), radians for a rotation, a rate for a scale
+    (against 1 / the largest axis rate)."""
+    kind = parameter.config.kind
+    if kind == "translate":
+        box = scene.mi_scene.bbox()
+        size = float(np.linalg.norm(np.subtract(box.max, box.min)))
+        what = f"the scene's size {size:.3g} (its bounding-box diagonal, in scene units)"
+    elif kind == "scale":
+        size = 1.0 / max(float(np.max(np.abs(parameter.config.axis))), 1e-30)
+        what = f"{size:.3g} (1 / the largest axis rate)"
+    else:
+        size, what = 1.0, "1 radian"
+    lo, hi = FD_STEP[0] * size, FD_STEP[1] * size
+    if not lo <= h <= hi:
+        raise PsdrError(f"--fd: step {h:g} is not small against the scene for a {kind} (expected "
+                        f"{lo:.3g} to {hi:.3g}: {FD_STEP[0]:g} to {FD_STEP[1]:g} × {what})")
+
+
 def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
@@ -250,12 +276,15 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
     statistics. PNG previews use a diverging colour map shared by all terms."""
     option_number("--fd", fd)
+    option_spp("--interior-spp", spp, exp.scene.width, exp.scene.height)
     option_spp("--fd-spp", fd_spp, exp.scene.width, exp.scene.height)
     if fd_spp is not None and fd_spp < FD_BATCHES:
         raise PsdrError(f"--fd-spp: expected at least {FD_BATCHES} samples per pixel ({FD_BATCHES} batches), got {fd_spp}")
     terms = parse_terms(terms) or exp.estimator.terms
     views = parse_views(views, len(exp.scene.cameras))
     scene, parameter, edges, settings = prepare(exp, spp)
+    if fd:
+        check_fd_step(fd, scene, parameter)
     variant = mi.variant()
     for message in (smooth_warning(scene),) if warn else ():
         if message:
