@@ -18,15 +18,18 @@ from pathlib import Path
 import numpy as np
 
 from .config import BsdfConfig, ObjectConfig, SceneConfig, Where
+from .errors import ConfigError
 
 
 @dataclass
 class ObjPart:
-    """One part: its triangles (indices into the file's positions), material name and Kd."""
+    """One part: its triangles (indices into the file's positions), material name and Kd (read
+    from the MTL file ``mtl``)."""
     name: str
     faces: list
     material: str | None = None
     kd: tuple | None = None
+    mtl: Path | None = None
 
 
 def _index(token: str, count: int) -> int:
@@ -78,9 +81,9 @@ def read_obj(path: Path):
     for lib in libs:
         mtl = Path(path).parent / lib
         if mtl.is_file():
-            kd.update(read_mtl_kd(mtl))
+            kd.update({name: (value, mtl) for name, value in read_mtl_kd(mtl).items()})
     for p in parts.values():
-        p.kd = kd.get(p.material) if p.material else None
+        p.kd, p.mtl = kd.get(p.material, (None, None)) if p.material else (None, None)
     return np.asarray(positions, float).reshape(-1, 3), [parts[n] for n in order]
 
 
@@ -108,8 +111,13 @@ def object_name(obj: str, part: str) -> str:
     return f"{obj}_{re.sub(r'[^A-Za-z0-9_-]', '_', part)}"
 
 
-def _mtl_bsdf(kd) -> BsdfConfig:
-    return BsdfConfig("diffuse", {"reflectance": tuple(float(c) for c in kd)})
+def _mtl_bsdf(part: ObjPart) -> BsdfConfig:
+    """A diffuse BSDF of the part's Kd, which must be a reflectance: finite, in [0, 1]."""
+    kd = tuple(float(c) for c in part.kd)
+    if not all(0.0 <= c <= 1.0 for c in kd):
+        raise ConfigError(part.mtl, f"material '{part.material}'", f"Kd: expected 3 numbers in [0, 1] "
+                          f"(a diffuse reflectance), got {' '.join(f'{c:g}' for c in kd)}")
+    return BsdfConfig("diffuse", {"reflectance": kd})
 
 
 def expand_objects(scene: SceneConfig, file: str) -> SceneConfig:
@@ -132,7 +140,7 @@ def expand_objects(scene: SceneConfig, file: str) -> SceneConfig:
         if not spec.split:
             part = next((p for p in parts if p.name == spec.part), None)
             if part is not None and not obj.bsdf_given and part.kd is not None:
-                obj = replace(obj, bsdf=_mtl_bsdf(part.kd))
+                obj = replace(obj, bsdf=_mtl_bsdf(part))
             out.append(replace(obj, bsdf_given=True))
             continue
         unknown = [n for n in obj.parts if n not in {p.name for p in parts}]
@@ -143,7 +151,7 @@ def expand_objects(scene: SceneConfig, file: str) -> SceneConfig:
             raise where.fail(f"{spec.file.name} has no faces")
         for p in parts:
             over = obj.parts.get(p.name, {})
-            bsdf = over.get("bsdf") or (obj.bsdf if obj.bsdf_given or p.kd is None else _mtl_bsdf(p.kd))
+            bsdf = over.get("bsdf") or (obj.bsdf if obj.bsdf_given or p.kd is None else _mtl_bsdf(p))
             out.append(replace(obj, name=object_name(obj.name, p.name), bsdf=bsdf, parts={}, bsdf_given=True,
                                mesh=replace(spec, split=False, part=p.name),
                                edges=over.get("edges", obj.edges), smooth=over.get("smooth", obj.smooth)))
