@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -64,8 +63,32 @@ MAX_GRID_SAMPLES = 1 << 28
 MAX_VERTICES = 500_000
 #: Passes of one estimate (estimator.passes, compare.reference_passes).
 MAX_PASSES = 1 << 16
-#: Object names Mitsuba ids are generated from: an object may not be called like them.
-RESERVED_NAME = r"(sensor|emitter)_\d+"
+#: First character of the Mitsuba ids psdr gives its own scene entries (cameras, emitters, the
+#: integrator): no object name may start with it, so user names never meet psdr's.
+INTERNAL_PREFIX = "@"
+INTEGRATOR_ID = INTERNAL_PREFIX + "integrator"
+
+
+def sensor_id(i: int) -> str:
+    """Mitsuba id of camera ``i`` (``@sensor_000``)."""
+    return f"{INTERNAL_PREFIX}sensor_{i:03d}"
+
+
+def emitter_id(i: int) -> str:
+    """Mitsuba id of emitter ``i`` (``@emitter_00``)."""
+    return f"{INTERNAL_PREFIX}emitter_{i:02d}"
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a scene object (a Mitsuba id beside psdr's own), or None."""
+    if name.startswith(INTERNAL_PREFIX):
+        return (f"'{name}' is reserved (names starting with '{INTERNAL_PREFIX}' are psdr's own ids for cameras, "
+                f"emitters and the integrator); choose another name")
+    if name == "type":
+        return "'type' is reserved (Mitsuba's scene dictionary uses it); choose another name"
+    if "." in name:
+        return f"'{name}' contains '.', which separates Mitsuba parameter names (use '_')"
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -650,11 +673,11 @@ def parse_mesh(base: Path) -> Parser:
 
 
 def object_name(value, where):
-    """An object's name: not one of the ids generated for cameras and emitters."""
+    """An object's name: one that cannot be taken for psdr's own ids (:func:`name_problem`)."""
     name = string(value, where)
-    if re.fullmatch(RESERVED_NAME, name):
-        raise where.fail(f"'{name}' is reserved (cameras and emitters are called sensor_NNN and emitter_NN); "
-                         f"choose another name")
+    problem = name_problem(name)
+    if problem:
+        raise where.fail(problem)
     return name
 
 
@@ -850,7 +873,7 @@ def parse_mitsuba_scene(sec: Section, where: Where, base: Path) -> SceneConfig:
                                           f"{_describe(objects)}")
     for name, entry in objects.items():
         o = Section(entry, where.child("objects").child(str(name)))
-        src.edges[str(name)] = o.get("edges", boolean)
+        src.edges[str(name)] = o.get("edges", boolean, True)
         o.done()
     scene = SceneConfig(
         width=src.film[0] if src.film else 0, height=src.film[1] if src.film else 0,
@@ -959,16 +982,21 @@ def parse_views(views, count: int) -> list[int]:
             try:
                 if "-" in part:
                     a, b = (int(x) for x in part.split("-", 1))
+                    if b < a:
+                        raise PsdrError(f"--views: '{part}' is an empty range (expected FIRST-LAST with FIRST <= LAST, "
+                                        f"e.g. 0-2)")
                     out.extend(range(a, b + 1))
                 else:
                     out.append(int(part))
             except ValueError:
                 raise PsdrError(f"--views: cannot read '{part}' (expected indices like 0,3 or 0-2)") from None
         views = out
+    if not views:
+        raise PsdrError(f"--views: no view given (expected indices like 0,3 or 0-2; the experiment has views "
+                        f"0..{count - 1})")
     bad = [v for v in views if not 0 <= v < count]
-    if bad or not views:
-        raise PsdrError(f"--views: view {bad[0] if bad else '(none)'} does not exist "
-                        f"(the experiment has views 0..{count - 1})")
+    if bad:
+        raise PsdrError(f"--views: view {bad[0]} does not exist (the experiment has views 0..{count - 1})")
     return sorted(set(views))
 
 
@@ -1126,8 +1154,11 @@ def parse_optimize(base: Path) -> Parser:
             t.done()
         if sec.has("init"):
             i = Section(sec.get("init", lambda v, _: v), where.child("init"))
-            o.init = i.get("mesh", parse_mesh(base))
+            o.init = i.get("mesh", parse_mesh(base), None)  # null: the default sphere, as if absent
             o.init_transform = i.get("transform", parse_transform, TransformConfig())
+            if o.init is None and i.has("transform"):
+                raise where.child("init").child("transform").fail(
+                    "needs init.mesh (the default initial shape is a sphere around the target's bounding box)")
             i.done()
         if o.object is None:
             raise where.child("object").fail("missing (the object to reconstruct; or target: {object: NAME})")

@@ -1,24 +1,31 @@
 """Mitsuba 3 XML scenes as psdr scenes (``scene: {mitsuba: scene.xml}``).
 
-The XML is read with ``mi.load_file(file, **params)``; what psdr can differentiate is taken from
-it and the scene is rebuilt with ``mi.load_dict`` under psdr's naming:
+The XML is read with ``mi.load_file(file, optimize=False, **params)`` (without Mitsuba's merging
+of shapes that share a BSDF, so every shape keeps its id); what psdr can differentiate is taken
+from it and the scene is rebuilt with ``mi.load_dict`` under psdr's naming:
 
 - **triangle meshes** (``obj``, ``ply``, ``serialized``, ``rectangle``, ``cube``, ...: every shape
   with ``is_mesh()`` that does not emit) become scene objects named by their XML ``id`` (shapes
-  without one: ``<plugin>_<k>``). Each is rebuilt as an ``mi.Mesh`` from its world-space
-  vertex positions, faces, and (when present) vertex normals and texture coordinates, with its
-  own BSDF instance, so ``<id>.vertex_positions`` is a differentiable parameter. Smooth shading =
-  the shape has vertex normals that are not just its face normals; ``edges`` = true unless ``scene.objects: {id: {edges: false}}``.
+  without one: ``<plugin>_<k>``, numbered past any id the XML gives). An id must be usable as a
+  psdr object name (:func:`psdr_cli.config.name_problem`: not starting with ``@``, psdr's own
+  ids for cameras, emitters and the integrator; not ``type``; no ``.``). Each is rebuilt as an
+  ``mi.Mesh`` from its world-space vertex positions, faces, and (when present) vertex normals
+  and texture coordinates, with its own BSDF instance, so ``<id>.vertex_positions`` is a
+  differentiable parameter. Smooth shading = the shape has vertex normals that are not just its
+  face normals; ``edges`` = true unless ``scene.objects: {id: {edges: false}}``. Vertices must
+  be finite and within ±MAX_COORD; degenerate triangles are dropped (a warning), all of them is
+  an error.
 - **emitting shapes** (area lights on any shape) stay as they are: static light geometry, like
   the YAML ``area`` emitter (cameras see them, they cast shadows, their edges are not sampled).
 - **environment emitters** ``envmap``, ``constant`` and ``sunsky`` keep their XML ``to_world``
-  (the scene keeps its own frame) and are named ``emitter_00`` (``envmap_rotate`` finds them).
-- **analytic shapes** (``sphere``, ``disk``, ``cylinder``, instances, ...) are rendered, with one
-  warning each: psdr cannot sample their edges, so silhouettes and shadows of them carry no
-  derivative.
+  (the scene keeps its own frame) and are named ``@emitter_00`` (``envmap_rotate`` finds them).
+- **analytic shapes** (``sphere``, ``disk``, ``cylinder``, instances of a ``shapegroup``, ...)
+  are rendered, with one warning each: psdr cannot sample their edges, so silhouettes and
+  shadows of them carry no derivative.
 - **refused** with one error line: non-``perspective`` sensors or ones with a principal-point
   offset, delta emitters (``point``, ``spot``, ``directional``, ``projector``), ``mask`` and
-  ``null`` BSDFs (surfaces rays pass through), participating media, more than one environment.
+  ``null`` BSDFs (surfaces rays pass through), participating media (on a shape or a sensor),
+  more than one environment, NaN or infinite values in a BSDF or emitter (its textures included).
 - **replaced**: the XML integrator (psdr's estimators render; its ``max_depth`` is the default of
   ``scene.max_depth``), the sampler (``estimator.spp``) and the film's reconstruction filter
   (psdr integrates box pixels). Sensors keep their ``to_world``, horizontal field of view and
@@ -38,7 +45,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, meshes
-from .config import BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig, SceneConfig, Where
+from .config import (MAX_COORD, BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig,
+                     SceneConfig, Where, emitter_id, name_problem, sensor_id)
 from .errors import ConfigError
 from .jitarray import jit_array
 
@@ -96,7 +104,7 @@ def load_xml(src, yaml_file: str | None = None) -> mi.Scene:
     ``params`` entry the XML does not use names the experiment file's key)."""
     try:
         with backend.decoding_threads():  # the XML may name EXR files
-            return mi.load_file(str(src.file), **src.params)
+            return mi.load_file(str(src.file), optimize=False, **src.params)
     except Exception as exc:  # noqa: BLE001 - Mitsuba reports XML and plugin errors as RuntimeError
         unused = re.findall(r"\$(\S+?)=", str(exc)) if "unused parameters" in str(exc) else []
         if unused and yaml_file:
@@ -123,8 +131,8 @@ class XmlScene:
     cameras: list                     # CameraConfig per XML sensor (origin, target, up, fov)
     size: tuple | None                # film (width, height) of the XML sensors
     emitters: list                    # EmitterConfig per emitter (area lights included)
-    environment: dict = field(default_factory=dict)   # emitter_NN -> environment emitter instance
-    shapes: dict = field(default_factory=dict)        # id -> light or analytic shape instance (kept)
+    environment: dict = field(default_factory=dict)   # @emitter_NN -> environment emitter instance
+    shapes: dict = field(default_factory=dict)        # id -> light, analytic shape or shapegroup (kept)
     objects: dict = field(default_factory=dict)       # id -> XmlObject
     max_depth: int | None = None
     warnings: list = field(default_factory=list)
@@ -140,17 +148,53 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def _shape_names(mi_scene) -> list:
-    """XML id of every shape (shapes without one: ``<plugin>_<k>``, numbered per plugin)."""
+def _shape_names(mi_scene, taken=()) -> list:
+    """XML id of every shape (shapes without one: ``<plugin>_<k>``, numbered per plugin, skipping
+    the ids the XML gives and the names in ``taken``)."""
+    used = set(taken) | {shape.id() for shape in mi_scene.shapes() if shape.id()}
     counts, names = {}, []
     for shape in mi_scene.shapes():
         if shape.id():
             names.append(shape.id())
             continue
         kind = shape.class_name().lower()
+        while f"{kind}_{counts.get(kind, 0)}" in used:
+            counts[kind] = counts.get(kind, 0) + 1
         names.append(f"{kind}_{counts.get(kind, 0)}")
         counts[kind] = counts.get(kind, 0) + 1
     return names
+
+
+def shape_groups(mi_scene) -> dict:
+    """{id: shapegroup} of the scene (instances refer to them; ``mi_scene.shapes()`` lists only
+    the instances)."""
+    found = {}
+
+    class Collect(mi.TraversalCallback):
+        def put(self, name, obj, *args):
+            if isinstance(obj, mi.Object) and obj.class_name().startswith("ShapeGroup"):
+                found[name] = obj
+
+    mi_scene.traverse(Collect())
+    return found
+
+
+def nonfinite_parameter(obj, checked: set) -> str | None:
+    """Name of the first parameter of a Mitsuba object (a BSDF or an emitter: its values and
+    textures) holding NaN or infinite values, or None; objects in ``checked`` (by pointer) are
+    skipped and each object checked is added to it."""
+    if obj is None or obj.ptr in checked:
+        return None
+    checked.add(obj.ptr)
+    params = mi.traverse(obj)
+    for key in params.keys():
+        try:
+            values = np.asarray(params[key])
+        except Exception:  # noqa: BLE001 - transforms and other non-array parameters
+            continue
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            return key
+    return None
 
 
 def flat_normals(V, F, normals, cos_tol: float = 1 - 1e-5) -> bool:
@@ -193,6 +237,8 @@ def read_scene(exp: Experiment) -> XmlScene:
         for i, sensor in enumerate(mi_scene.sensors()):
             kind = sensor.class_name()
             what = f"sensor {i}" + (f" '{sensor.id()}'" if sensor.id() else "")
+            if sensor.get_medium() is not None:
+                raise fail(what, "participating media are not supported (remove the sensor's <medium> or <ref>)")
             if kind != "PerspectiveCamera":
                 raise fail(what, f"'{kind}' is not supported (psdr needs perspective sensors: its film "
                                  f"projection and camera connections assume a pinhole)")
@@ -232,14 +278,22 @@ def read_scene(exp: Experiment) -> XmlScene:
             raise fail(what, f"'{kind}' is not supported (psdr handles area, envmap, constant and sunsky emitters)")
         if kind == "AreaLight":
             continue
-        environment[f"emitter_{len(environment):02d}"] = em
+        bad = nonfinite_parameter(em, set())
+        if bad:
+            raise fail(what, f"'{bad}' has NaN or infinite values (the environment map or a value of the XML)")
+        environment[emitter_id(len(environment))] = em
         emitters.append(EmitterConfig(type=EMITTERS[kind], key=what))
     if len(environment) > 1:
         raise fail("", "has more than one environment emitter (psdr allows one envmap, constant or sunsky)")
-    # Shapes
-    shapes, objects = {}, {}
-    for name, shape in zip(_shape_names(mi_scene), mi_scene.shapes()):
+    # Shapes (and the shapegroups instances draw, kept under their ids)
+    shapes, objects, checked = shape_groups(mi_scene), {}, set()
+    for name in shapes:
+        if name_problem(name):
+            raise fail(f"shapegroup '{name}'", f"id {name_problem(name)}")
+    for name, shape in zip(_shape_names(mi_scene, shapes), mi_scene.shapes()):
         what = f"shape '{name}'"
+        if name_problem(name):
+            raise fail(what, f"id {name_problem(name)}")
         if shape.interior_medium() is not None or shape.exterior_medium() is not None:
             raise fail(what, "participating media are not supported")
         bsdf = shape.bsdf()
@@ -248,6 +302,11 @@ def read_scene(exp: Experiment) -> XmlScene:
                              f"the surface; psdr's boundary terms assume opaque or refracting surfaces)")
         if name in objects or name in shapes:
             raise fail(what, "duplicate shape id")
+        for part, obj in (("BSDF", bsdf), ("emitter", shape.emitter())):
+            bad = nonfinite_parameter(obj, checked)
+            if bad:
+                raise fail(what, f"{part} parameter '{bad}' has NaN or infinite values (a texture or a value "
+                                 f"of the XML)")
         if shape.emitter() is not None:
             shapes[name] = shape
             emitters.append(EmitterConfig(type="area", key=what))
@@ -262,7 +321,16 @@ def read_scene(exp: Experiment) -> XmlScene:
         F = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
         if len(F) == 0:
             raise fail(what, "mesh is empty")
+        if not np.isfinite(V).all():
+            raise fail(what, f"mesh has {int((~np.isfinite(V).all(axis=1)).sum())} vertices with NaN or "
+                             f"infinite coordinates")
+        far = (np.abs(V) > MAX_COORD).any(axis=1)
+        if far.any():
+            raise fail(what, f"mesh has {int(far.sum())} vertices with world coordinates beyond ±{MAX_COORD:g} "
+                             f"(e.g. {V[far][0].tolist()}; float32 rendering needs smaller values)")
         bad = meshes.degenerate_faces(V, F)
+        if bad.all():
+            raise fail(what, f"mesh has only degenerate (zero-area) triangles ({len(F)})")
         if bad.any():
             warnings.append(f"{xml.name}: {what}: {int(bad.sum())} degenerate (zero-area) triangles of {len(F)} dropped")
             F = F[~bad]
@@ -368,7 +436,7 @@ def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):
     cfg = exp.scene
     d = {}
     for i, s in enumerate(sensors if sensors is not None else sensor_dicts(xs, cfg.width, cfg.height)):
-        d[f"sensor_{i:03d}"] = s
+        d[sensor_id(i)] = s
     d.update(xs.environment)
     d.update(xs.shapes)
     geometry = {}

@@ -19,7 +19,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .config import ParameterConfig
+from .config import INTERNAL_PREFIX, ParameterConfig, sensor_id
 from .errors import PsdrError
 
 
@@ -37,13 +37,14 @@ class Parameter:
         self.config = config
         self.params = params if params is not None else mi.traverse(scene.mi_scene)
         if config.camera is not None:
-            key = f"sensor_{config.camera:03d}.to_world"
+            key = f"{sensor_id(config.camera)}.to_world"
             if key not in self.params:
                 raise PsdrError(f"parameter.camera: no camera {config.camera} in the scene")
             self.keys = [key]
             self.initial = {key: mi.AffineTransform4f(self.params[key])}
         elif config.kind == "envmap_rotate":
-            self.keys = [k for k in self.params.keys() if k.startswith("emitter_") and k.endswith(".to_world")]
+            prefix = f"{INTERNAL_PREFIX}emitter_"
+            self.keys = [k for k in self.params.keys() if k.startswith(prefix) and k.endswith(".to_world")]
             if not self.keys:
                 raise PsdrError("parameter: kind 'envmap_rotate' needs an envmap or sky emitter in the scene")
             self.initial = {k: mi.AffineTransform4f(self.params[k]) for k in self.keys}

@@ -12,7 +12,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import fileio, mitsuba_scene
-from .config import BSDF_RANGES, BitmapConfig, EmitterConfig, Experiment, ObjectConfig, SceneConfig
+from .config import (BSDF_RANGES, INTEGRATOR_ID, BitmapConfig, EmitterConfig, Experiment, ObjectConfig, SceneConfig,
+                     emitter_id, sensor_id)
 from .errors import ConfigError
 from .meshes import ObjectMesh, build_objects, has_bitmap
 
@@ -148,6 +149,10 @@ def emitter_dict(em: EmitterConfig, file: str) -> dict:
             bitmap = mi.Bitmap(exr_texels(em.file)) if em.file.suffix.lower() == ".exr" else mi.Bitmap(str(em.file))
         except Exception as exc:  # noqa: BLE001
             raise ConfigError(file, em.key + ".file", f"cannot read environment map: {str(exc).splitlines()[0]}") from None
+        texels = np.asarray(bitmap)
+        if texels.dtype.kind == "f" and not np.isfinite(texels).all():
+            raise ConfigError(file, em.key + ".file", f"environment map {em.file.name} has "
+                              f"{int((~np.isfinite(texels)).sum())} NaN or infinite values")
         return {"type": "envmap", "bitmap": bitmap, "scale": em.scale, "to_world": environment_to_world(em.rotate_deg)}
     if em.type == "sky":
         return {"type": "sunsky", "sun_direction": list(em.sun_direction), "turbidity": em.turbidity,
@@ -174,11 +179,11 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
         old = built[name]
         uv = mesh[2] if len(mesh) > 2 else (old.uv if old.faces.shape == F.shape and (old.faces == F).all() else None)
         built[name] = ObjectMesh(name, V, F, old.edges, old.config, uv)
-    d = {"type": "scene", "integrator": {"type": "path", "max_depth": cfg.max_depth}}
+    d = {"type": "scene", INTEGRATOR_ID: {"type": "path", "max_depth": cfg.max_depth}}
     for i, cam in enumerate(cameras or cfg.cameras):
-        d[f"sensor_{i:03d}"] = sensor_dict(cam, cfg.width, cfg.height)
+        d[sensor_id(i)] = sensor_dict(cam, cfg.width, cfg.height)
     for i, em in enumerate(cfg.emitters):
-        d[f"emitter_{i:02d}"] = emitter_dict(em, str(exp.file))
+        d[emitter_id(i)] = emitter_dict(em, str(exp.file))
     for name, om in built.items():
         if om.uv is None and has_bitmap(om.config):
             raise ConfigError(exp.file, om.config.key + ".bsdf", "a bitmap texture needs a mesh with UV "
@@ -208,7 +213,7 @@ def build_xml_scene(exp: Experiment, objects: dict, cameras: list | None) -> Sce
     if cameras or cfg.mitsuba.cameras_given:
         sensors = [sensor_dict(cam, cfg.width, cfg.height) for cam in (cameras or cfg.cameras)]
     entries, geometry = mitsuba_scene.scene_entries(exp, objects, sensors)
-    d = {"type": "scene", "integrator": {"type": "path", "max_depth": cfg.max_depth}, **entries}
+    d = {"type": "scene", INTEGRATOR_ID: {"type": "path", "max_depth": cfg.max_depth}, **entries}
     try:
         mi_scene = mi.load_dict(d)
     except Exception as exc:  # noqa: BLE001
