@@ -48,18 +48,25 @@ from psdr_cli import backend  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path, write_json  # noqa: E402
-from psdr_cli.gradient import Settings, ad_image, make_guides  # noqa: E402
+from psdr_cli.estimators.sample_log import SampleLog  # noqa: E402
+from psdr_cli.gradient import Settings, ad_image, make_guides, term_image  # noqa: E402
+from psdr_cli.guiding.loop_fed import fitted_guides, per_pass_budget  # noqa: E402
+from psdr_cli.guiding.targets import Guides  # noqa: E402
+from psdr_cli.iteration import batch_views  # noqa: E402
 from psdr_cli.meshes import read_mesh_file  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
 from psdr_cli.render import render_view  # noqa: E402
 from psdr_cli.scene import build_scene  # noqa: E402
 
-#: label -> (guiding, build the guides from the batch's views only)
+#: label -> (guiding, where the guides come from: built from all views / from the batch's views /
+#: fitted to the loop's own samples, edge sorting (None: the experiment's variant of that kind))
 VARIANTS = {
-    "none": ("none", False),
-    "grid": ("grid", False),
-    "kdtree": ("kdtree", False),
-    "kdtree, batch views": ("kdtree", True),
+    "none": ("none", "all", None),
+    "grid": ("grid", "all", None),
+    "kdtree": ("kdtree", "all", None),
+    "kdtree, batch views": ("kdtree", "batch", None),
+    "kdtree, loop-fed": ("kdtree", "loop", None),
+    "kdtree, loop-fed, unsorted": ("kdtree", "loop", False),
 }
 
 
@@ -105,10 +112,32 @@ class Bench:
             g_v = p.steps.to_differential(dr.detach(g_u))
         return np.asarray(g_u, np.float64).copy(), np.asarray(g_v, np.float64).copy()
 
-    def guides(self, settings: Settings, edge_sort: bool, terms, batch_only: bool):
-        views = self.views if batch_only else list(range(len(self.scene.sensors)))
+    def guides(self, settings: Settings, edge_sort: bool, terms, source: str):
+        """(guides, seconds of building them): built from all views or the batch's, or (``loop``)
+        fitted as the loop fits them: two windows of ``guide_every`` iterations of the loop's
+        mini-batches at this shape, the first unguided, the second with the guides fitted to the
+        first; the guides fitted to the second are measured and only their fit is timed (the
+        passes are the loop's own)."""
+        edges = self.edges_for(edge_sort)
         with dr.suspend_grad():
-            return make_guides(self.scene, self.edges_for(edge_sort), views, terms, settings)
+            if source != "loop":
+                t0 = time.perf_counter()
+                views = self.views if source == "batch" else list(range(len(self.scene.sensors)))
+                guides = make_guides(self.scene, edges, views, terms, settings)
+                return guides, time.perf_counter() - t0
+            cfg = self.exp.optimize
+            budget = per_pass_budget(cfg.guide_every * cfg.batch_size)
+            breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(self.scene.mi_scene))))
+            log, t_fit = SampleLog({}, budget), 0.0
+            for window in range(2):
+                for it in range(cfg.guide_every):
+                    for v in batch_views(self.exp.seed, 1000 * window + it, len(self.scene.sensors), cfg.batch_size):
+                        term_image(self.scene, edges, v, "direct", settings.boundary_spp, 90000 + 100 * it + v,
+                                   settings, Guides(direct=log))
+                t0 = time.perf_counter()
+                log = SampleLog(fitted_guides(log, breaks, settings.estimator), budget)
+                t_fit = time.perf_counter() - t0
+            return Guides(direct=dict(log)), t_fit
 
 
 def variant_settings(exp, guiding: str) -> tuple[Settings, bool]:
@@ -136,11 +165,11 @@ def measure(bench: Bench, exp, trials: int, ref_factor: int, ref_draws: int, lab
     guide_every = exp.optimize.guide_every
     rows = {}
     for label in labels:
-        guiding, batch_only = VARIANTS[label]
+        guiding, source, sort = VARIANTS[label]
         settings, edge_sort = variant_settings(exp, guiding)
-        t0 = time.perf_counter()
-        guides = bench.guides(settings, edge_sort, exp.estimator.terms, batch_only)
-        t_build = time.perf_counter() - t0 if guiding != "none" else 0.0
+        edge_sort = edge_sort if sort is None else sort
+        guides, t_build = bench.guides(settings, edge_sort, exp.estimator.terms, source)
+        t_build = t_build if guiding != "none" else 0.0
         row = {"build_seconds": t_build, "terms": {}}
         total_u, total_v, total_t = 0.0, 0.0, 0.0
         for term in exp.estimator.terms:

@@ -14,7 +14,11 @@ import numpy as np
 from .estimators.boundary_sampling import edge_list
 from .estimators.passes import pass_seed
 from .estimators.registry import ADJOINT_STREAM
+from .estimators.sample_log import SampleLog
 from .gradient import make_guides
+from .guiding import auto
+from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
+from .guiding.targets import Guides
 from .jitarray import jit_array
 from .render import render_view
 
@@ -33,28 +37,71 @@ class Step:
 
 class GuideCache:
     """The guides in use and the shape and unknowns they were built from (saved with the state,
-    so that a resumed run rebuilds the same guides)."""
+    so that a resumed run rebuilds the same guides). A direct term guided by a Kd-tree is fed by
+    the loop (:mod:`psdr_cli.guiding.loop_fed`): ``log`` holds its guides and the samples its
+    passes kept since the last fit."""
 
-    def __init__(self, guides=None, snapshot=None):
-        self.guides, self.snapshot = guides, snapshot
+    def __init__(self, guides=None, snapshot=None, log=None):
+        self.guides, self.snapshot, self.log = guides, snapshot, log
 
     @classmethod
     def resumed(cls, problem, exp, settings, state, stage) -> "GuideCache":
-        """The guides in use when the run stopped, rebuilt from the shape they were built from
-        (none for a fresh run, or a stage that is not guided)."""
-        if state.guide_V is None or not stage.guided:
+        """The guides in use when the run stopped: built ones rebuilt from the shape they were
+        built from, loop-fed ones and their samples as saved (none for a fresh run, or a stage
+        that is not guided)."""
+        if not stage.guided or (state.guide_V is None and not state.guide_arrays):
             return cls()
-        guides = rebuild_guides(problem, exp, settings, state.guide_V, state.guide_values, len(stage.arrays),
-                                exp.estimator.terms)
-        return cls(guides, (state.guide_V, state.guide_values))
+        fed, built = split_terms(settings, exp.estimator.terms, stage)
+        guides = Guides()
+        if state.guide_V is not None and built:
+            guides = rebuild_guides(problem, exp, settings, state.guide_V, state.guide_values, len(stage.arrays),
+                                    built)
+        log = None
+        if fed:
+            log = log_from_arrays(state.guide_arrays, window_budget(exp.optimize))
+            guides["direct"] = log
+        snapshot = (state.guide_V, state.guide_values) if state.guide_V is not None else None
+        return cls(guides, snapshot, log)
 
-    def refresh(self, problem, edges, views: int, terms, settings):
+    def reset(self):
+        """No guides and no kept samples (a remesh changed the edges they index)."""
+        self.guides = self.snapshot = self.log = None
+
+    def refresh(self, problem, edges, views: int, terms, settings, stage, cfg):
+        """Build the built guides anew, fit the loop-fed direct guides to the samples kept since
+        the last refresh (none yet: the direct term runs unguided and keeps samples)."""
+        fed, built = split_terms(settings, terms, stage)
         with dr.suspend_grad():
-            self.guides = make_guides(problem.scene, edges, list(range(views)), terms, settings)
+            guides = make_guides(problem.scene, edges, list(range(views)), built, settings)
+            if fed:
+                fitted = {}
+                if self.log is not None:
+                    P = dr.detach(edges.positions(mi.traverse(problem.scene.mi_scene)))
+                    fitted = fitted_guides(self.log, edges.breakpoints(P), settings.estimator)
+                self.log = guides["direct"] = SampleLog(fitted, window_budget(cfg))
+        self.guides = guides
         self.snapshot = (problem.vertices(), problem.values())
+
+    def arrays(self) -> dict:
+        """The loop-fed guides and their kept samples as flat arrays (empty without them)."""
+        return guide_arrays(self.log) if self.log is not None else {}
 
     def memory_bytes(self) -> int:
         return sum(g.stats.memory_bytes for _, g in self.guides.all()) if self.guides else 0
+
+
+def split_terms(settings, terms, stage) -> tuple:
+    """(whether the direct term's guides are fed by the loop, the guided terms whose guides are
+    built): the direct term is loop-fed when its guide is a Kd-tree."""
+    kinds = auto.resolve(settings.guiding, terms, stage.pixels, settings.boundary_spp)
+    fed = kinds.get("direct") == "kdtree"
+    return fed, [t for t in terms if not (fed and t == "direct")]
+
+
+def window_budget(cfg) -> int:
+    """Samples a pass keeps for the loop-fed guides (a window: ``guide_every`` iterations of
+    ``batch_size`` passes)."""
+    return per_pass_budget(cfg.guide_every * cfg.batch_size)
 
 
 def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, total: int, warn) -> Step:
@@ -68,7 +115,7 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
     t_guide = time.perf_counter()
     anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
     if stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0):
-        guides.refresh(problem, edges, n_views, terms, settings)
+        guides.refresh(problem, edges, n_views, terms, settings, stage, cfg)
     t_render = time.perf_counter()
     views = batch_views(exp.seed, it, n_views, cfg.batch_size)
     loss = mi.Float(0.0)

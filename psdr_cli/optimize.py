@@ -110,7 +110,8 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             t_start = time.perf_counter()
             if it in cfg.remesh.at and it > 0:
                 problem = remeshed_problem(problem, exp, cameras, it, warn)
-                stage, guides.guides = stage_of(problem, targets, settings, terms, stage), None
+                stage = stage_of(problem, targets, settings, terms, stage)
+                guides.reset()
             step = iterate(problem, exp, engine, settings, stage, guides, it, total, warn)
             seconds += step.t_end - t_start
             result.skipped += int(step.skipped)
@@ -155,6 +156,7 @@ def save_state(problem, files: RunFiles, iteration: int, seconds: float, guides:
     saved = problem.export(iteration, seconds)
     if guides.snapshot is not None:
         saved.guide_V, saved.guide_values = guides.snapshot
+    saved.guide_arrays = guides.arrays()
     saved.save(files.state)
 
 

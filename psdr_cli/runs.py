@@ -479,6 +479,7 @@ class State:
     guide_V: np.ndarray | None = None            # vertices the current guides were built from
     guide_values: dict = field(default_factory=dict)  # extra unknowns when they were built
     uv: np.ndarray | None = None                 # per-vertex texture coordinates (albedo.texture)
+    guide_arrays: dict = field(default_factory=dict)  # loop-fed guides and their kept samples
 
     def save(self, path: Path):
         """Written atomically; refuses NaN or infinite values (nothing non-finite is ever saved)."""
@@ -489,6 +490,8 @@ class State:
             arrays["guide_V"] = self.guide_V
             for k, v in self.guide_values.items():
                 arrays[f"guidevalue_{k}"] = v
+        for k, v in self.guide_arrays.items():
+            arrays[f"guidearr_{k}"] = v
         for k, (t, m, v) in self.adam.items():
             arrays[f"adam_{k}_m"], arrays[f"adam_{k}_v"] = m, v
         for k, v in self.values.items():
@@ -511,7 +514,8 @@ class State:
                 guide_values = {k[11:]: z[k] for k in z.files if k.startswith("guidevalue_")}
                 state = State(meta["iteration"], z["V"], z["F"], adam, values, meta.get("seconds", 0.0),
                               z["u"], z["basis"], z["guide_V"] if "guide_V" in z.files else None, guide_values,
-                              z["uv"] if "uv" in z.files else None)
+                              z["uv"] if "uv" in z.files else None,
+                              {k[9:]: z[k] for k in z.files if k.startswith("guidearr_")})
                 arrays = [state.V, state.u, state.basis, *values.values(), *([state.uv] if state.uv is not None else []),
                           *(a for _, m, v in adam.values() for a in (m, v))]
         except Exception as exc:  # noqa: BLE001 - a damaged state file

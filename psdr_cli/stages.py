@@ -51,11 +51,12 @@ def stage_images(targets, k: int):
 @dataclass
 class Stage:
     """What a remesh stage renders against: its downsampling factor, the targets at that factor
-    ((H/k, W/k, 3) arrays and flat ``mi.Float`` copies), and whether its film is guided."""
+    ((H/k, W/k, 3) arrays and flat ``mi.Float`` copies), whether its film is guided, and its pixels."""
     factor: int
     images: list
     arrays: list
     guided: bool
+    pixels: int
 
 
 def stage_of(problem, targets, settings, terms, previous: Stage | None = None) -> Stage:
@@ -63,7 +64,8 @@ def stage_of(problem, targets, settings, terms, previous: Stage | None = None) -
     if previous is not None and previous.factor == problem.factor:
         return previous
     images, arrays = stage_images(targets, problem.factor)
-    return Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixel_count(problem)))
+    pixels = pixel_count(problem)
+    return Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixels), pixels)
 
 
 def pixel_count(problem) -> int:

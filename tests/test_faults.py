@@ -417,16 +417,23 @@ def test_resume_after_an_edit_keeps_the_old_run(run_copy, capsys):
 GUIDED = copy.deepcopy(SMALL)
 GUIDED["estimator"].update(guiding="grid", grid={"resolution": [16, 4, 4], "samples_per_cell": 16})
 GUIDED["optimize"].update(iterations=6, guide_every=3, albedo={"init": [0.3, 0.4, 0.5]})
+#: Kd-tree guides of the direct term fitted to the loop's own samples (at 3 and 6), 64 samples per pixel
+LOOP_FED = copy.deepcopy(GUIDED)
+LOOP_FED["estimator"].update(guiding="kdtree", boundary_spp=64, edge_sort=True)
+LOOP_FED["estimator"].pop("grid")
+LOOP_FED["optimize"].update(iterations=8)
 
 
 @pytest.mark.slow
-def test_stopped_and_resumed_guided_run_reproduces_the_uninterrupted_one(tmp_path, capsys):
-    """Guided (grid guides built every 3 iterations) with RGB albedo: a run stopped after
-    iteration 4 (between two guide builds) and resumed gives the uninterrupted run's losses
-    exactly; the guides are restored, not rebuilt at the resume iteration."""
-    full = write_small(tmp_path / "full", GUIDED)
+@pytest.mark.parametrize("data", [GUIDED, LOOP_FED], ids=["grid", "loop-fed kdtree"])
+def test_stopped_and_resumed_guided_run_reproduces_the_uninterrupted_one(tmp_path, capsys, data):
+    """Guided (grid guides built every 3 iterations, or Kd-trees fitted every 3 iterations to the
+    samples the loop kept) with RGB albedo: a run stopped after iteration 4 (between two guide
+    refreshes) and resumed gives the uninterrupted run's losses exactly; the guides (and the
+    samples kept since the last fit) are restored, not rebuilt at the resume iteration."""
+    full = write_small(tmp_path / "full", data)
     assert cli.run(["optimize", str(full)]) == 0
-    part = write_small(tmp_path / "part", GUIDED)
+    part = write_small(tmp_path / "part", data)
     assert cli.run(["optimize", str(part), "--iterations", "4"]) == 0
     assert cli.run(["optimize", str(part), "--resume"]) == 0
 

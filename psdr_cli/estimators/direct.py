@@ -38,6 +38,7 @@ from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in
                                 pdf_wedge, primary_sample, ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
 from .interior import environment_motion, turn
+from .sample_log import SampleLog
 from .term import Term, boundary_pass
 
 
@@ -148,8 +149,9 @@ def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: 
 
 def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
                   mis: bool, u1, u2, weight, env_motion):
-    """(v, pixel, mask) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
-    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ.
+    """(v, pixel, mask, F̃) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
+    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ. F̃ = max_RGB |coef|
+    (detached, 0 where masked) is the guide target at the samples (:func:`direct_target`).
 
     ω(θ) = normalize(x^B(θ) − x^D_λ(θ)) with x^D_λ = x^D + λ (x^D(θ) − x^D), λ = t_S/(t_S + t_D):
     the source point x^S is fixed, so a moving x^D turns the segment x^D → x^S about x^S and
@@ -159,8 +161,9 @@ def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, d
     edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, sensor, edges, P, distr,
                                                                          technique, mis, u1, u2)
     with dr.suspend_grad():
+        size = dr.select(ok, dr.max(dr.abs(coef)), 0.0)
         coef *= weight
-        dr.eval(coef, mhat, uv, pixel, ok, xD, env, lever)  # evaluate once: forward mode would re-trace otherwise
+        dr.eval(coef, mhat, uv, pixel, ok, xD, env, lever, size)  # evaluate once: forward mode would re-trace otherwise
     # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
     ray = camera_ray(sensor, uv, width, height, ok)
     xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
@@ -168,7 +171,7 @@ def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, d
     rel = normalize(edge.xB - xD_t)
     if env_motion is not None:  # a rotating environment moves the source end of the segment
         rel = rel - dr.select(env, turn(env_motion, w), mi.Vector3f(0.0))
-    return coef * dr.dot(mhat, rel), pixel, ok
+    return coef * dr.dot(mhat, rel), pixel, ok, size
 
 
 def direct_motion_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
@@ -184,7 +187,8 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
                     sampler: mi.Sampler, technique: str = "mis", guides=None):
     """Direct boundary contribution (flat W·H·3 image whose primal value is 0) from ``n_samples``
     samples (pairs for MIS); ``P`` is the AD vertex buffer of the edge objects. ``guides`` maps a
-    technique (``light``/``dir``) to a guide over its primary samples (None: uniform)."""
+    technique (``light``/``dir``) to a guide over its primary samples (None: uniform); a
+    :class:`~.sample_log.SampleLog` also keeps the samples for the next guide."""
     width, height = sensor.film().size()
     img = dr.zeros(mi.Float, width * height * 3)
     if edges.count == 0:
@@ -194,8 +198,10 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
     scale = dr.opaque(mi.Float, (width * height) / n_samples)
     for t in (("light", "dir") if technique == "mis" else (technique,)):
         u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
-        v, pixel, ok = direct_motion(scene, sensor, edges, P, distr, t, technique == "mis", u1, u2,
-                                     dr.detach(scale / g), env_motion)
+        v, pixel, ok, size = direct_motion(scene, sensor, edges, P, distr, t, technique == "mis", u1, u2,
+                                           dr.detach(scale / g), env_motion)
+        if isinstance(guides, SampleLog):
+            guides.record(t, u1, u2, size, g)
         v = v - dr.detach(v)
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)

@@ -348,6 +348,46 @@ def explorer(guide: KdTreeGuide) -> KdTreeGuide:
                        guide.axis, guide.split, guide.child, guide.node_leaf)
 
 
+def leaf_breaks(breaks, max_leaves: int) -> np.ndarray:
+    """The u1 cuts of the tree's top: 0, ``breaks``, 1 (sorted, unique), thinned to at most
+    max_leaves/2 intervals by merging neighbours."""
+    breaks = np.unique(np.clip(np.r_[0.0, np.asarray(breaks, np.float64), 1.0], 0.0, 1.0))
+    if len(breaks) - 1 > max_leaves // 2:
+        breaks = breaks[np.unique(np.linspace(0, len(breaks) - 1, max_leaves // 2 + 1).round().astype(int))]
+    return breaks
+
+
+def fit_kdtree(u, f, w, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
+               max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
+               interval_share: float = 0.1) -> KdTreeGuide:
+    """Kd-tree guide grown (step 3 of the module docstring) from given samples u (N,3) with
+    target values F̃ (N,) and weights w (N,), Σ_{u∈B} w F̃ ≈ ∫_B F̃: no target evaluation."""
+    t0 = time.perf_counter()
+    breaks = leaf_breaks(breaks, max_leaves)
+    guide = make_tree(interval_tree(breaks), breaks, np.asarray(u, np.float64), np.asarray(f, np.float64),
+                      np.asarray(w, np.float64), epsilon, interval_share,
+                      (samples_per_node, threshold, max_depth, max_leaves))
+    guide.stats.evaluations = 0
+    guide.stats.memory_bytes = guide.memory_bytes()
+    guide.stats.build_seconds = time.perf_counter() - t0
+    return guide
+
+
+def tree_arrays(guide: KdTreeGuide) -> dict:
+    """The arrays that define ``guide`` (for a saved optimisation state)."""
+    return {"lo": guide.lo, "hi": guide.hi, "corners": guide.corners, "axis": guide.axis,
+            "split": guide.split, "child": guide.child, "leaf": guide.node_leaf,
+            "epsilon": np.array([guide.epsilon])}
+
+
+def tree_from_arrays(a: dict) -> KdTreeGuide:
+    """The guide :func:`tree_arrays` described."""
+    stats = GuideStats("kdtree")
+    return KdTreeGuide(a["lo"], a["hi"], a["corners"], float(np.ravel(a["epsilon"])[0]), stats,
+                       np.asarray(a["axis"]), np.asarray(a["split"]), np.asarray(a["child"]),
+                       np.asarray(a["leaf"]))
+
+
 def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
                  max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
                  seed: int = 0, initial_samples: int = 32768, interval_share: float = 0.1,
@@ -356,9 +396,7 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
     from two batches of F̃ (one with a ``prior`` guide; see the module docstring)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
-    breaks = np.unique(np.clip(np.r_[0.0, np.asarray(breaks, np.float64), 1.0], 0.0, 1.0))
-    if len(breaks) - 1 > max_leaves // 2:  # too many intervals: merge neighbours, keep the budget
-        breaks = breaks[np.unique(np.linspace(0, len(breaks) - 1, max_leaves // 2 + 1).round().astype(int))]
+    breaks = leaf_breaks(breaks, max_leaves)
     growth = (samples_per_node, threshold, max_depth, max_leaves)
     top = interval_tree(breaks)
     n1 = int(round(refine_ratio * initial_samples))
