@@ -407,7 +407,7 @@ class GridConfig:
 @dataclass
 class KdTreeConfig:
     samples_per_node: int = 32
-    initial_samples: int = 0         # 0: auto, 1/16 of one boundary pass's lanes in [4096, 32768]
+    initial_samples: int = 0         # 0: auto, half of one boundary pass's lanes in [131072, 262144]
     refine_ratio: float = 0.0        # second batch (drawn from the first tree) / initial_samples
     interval_share: float = 0.1
     technique_share: float = 0.3     # MIS: share of the techniques' common u1 (edge) profile
