@@ -1,8 +1,16 @@
-"""Files psdr reads and writes: EXR images, PNG previews, JSON — always atomically (write, then rename)."""
+"""Files psdr reads and writes: EXR images, PNG previews, JSON — always atomically (write, then rename).
+
+A write that fails leaves nothing under the final name and is a :class:`PsdrError` naming the
+file: errors of the file system (a full disk, a read-only folder) are reported by Python or, for
+EXR and PNG files, by the image libraries, and each image is read back before it is renamed into
+place (a library may return as if all went well while the disk filled up under it)."""
 from __future__ import annotations
 
+import errno
 import json
 import os
+import stat
+import struct
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -36,9 +44,11 @@ def atomic_path(path):
 
     A reader never sees a half-written file, and an interrupted write leaves the old file intact.
     A failure of the file system (the folder is a file or read-only, the disk is full) is raised
-    as a :class:`PsdrError` naming ``path``.
+    as a :class:`PsdrError` naming ``path``, and so is a ``path`` that is not a regular file
+    (:func:`check_output_file`: a folder, a device or a FIFO is never replaced).
     """
     path = Path(path)
+    check_output_file(path)
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -48,14 +58,35 @@ def atomic_path(path):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
         yield Path(tmp)
-        if path.is_dir():
-            raise IsADirectoryError(21, "Is a directory")
+        check_output_file(path)
         os.replace(tmp, path)
     except OSError as exc:
         raise PsdrError(f"{path}: cannot write ({describe_os_error(exc)})") from None
     finally:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+
+
+#: What a path that is not a regular file is, by the type bits of its mode.
+NOT_REGULAR = ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a device"), (stat.S_ISBLK, "a device"),
+               (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_output_file(path, option: str = "") -> Path:
+    """``path`` if psdr may write a file there: nothing there yet, or a regular file (or a link to
+    one), which is replaced whole. A folder, a device (``/dev/null``), a FIFO or a socket, or a
+    link to one, is refused with a :class:`PsdrError` naming it (and ``option``, the command-line
+    option that gave it): the atomic rename would replace it, not write into it."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):  # nothing there (or no way to tell): the write itself will say
+        return path
+    kind = next((name for test, name in NOT_REGULAR if test(mode)), None)
+    if kind is not None:
+        where = f"{path}: {option}: " if option else f"{path}: "
+        raise PsdrError(f"{where}not a regular file ({kind}); give the name of a file to write")
+    return path
 
 
 def writable_folder(folder) -> Path:
@@ -78,6 +109,30 @@ def describe_os_error(exc: OSError) -> str:
     return f"{text}: {exc.filename}" if exc.filename else text
 
 
+#: Errors of the file system that the image libraries report in their messages only.
+LIBRARY_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EIO)
+
+
+def library_write(path, tmp, write, read_back):
+    """Run an image library's ``write(tmp)``, then check with ``read_back(tmp)`` (True when the
+    file holds what was written). OpenEXR and Mitsuba report a failed write as a RuntimeError,
+    or not at all (an empty or cut file when the disk fills up as the file is closed); both are
+    a :class:`PsdrError` naming ``path`` (:func:`atomic_path` then removes ``tmp``)."""
+    try:
+        write(str(tmp))
+    except RuntimeError as exc:
+        text = str(exc)
+        reason = next((os.strerror(e) for e in LIBRARY_ERRNOS if os.strerror(e) in text),
+                      text.splitlines()[0] if text else type(exc).__name__)
+        raise PsdrError(f"{path}: cannot write ({reason})") from None
+    try:
+        complete = read_back(str(tmp))
+    except Exception:  # noqa: BLE001 - a file cut short by the library fails to decode
+        complete = False
+    if not complete:
+        raise PsdrError(f"{path}: cannot write (the file read back is incomplete; is the disk full?)")
+
+
 def check_finite(path, array, what: str):
     """Raise a :class:`PsdrError` naming ``path`` when ``array`` holds NaN or infinite values
     (psdr never writes such a file)."""
@@ -96,9 +151,16 @@ def write_exr(path, channels: dict, header: dict | None = None):
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for key, value in (header or {}).items():
         hdr[key] = value if isinstance(value, str) else json.dumps(value)
+    def write(tmp):
+        with OpenEXR.File(hdr, dict(chans)) as f:  # (OpenEXR turns the dict's arrays into channels)
+            f.write(tmp)
+
+    def read_back(tmp):
+        written = read_exr(tmp)
+        return all(np.array_equal(written.get(name), a) for name, a in chans.items())
+
     with atomic_path(path) as tmp:
-        with OpenEXR.File(hdr, chans) as f:
-            f.write(str(tmp))
+        library_write(path, tmp, write, read_back)
 
 
 def write_rgb_exr(path, image: np.ndarray, header: dict | None = None):
@@ -114,6 +176,42 @@ def read_exr(path) -> dict:
     return out
 
 
+def image_size(path) -> tuple | None:
+    """(width, height) of a PNG, JPEG or EXR image, read from its header alone (no pixel is
+    decoded, so a huge image can be refused before it fills the memory); None when the header
+    is not recognised (the decoder then says what is wrong)."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".exr":
+            with OpenEXR.File(str(path), header_only=True) as f:
+                lo, hi = f.header()["dataWindow"]
+            return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+        with open(path, "rb") as f:
+            head = f.read(24)
+            if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+                return struct.unpack(">II", head[16:24])
+            if head[:2] == b"\xff\xd8":
+                return _jpeg_size(f)
+    except Exception:  # noqa: BLE001 - unreadable or damaged: the decoder reports it
+        return None
+    return None
+
+
+def _jpeg_size(f) -> tuple | None:
+    """(width, height) from the first start-of-frame marker of a JPEG file (segments skipped by
+    their lengths)."""
+    f.seek(2)
+    while True:
+        marker = f.read(4)
+        if len(marker) < 4 or marker[0] != 0xFF:
+            return None
+        kind, length = marker[1], struct.unpack(">H", marker[2:])[0]
+        if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # SOF0..SOF15 (not DHT, JPG, DAC)
+            height, width = struct.unpack(">xHH", f.read(5))
+            return width, height
+        f.seek(length - 2, os.SEEK_CUR)
+
+
 def read_rgb_exr(path) -> np.ndarray:
     ch = read_exr(path)
     return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
@@ -127,8 +225,10 @@ def srgb(linear: np.ndarray) -> np.ndarray:
 
 def write_png(path, rgb8: np.ndarray):
     """(H, W, 3) uint8 image as PNG."""
+    rgb8 = np.ascontiguousarray(rgb8, np.uint8)
     with atomic_path(path) as tmp:
-        mi.Bitmap(np.ascontiguousarray(rgb8, np.uint8), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(tmp))
+        library_write(path, tmp, mi.Bitmap(rgb8, pixel_format=mi.Bitmap.PixelFormat.RGB).write,
+                      lambda t: np.array_equal(np.array(mi.Bitmap(t)), rgb8))
 
 
 def write_preview(path, image: np.ndarray, exposure: float = 0.0):

@@ -66,6 +66,9 @@ def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: 
     scene = build_scene(exp)
     views = parse_views(views, len(exp.scene.cameras))
     folder = fileio.writable_folder(exp.command_dir("render", out))
+    exrs = {v: fileio.check_output_file(folder / f"view_{v:03d}.exr") for v in views}  # before rendering
+    for exr in exrs.values():
+        fileio.check_output_file(exr.with_suffix(".png"))
     W, H = scene.resolution
     result = RenderResult(folder, views, spp=spp, resolution=(W, H), variant=variant)
     if progress:
@@ -78,7 +81,7 @@ def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: 
         header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.spp": str(spp),
                   "psdr.seed": str(exp.seed), "psdr.camera": {"origin": cam.origin, "target": cam.target,
                                                               "up": cam.up, "fov": cam.fov}}
-        exr = folder / f"view_{v:03d}.exr"
+        exr = exrs[v]
         fileio.write_rgb_exr(exr, image, header)
         fileio.write_preview(exr.with_suffix(".png"), image)
         result.files.append(exr)

@@ -108,14 +108,14 @@ def target_key(exp, reference, spp: int) -> str:
 
 def render_targets(exp, files: RunFiles, reference, progress=None):
     """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
-    in ``targets/`` (reused while the scene, the ground truth and spp are unchanged)."""
+    in ``targets/`` (reused while the scene, the ground truth and spp are unchanged, and only if
+    every cached file can be read back whole: see :func:`cached_target`)."""
     cfg = exp.optimize
     key = target_key(exp, reference, cfg.target_spp)
     paths = [files.targets / f"view_{v:03d}.exr" for v in range(len(exp.scene.cameras))]
-    cached = all(p.exists() for p in paths) and all(
-        fileio.read_exr(p)["__header__"].get("psdr.target_key") == key for p in paths)
-    if cached:
-        return [fileio.read_rgb_exr(p).astype(np.float64) for p in paths]
+    cached = [cached_target(p, key, (exp.scene.height, exp.scene.width)) for p in paths]
+    if all(image is not None for image in cached):
+        return cached
     scene = build_scene(exp, objects={cfg.object: reference})
     images = []
     for v, p in enumerate(paths):
@@ -129,6 +129,20 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
         if progress:
             progress(v)
     return images
+
+
+def cached_target(path, key: str, shape: tuple):
+    """The cached target image at ``path`` if it can be trusted: it exists, reads back whole (not
+    emptied or cut short by a full disk or a copy), was rendered for ``key`` (:func:`target_key`),
+    has the film's (height, width) and finite values; else None (the targets are rendered again)."""
+    try:
+        exr = fileio.read_exr(path)
+        image = np.stack([exr[c] for c in "RGB"], -1).astype(np.float64)
+    except Exception:  # noqa: BLE001 - missing, empty, truncated or not an EXR at all
+        return None
+    if exr["__header__"].get("psdr.target_key") != key or image.shape[:2] != shape or not np.isfinite(image).all():
+        return None
+    return image
 
 
 def image_targets(exp):
