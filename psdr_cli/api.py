@@ -24,7 +24,7 @@ from . import optimize as optimization
 from . import render as rendering
 from . import runs
 from . import sweep
-from .config import Experiment
+from .config import MAX_ITERATIONS, Experiment, option_count
 from .guiding import stats
 from .mitsuba_scene import warn_stderr
 from .sweep import RayOptions  # noqa: F401  (re-exported: api.RayOptions)
@@ -91,6 +91,7 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
     """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult). With
     ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving
     one progress object (``start``, ``advance``) per run."""
+    option_count("--iterations", iterations, 1, MAX_ITERATIONS)  # before any run starts, here or on Ray
     if ray is not None:
         return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress, warn)
     return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn)

@@ -63,6 +63,12 @@ MAX_GRID_SAMPLES = 1 << 28
 MAX_VERTICES = 500_000
 #: Passes of one estimate (estimator.passes, compare.reference_passes).
 MAX_PASSES = 1 << 16
+#: Texels of one texture or environment-map file (16384 × 8192), checked before it is decoded.
+MAX_TEXELS = 1 << 27
+#: Iterations of one optimisation (optimize.iterations, --iterations).
+MAX_ITERATIONS = 1_000_000
+#: Points sampled per surface by ``psdr evaluate`` (evaluate.samples, --samples).
+MIN_EVAL_SAMPLES, MAX_EVAL_SAMPLES = 100, 10_000_000
 #: First character of the Mitsuba ids psdr gives its own scene entries (cameras, emitters, the
 #: integrator): no object name may start with it, so user names never meet psdr's.
 INTERNAL_PREFIX = "@"
@@ -117,13 +123,16 @@ def _describe(value) -> str:
         return "nothing"
     if isinstance(value, bool):
         return f"boolean {str(value).lower()}"
+    if isinstance(value, int) and abs(value) > FLOAT32_MAX:
+        return f"a {len(str(abs(value)))}-digit integer"
     if isinstance(value, (int, float)):
         return f"number {value}"
     if isinstance(value, str):
         return f"string '{value}'"
     if isinstance(value, list):
         if len(value) <= 8 and all(isinstance(v, (int, float, str, bool)) or v is None for v in value):
-            return "[" + ", ".join(str(v) for v in value) + "]"
+            return "[" + ", ".join(_describe(v) if isinstance(v, int) and abs(v) > FLOAT32_MAX else str(v)
+                                   for v in value) + "]"
         return f"a list of {len(value)}"
     if isinstance(value, dict):
         return "a mapping"
@@ -164,26 +173,38 @@ def integer(minimum: int | None = None, maximum: int | None = None) -> Parser:
             value = int(value)  # YAML reads 1e12 as a float
         if isinstance(value, bool) or not isinstance(value, int):
             raise where.fail(f"expected an integer, got {_describe(value)}")
+        got = _describe(value) if abs(value) > FLOAT32_MAX else value  # not 400 digits
         if minimum is not None and value < minimum:
-            raise where.fail(f"expected an integer >= {minimum}, got {value}")
+            raise where.fail(f"expected an integer >= {minimum}, got {got}")
         if maximum is not None and value > maximum:
-            raise where.fail(f"expected an integer <= {maximum} (a resource limit), got {value}")
+            raise where.fail(f"expected an integer <= {maximum} (a resource limit), got {got}")
         return value
     return parse
 
 
+def finite(value) -> bool:
+    """``math.isfinite`` for YAML numbers: an integer too large for a float (400 digits) is not
+    finite either (instead of an OverflowError)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def finite32(value) -> bool:
     """Whether ``value`` is a number that is finite in float32 (the precision it is used in)."""
-    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and finite(value)
             and abs(value) <= FLOAT32_MAX)
 
 
 def number(minimum: float | None = None, positive: bool = False, maximum: float | None = None) -> Parser:
     def parse(value, where):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                isinstance(value, float) and not math.isfinite(value)):  # (a 400-digit integer: below)
             raise where.fail(f"expected a number, got {_describe(value)}")
         if not finite32(value):
-            raise where.fail(f"expected a number representable in float32 (|x| <= 3.4e38), got {value}")
+            got = _describe(value) if isinstance(value, int) else value
+            raise where.fail(f"expected a number representable in float32 (|x| <= 3.4e38), got {got}")
         if positive and value <= 0:
             raise where.fail(f"expected a number > 0, got {value}")
         if minimum is not None and value < minimum:
@@ -203,6 +224,8 @@ def boolean(value, where):
 def string(value, where):
     if not isinstance(value, str) or not value.strip():
         raise where.fail(f"expected a non-empty string, got {_describe(value)}")
+    if "\0" in value:  # no file name (and no folder psdr names after it) can hold one
+        raise where.fail("expected a string without NUL characters")
     return value
 
 
@@ -223,7 +246,7 @@ def vector(n: int = 3, nonzero: bool = False, positive: bool = False, bound: flo
             isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
         if not ok:
             raise where.fail(f"expected a list of {n} numbers, got {_describe(value)}")
-        if not all(math.isfinite(v) for v in value):
+        if not all(finite(v) for v in value):
             raise where.fail(f"expected {n} finite numbers, got {_describe(list(value))}")
         if max(abs(v) for v in value) > bound:
             raise where.fail(f"expected {n} numbers within ±{bound:g}, got {_describe(list(value))}")
@@ -861,7 +884,7 @@ def parse_mitsuba_scene(sec: Section, where: Where, base: Path) -> SceneConfig:
     src.params = {str(k): _xml_param(v, where.child("params").child(str(k))) for k, v in params.items()}
     if sec.has("film"):
         film = Section(sec.get("film", lambda v, _: v), where.child("film"))
-        src.film = (film.get("width", integer(1)), film.get("height", integer(1)))
+        src.film = (film.get("width", integer(1, MAX_FILM)), film.get("height", integer(1, MAX_FILM)))
         film.done()
     src.up_given = sec.has("up")
     src.up = _unit(sec.get("up", vector(3, nonzero=True), src.up))
@@ -961,6 +984,14 @@ def option_spp(name: str, spp: int | None, width: int, height: int) -> int | Non
     if spp < 1:
         raise PsdrError(f"{name}: expected a positive number of samples per pixel, got {spp}")
     return check_paths(spp, width, height, lambda m: PsdrError(f"{name}: {m}"))
+
+
+def option_count(name: str, value: int | None, minimum: int, maximum: int) -> int | None:
+    """A count given on the command line (``--iterations``, ``--samples``): None, or an integer
+    in [minimum, maximum] (0 is an error, not "the default")."""
+    if value is not None and not minimum <= value <= maximum:
+        raise PsdrError(f"{name}: expected an integer in [{minimum}, {maximum}], got {value}")
+    return value
 
 
 def option_number(name: str, value: float | None, positive: bool = True) -> float | None:
@@ -1163,7 +1194,7 @@ def parse_optimize(base: Path) -> Parser:
         if o.object is None:
             raise where.child("object").fail("missing (the object to reconstruct; or target: {object: NAME})")
         o.remesh = sec.get("remesh", parse_remesh, RemeshConfig())
-        o.iterations = sec.get("iterations", integer(1), o.iterations)
+        o.iterations = sec.get("iterations", integer(1, MAX_ITERATIONS), o.iterations)
         o.batch_size = sec.get("batch_size", integer(1), o.batch_size)
         o.learning_rate = sec.get("learning_rate", number(positive=True), o.learning_rate)
         o.learning_rate_final = sec.get("learning_rate_final", number(positive=True), o.learning_rate_final)
@@ -1255,7 +1286,7 @@ def parse_evaluate(base: Path) -> Parser:
         sec = Section(value, where)
         e = EvaluateConfig()
         e.reference = sec.get("reference", path_relative_to(base), None)
-        e.samples = sec.get("samples", integer(100, 10_000_000), e.samples)
+        e.samples = sec.get("samples", integer(MIN_EVAL_SAMPLES, MAX_EVAL_SAMPLES), e.samples)
         e.seed = sec.get("seed", integer(0), e.seed)
         sec.done()
         return e

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import backend, fileio, plots
-from .config import MAX_COORD, read_file
+from .config import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES, option_count, read_file
 from .errors import PsdrError
 from .meshes import face_areas, read_mesh_file
 from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
@@ -144,8 +144,11 @@ def evaluate_meshes(reference: Path, paths, samples: int = 100_000, seed: int = 
              progress=None, report: Path | None = None, labels: list | None = None, title: str = "") -> EvaluateResult:
     """Chamfer/Hausdorff distances of meshes (or of every checkpoint of run folders) to
     ``reference``; a run folder also gets ``chamfer.png`` (distance against iteration and time)."""
-    if samples < 100:
-        raise PsdrError(f"--samples: expected at least 100 points, got {samples}")
+    option_count("--samples", samples, MIN_EVAL_SAMPLES, MAX_EVAL_SAMPLES)
+    if json_out:  # outputs that cannot be written are refused before the work
+        fileio.check_output_file(json_out, "--json")
+    if report:
+        fileio.writable_folder(report)
     ref = load(reference)
     jobs = []  # (label, path, iteration, seconds, run folder)
     for p in map(Path, paths):
@@ -222,6 +225,7 @@ def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = 
     variants, reported side by side) and its ``evaluate:`` defaults; the reference is, in this
     order, ``reference``, ``evaluate.reference``, or the first run's ``reference.ply``."""
     paths = [str(p) for p in paths or []]
+    option_count("--samples", samples, MIN_EVAL_SAMPLES, MAX_EVAL_SAMPLES)  # 0 is an error, not the default
     seed, labels, title = 0, None, ""
     configs = [p for p in paths if p.endswith((".yaml", ".yml"))]
     targets = [Path(p) for p in paths if not p.endswith((".yaml", ".yml"))]
@@ -249,7 +253,7 @@ def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = 
                         "experiment, or a run folder with reference.ply)")
     if not targets:
         raise PsdrError("evaluate: nothing to evaluate (give meshes or `psdr optimize` run folders)")
-    return reference, targets, samples or 100_000, seed, report, labels, title
+    return reference, targets, 100_000 if samples is None else samples, seed, report, labels, title
 
 
 # --------------------------------------------------------------------------------------------
@@ -277,6 +281,7 @@ def table2(experiments: list, out: Path) -> Path:
     size, iterations) and the measured per-iteration time split (guiding, rendering,
     post-processing) and guide memory, from the runs' logs; the paper's own rows follow,
     labelled as such. Written as markdown to ``out``."""
+    out = fileio.check_output_file(out, "--out")
     rows = ["| experiment | run | target images | image | spp (int/prim/bdry) | # param. | batch | # iter. | "
             "guide memory | guiding s/it | render s/it | post s/it |",
             "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -301,8 +306,7 @@ def table2(experiments: list, out: Path) -> Path:
             "edge extraction and scene update.\n\n"
             "## The paper's Table 2 (for reference; their hardware: 32-core CPU and an RTX Titan GPU)\n\n"
             + "\n".join(paper) + "\n")
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    fileio.writable_folder(out.parent)
     with fileio.atomic_path(out) as tmp:
         Path(tmp).write_text(text)
     return out

@@ -45,8 +45,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, meshes
-from .config import (MAX_COORD, BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec, ObjectConfig,
-                     SceneConfig, Where, emitter_id, name_problem, sensor_id)
+from .config import (MAX_COORD, MAX_FILM, BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec,
+                     ObjectConfig, SceneConfig, Where, emitter_id, name_problem, sensor_id)
 from .errors import ConfigError
 from .jitarray import jit_array
 
@@ -231,6 +231,10 @@ def read_scene(exp: Experiment) -> XmlScene:
     sensors, cameras = [], []
     films = [tuple(int(s) for s in sensor.film().size()) for sensor in mi_scene.sensors() if sensor.film()]
     sizes = set(films)
+    for i, (w, h) in enumerate(films[:1] if src.cameras_given else films):
+        if src.film is None and not (1 <= w <= MAX_FILM and 1 <= h <= MAX_FILM):  # as scene.film's limits
+            raise fail(f"sensor {i}", f"film {w}×{h}: expected a width and height in [1, {MAX_FILM}] "
+                                      f"(a resource limit; or give scene.film)")
     if src.cameras_given:   # scene.cameras replace the XML's sensors; the film size is the first one's
         sizes = {films[0] if films else (128, 128)}
     else:

@@ -30,7 +30,7 @@ from pathlib import Path
 import drjit as dr
 
 from . import backend, fileio
-from .config import Experiment, check_stages
+from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
 from .engines import Engine
 from .errors import PsdrError
 from .gradient import Settings
@@ -68,9 +68,8 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     cfg = exp.optimize
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
+    option_count("--iterations", iterations, 1, MAX_ITERATIONS)
     total = cfg.iterations if iterations is None else iterations
-    if total < 1:
-        raise PsdrError(f"--iterations: expected a positive number, got {total}")
     backend.activate(exp)
     check_stages(exp)  # again: the experiment may have been changed in code after loading
     files = RunFiles(exp.run_dir)

@@ -28,6 +28,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import shutil
 import time
 import warnings
@@ -42,6 +43,8 @@ from .config import Experiment, with_estimator
 from .errors import PsdrError, PsdrWarning
 from .meshes import write_ply
 
+#: Names of the checkpoints in ``checkpoints/`` (other files there are not checkpoints).
+CHECKPOINT_NAME = re.compile(r"iter_(\d+)\.ply")
 LOG_FIELDS = ("iteration", "loss", "vertices", "seconds_guiding", "seconds_rendering", "seconds_post",
               "seconds_total", "skipped", "guide_bytes")
 
@@ -425,7 +428,8 @@ def append_log(path: Path, row: dict):
 def run_checkpoints(folder: Path):
     """[(iteration, path)] of a run folder (initial shape, checkpoints, final)."""
     folder = Path(folder)
-    found = sorted((int(p.stem.split("_")[1]), p) for p in RunFiles(folder).checkpoints.glob("iter_*.ply"))
+    found = sorted((int(p.stem[5:]), p) for p in RunFiles(folder).checkpoints.glob("iter_*.ply")
+                   if CHECKPOINT_NAME.fullmatch(p.name))  # not iter_abc.ply, a copy's "iter_0010 (2).ply"
     if not found:
         raise PsdrError(f"{folder}: no checkpoints (expected checkpoints/iter_NNNN.ply from `psdr optimize`)")
     return found

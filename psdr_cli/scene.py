@@ -12,8 +12,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import fileio, mitsuba_scene
-from .config import (BSDF_RANGES, INTEGRATOR_ID, BitmapConfig, EmitterConfig, Experiment, ObjectConfig, SceneConfig,
-                     emitter_id, sensor_id)
+from .config import (BSDF_RANGES, INTEGRATOR_ID, MAX_TEXELS, BitmapConfig, EmitterConfig, Experiment, ObjectConfig,
+                     SceneConfig, emitter_id, sensor_id)
 from .errors import ConfigError
 from .meshes import ObjectMesh, build_objects, has_bitmap
 
@@ -46,6 +46,7 @@ def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
     if b.data is not None:
         bitmap = mi.Bitmap(np.ascontiguousarray(b.data, np.float32))
     else:
+        check_image_size(b.file, file, key + ".file", "texture")
         try:
             bitmap = mi.Bitmap(exr_texels(b.file)) if b.file.suffix.lower() == ".exr" else mi.Bitmap(str(b.file))
         except Exception as exc:  # noqa: BLE001 - a damaged or unsupported image
@@ -64,6 +65,15 @@ def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
         raise ConfigError(file, key + ".file", f"texture {what} has values in [{texels.min():g}, "
                           f"{texels.max():g}], expected [{lo:g}, {hi:g}] for {name}")
     return bitmap
+
+
+def check_image_size(path, file: str, key: str, what: str):
+    """Refuse an image file of more than :data:`MAX_TEXELS` texels from its header, before it is
+    decoded (and converted to floats, several bytes per texel)."""
+    size = fileio.image_size(path)
+    if size is not None and size[0] * size[1] > MAX_TEXELS:
+        raise ConfigError(file, key, f"{what} {path.name} is {size[0]}×{size[1]} pixels, more than "
+                          f"{MAX_TEXELS:,} texels (16384 × 8192; a resource limit)")
 
 
 def exr_texels(path) -> np.ndarray:
@@ -145,6 +155,7 @@ def emitter_dict(em: EmitterConfig, file: str) -> dict:
     if em.type == "envmap":
         if not em.file.exists():
             raise ConfigError(file, em.key + ".file", f"environment map not found: {em.file}")
+        check_image_size(em.file, file, em.key + ".file", "environment map")
         try:
             bitmap = mi.Bitmap(exr_texels(em.file)) if em.file.suffix.lower() == ".exr" else mi.Bitmap(str(em.file))
         except Exception as exc:  # noqa: BLE001

@@ -167,7 +167,7 @@ USAGE_CASES = [
     ("spp_not_integer", ["render", "{cfg}", "--spp", "1.5"], "psdr render: Invalid value for '--spp'"),
     ("missing_config", ["render"], "psdr render: Missing argument 'config'"),
     ("misspelt_subcommand", ["rendr", "{cfg}"], "psdr: No such command 'rendr'"),
-    ("iterations_zero", ["optimize", "{cfg}", "--iterations", "0"], "--iterations: expected a positive number, got 0"),
+    ("iterations_zero", ["optimize", "{cfg}", "--iterations", "0"], "--iterations: expected an integer in [1, 1000000], got 0"),
     ("fd_inf", ["grad", "{cfg}", "--fd", "inf"], "--fd: expected a finite number > 0, got inf"),
     ("fd_nan", ["grad", "{cfg}", "--fd", "nan"], "--fd: expected a finite number > 0"),
     ("fd_negative", ["grad", "{cfg}", "--fd", "-0.1"], "--fd: expected a finite number > 0"),
