@@ -197,6 +197,15 @@ def image_size(path) -> tuple | None:
     return None
 
 
+def image_too_large(path, limit: int) -> str | None:
+    """'huge.png is 20000×20000 pixels, more than ...' when the image at ``path`` has more than
+    ``limit`` texels by its header (:func:`image_size`), else None."""
+    size = image_size(path)
+    if size is None or size[0] * size[1] <= limit:
+        return None
+    return f"{Path(path).name} is {size[0]}×{size[1]} pixels, more than the limit of {limit:,} texels (a resource limit)"
+
+
 def _jpeg_size(f) -> tuple | None:
     """(width, height) from the first start-of-frame marker of a JPEG file (segments skipped by
     their lengths)."""

@@ -40,13 +40,14 @@ import re
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from xml.etree import ElementTree
 
 import mitsuba as mi
 import numpy as np
 
-from . import backend, meshes
-from .config import (MAX_COORD, MAX_FILM, BsdfConfig, CameraConfig, EmitterConfig, Experiment, MeshSpec,
-                     ObjectConfig, SceneConfig, Where, emitter_id, name_problem, sensor_id)
+from . import backend, fileio, meshes
+from .config import (MAX_COORD, MAX_FILM, MAX_TEXELS, BsdfConfig, CameraConfig, EmitterConfig, Experiment,
+                     MeshSpec, ObjectConfig, SceneConfig, Where, emitter_id, name_problem, sensor_id)
 from .errors import ConfigError
 from .jitarray import jit_array
 
@@ -67,6 +68,10 @@ BSDF_NAMES = {"SmoothDiffuse": "diffuse", "RoughConductor": "roughconductor", "S
 ANALYTIC = {"Sphere": "sphere", "Disk": "disk", "Cylinder": "cylinder", "Instance": "instance",
             "BSplineCurve": "bsplinecurve", "LinearCurve": "linearcurve", "SDFGrid": "sdfgrid",
             "ShapeGroup": "shapegroup", "Ellipsoids": "ellipsoids", "EllipsoidsMesh": "ellipsoidsmesh"}
+
+
+#: Files of an XML scene whose size is checked before Mitsuba decodes them.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 
 
 def warn_stderr(message: str):
@@ -99,9 +104,51 @@ def xml_error(exc: Exception, file: Path) -> ConfigError:
     return ConfigError(where_file, "", re.sub(r'^"[^"]*":\s*', "", message))
 
 
+def named_files(src) -> list:
+    """[(file, the XML file naming it)] for every file the XML scene ``src`` reads, as its text
+    names them: the XML itself, the files it ``<include>``s (recursively) and every file a plugin
+    is given (a ``filename`` attribute or ``<string name="filename">``: meshes, textures,
+    environment maps, spectra), ``$name`` replaced by ``src.params`` or the XML's ``<default>``s,
+    relative to the main XML's folder (where Mitsuba resolves them) or the naming file's. Files
+    that do not exist are left out (Mitsuba reports them)."""
+    main = Path(src.file).resolve()
+    found, todo, params = {main: main}, [main], {}
+    while todo:
+        xml = todo.pop(0)
+        try:
+            elements = list(ElementTree.parse(xml).getroot().iter())
+        except (ElementTree.ParseError, OSError):
+            continue  # Mitsuba says what is wrong with it
+        params.update({e.get("name"): e.get("value") for e in elements if e.tag == "default"})
+        params.update(src.params)
+        for e in elements:
+            name = e.get("filename")
+            if e.tag == "string" and e.get("name") == "filename":
+                name = e.get("value")
+            if not name:
+                continue
+            name = re.sub(r"\$(\w+)", lambda m: str(params.get(m.group(1), m.group(0))), name)
+            file = next((p.resolve() for p in (main.parent / name, xml.parent / name) if p.is_file()), None)
+            if file is not None and file not in found:
+                found[file] = xml
+                if e.tag == "include":
+                    todo.append(file)
+    return list(found.items())
+
+
+def scene_files(src) -> list:
+    """Every file the XML scene ``src`` reads (:func:`named_files`), sorted."""
+    return sorted(file for file, _ in named_files(src))
+
+
 def load_xml(src, yaml_file: str | None = None) -> mi.Scene:
     """``mi.load_file(src.file, **src.params)``; any failure is one :class:`ConfigError` line (a
-    ``params`` entry the XML does not use names the experiment file's key)."""
+    ``params`` entry the XML does not use names the experiment file's key). The images the XML
+    names are refused first when they are too large to decode (:data:`MAX_TEXELS`)."""
+    for file, xml in named_files(src):
+        problem = fileio.image_too_large(file, MAX_TEXELS) if file.suffix.lower() in IMAGE_SUFFIXES else None
+        if problem:
+            raise ConfigError(xml, "", f"image {problem}")
     try:
         with backend.decoding_threads():  # the XML may name EXR files
             return mi.load_file(str(src.file), optimize=False, **src.params)

@@ -70,10 +70,9 @@ def read_bitmap(b: BitmapConfig, name: str, file: str, key: str):
 def check_image_size(path, file: str, key: str, what: str):
     """Refuse an image file of more than :data:`MAX_TEXELS` texels from its header, before it is
     decoded (and converted to floats, several bytes per texel)."""
-    size = fileio.image_size(path)
-    if size is not None and size[0] * size[1] > MAX_TEXELS:
-        raise ConfigError(file, key, f"{what} {path.name} is {size[0]}×{size[1]} pixels, more than "
-                          f"{MAX_TEXELS:,} texels (16384 × 8192; a resource limit)")
+    problem = fileio.image_too_large(path, MAX_TEXELS)
+    if problem:
+        raise ConfigError(file, key, f"{what} {problem}")
 
 
 def exr_texels(path) -> np.ndarray:

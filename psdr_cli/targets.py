@@ -7,13 +7,15 @@ import glob
 import hashlib
 import json
 from dataclasses import asdict
+from pathlib import Path
 
 import numpy as np
 
 from . import fileio, meshes
-from .config import BitmapConfig, CameraConfig
+from .config import CameraConfig
 from .errors import PsdrError
 from .meshes import object_mesh
+from .mitsuba_scene import scene_files
 from .remesh import remesh
 from .render import render_view
 from .runs import RunFiles, State, scene_identity, write_mesh
@@ -92,17 +94,39 @@ def target_seed(exp) -> int:
     return exp.seed if exp.optimize.target_seed is None else exp.optimize.target_seed
 
 
+def input_files(exp) -> list:
+    """Every file the experiment's scene reads: those it names (mesh files, textures, environment
+    maps, the XML scene) and, for an XML scene, the files the XML names (its includes, meshes,
+    textures, environment maps: :func:`psdr_cli.mitsuba_scene.scene_files`)."""
+    found = set()
+
+    def walk(value):
+        if isinstance(value, Path):
+            found.add(value)
+        elif isinstance(value, dict):
+            for v in value.values():
+                walk(v)
+        elif isinstance(value, (list, tuple)):
+            for v in value:
+                walk(v)
+
+    walk(asdict(exp.scene))
+    if exp.scene.mitsuba is not None:
+        found.update(scene_files(exp.scene.mitsuba))
+    return sorted(p for p in found if p.is_file())
+
+
 def target_key(exp, reference, spp: int) -> str:
-    """Hash of everything a cached target image depends on (bitmap textures' contents included)."""
+    """Hash of everything a cached target image depends on: the scene, the ground truth, spp and
+    seed, and the contents of every file the scene reads (:func:`input_files`), so that an edited
+    mesh file, texture, environment map or included XML file makes new targets."""
     h = hashlib.sha256()
     h.update(json.dumps(scene_identity(asdict(exp.scene)), default=str, sort_keys=True).encode())
     h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
     h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
     h.update(f"{spp}:{target_seed(exp)}".encode())
-    for obj in exp.scene.objects:  # the textures' contents (a repainted texture makes new targets)
-        for value in obj.bsdf.params.values():
-            if isinstance(value, BitmapConfig) and value.file is not None and value.file.is_file():
-                h.update(value.file.read_bytes())
+    for path in input_files(exp):
+        h.update(path.read_bytes())
     return h.hexdigest()[:16]
 
 
