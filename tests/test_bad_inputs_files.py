@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from conftest import experiment
-from psdr_cli import cli, fileio, meshes
+from psdr_cli import api, cli, fileio, meshes, targets
 from psdr_cli.errors import PsdrError
 from psdr_cli.runs import RunFiles, run_checkpoints
 from test_faults import SMALL, assert_one_line_error, write_small
@@ -144,16 +144,31 @@ def cut(path, how):
         path.write_bytes(b"\x76\x2f\x31\x01 garbage" * 10)
 
 
-@pytest.mark.parametrize("how", ["empty", "half", "garbage"])
-def test_a_damaged_cached_target_is_rendered_again(tmp_path, capsys, how):
+ONE_ITERATION = dict(SMALL, optimize=dict(SMALL["optimize"], iterations=1, checkpoint_every=1))
+
+
+@pytest.fixture(scope="module")
+def one_iteration_run(tmp_path_factory):
+    """A finished one-iteration run (copied by each test that changes it)."""
+    folder = tmp_path_factory.mktemp("one")
+    assert cli.run(["optimize", str(write_small(folder, ONE_ITERATION))]) == 0
+    return folder
+
+
+@pytest.mark.parametrize("how,resume", [("empty", True), ("half", True), ("garbage", False)],
+                         ids=["empty-resume", "half-resume", "garbage-fresh"])
+def test_a_damaged_cached_target_is_rendered_again(one_iteration_run, tmp_path, capsys, how, resume):
     """A cached target that cannot be read (an earlier full disk, a copy cut short) is rendered
     again, with or without --resume; it is never trusted, never an internal error."""
-    cfg = write_small(tmp_path, dict(SMALL, optimize=dict(SMALL["optimize"], iterations=1, checkpoint_every=1)))
-    assert psdr(capsys, "optimize", cfg)[0] == 0
-    target = RunFiles(tmp_path / "runs" / "small").targets / "view_000.exr"
+    shutil.copytree(one_iteration_run, tmp_path / "copy")
+    cfg = write_small(tmp_path / "copy", ONE_ITERATION)
+    target = RunFiles(tmp_path / "copy" / "runs" / "small").targets / "view_000.exr"
     good = fileio.read_rgb_exr(target)
     cut(target, how)
-    code, out, err = psdr(capsys, "optimize", cfg, "--resume", "--iterations", "2")
+    if resume:
+        code, out, err = psdr(capsys, "optimize", cfg, "--resume", "--iterations", "2")
+    else:  # the fresh run's folder is seeded with the old run's (damaged) targets
+        code, out, err = psdr(capsys, "optimize", cfg)
     assert code == 0, err
     assert np.array_equal(fileio.read_rgb_exr(target), good)
 
@@ -367,3 +382,101 @@ def test_evaluate_names_the_bad_mesh(tmp_path, capsys, two_meshes, name, role):
     mesh, ref = (bad, two_meshes) if role == "mesh" else (two_meshes, bad)
     code, out, err = psdr(capsys, "evaluate", mesh, "--reference", ref, "--samples", "100")
     assert_one_line_error(code, out, err, f"{bad}: ")
+
+
+# --------------------------------------------------------------------------------------------
+# Cached targets are keyed on every file the scene reads
+# --------------------------------------------------------------------------------------------
+EXTRA_XML = """<scene version="3.0.0">
+  <emitter type="envmap"><string name="filename" value="sky.exr"/><float name="scale" value="0.2"/></emitter>
+  <shape type="rectangle" id="panel">
+    <transform name="to_world"><translate value="0, 2, 1"/></transform>
+    <bsdf type="diffuse"><texture type="bitmap" name="reflectance"><string name="filename" value="$tex"/></texture>
+    </bsdf></shape>
+</scene>
+"""
+
+
+def small_png(path, value):
+    mi.Bitmap(np.full((4, 4, 3), value, np.uint8), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(path))
+
+
+def xml_with_include(tmp):
+    """The twins' XML scene with an <include>d file naming a texture (through a $param) and an
+    environment map."""
+    xml_cfg, _ = write_twins(tmp, extra_xml='<include filename="extra.xml"/>')
+    (tmp / "extra.xml").write_text(EXTRA_XML)
+    small_png(tmp / "checker.png", 128)
+    fileio.write_rgb_exr(tmp / "sky.exr", np.full((8, 16, 3), 0.5))
+    d = yaml.safe_load(xml_cfg.read_text())
+    d["scene"]["params"]["tex"] = "checker.png"
+    d["optimize"] = {"object": "ball"}
+    xml_cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    return xml_cfg
+
+
+def yaml_with_files(tmp):
+    """A YAML scene whose floor is a mesh file and whose sky an environment map."""
+    V, F = meshes.plane((4.0, 4.0))[:2]
+    meshes.write_ply(tmp / "floor.ply", V, F)
+    fileio.write_rgb_exr(tmp / "sky.exr", np.full((8, 16, 3), 0.5))
+    d = experiment()
+    d["scene"]["objects"][1]["mesh"] = {"file": "floor.ply"}
+    d["scene"]["emitters"].append({"type": "envmap", "file": "sky.exr"})
+    d["optimize"] = {"object": "ball"}
+    path = tmp / "exp.yaml"
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    return path
+
+
+def retexture(tmp):
+    small_png(tmp / "checker.png", 40)
+
+
+def recolour_include(tmp):
+    (tmp / "extra.xml").write_text(EXTRA_XML.replace('<float name="scale" value="0.2"/>',
+                                                     '<float name="scale" value="0.3"/>'))
+
+
+def relight(tmp):
+    fileio.write_rgb_exr(tmp / "sky.exr", np.full((8, 16, 3), 0.7))
+
+
+def move_floor(tmp):
+    V, F = meshes.read_mesh_file(tmp / "floor.ply")
+    meshes.write_ply(tmp / "floor.ply", V + [0, 0, -0.1], F)
+
+
+KEY_CASES = [
+    ("xml_included_file", xml_with_include, recolour_include),
+    ("xml_texture", xml_with_include, retexture),
+    ("xml_envmap", xml_with_include, relight),
+    ("yaml_mesh_file", yaml_with_files, move_floor),
+    ("yaml_envmap", yaml_with_files, relight),
+]
+
+
+@pytest.mark.parametrize("make,change", [c[1:] for c in KEY_CASES], ids=[c[0] for c in KEY_CASES])
+def test_target_key_covers_every_file_the_scene_reads(tmp_path, make, change):
+    cfg = make(tmp_path)
+    reference = meshes.sphere(0.4, 1)
+
+    def key():
+        return targets.target_key(api.load_experiment(cfg, warn=lambda m: None), reference, 4)
+
+    before = key()
+    assert key() == before, "the same files give the same key"
+    change(tmp_path)
+    after = key()
+    assert after != before, "an edited file the scene reads must make new targets"
+
+
+def test_huge_texture_named_by_an_included_xml(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cfg = xml_with_include(tmp_path)
+    png_header(tmp_path / "huge.png", 20000, 20000)
+    d = yaml.safe_load(cfg.read_text())
+    d["scene"]["params"]["tex"] = "huge.png"
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    code, out, err = psdr(capsys, "render", cfg)
+    assert_one_line_error(code, out, err, "extra.xml: image huge.png is 20000×20000 pixels")
