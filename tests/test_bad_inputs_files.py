@@ -194,19 +194,19 @@ KINDS = ["folder", "fifo", "device"]
 
 
 @pytest.fixture(scope="module")
-def two_meshes(tmp_path_factory):
+def sphere_ply(tmp_path_factory):
     folder = tmp_path_factory.mktemp("meshes")
     meshes.write_ply(folder / "a.ply", *meshes.sphere(1.0, 1))
     return folder / "a.ply"
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_evaluate_json_that_is_not_a_file(tmp_path, capsys, two_meshes, kind, monkeypatch):
+def test_evaluate_json_that_is_not_a_file(tmp_path, capsys, sphere_ply, kind, monkeypatch):
     out_file = tmp_path / "out.json"
     not_a_file(out_file, kind)
     calls = []
     monkeypatch.setattr(module("evaluate"), "distance", lambda *a, **k: calls.append(a))
-    code, out, err = psdr(capsys, "evaluate", two_meshes, "--reference", two_meshes, "--samples", "100",
+    code, out, err = psdr(capsys, "evaluate", sphere_ply, "--reference", sphere_ply, "--samples", "100",
                           "--json", out_file)
     assert_one_line_error(code, out, err, f"{out_file}: --json: not a regular file")
     assert calls == [], "refused before any work"
@@ -309,8 +309,8 @@ def test_sizes_are_bounded(tmp_path, write_cfg, capsys, monkeypatch, make, args,
 
 
 @pytest.mark.parametrize("samples", ["0", "99", "10000001", "1" * 23])
-def test_evaluate_samples_are_bounded(capsys, two_meshes, samples):
-    code, out, err = psdr(capsys, "evaluate", two_meshes, "--reference", two_meshes, "--samples", samples)
+def test_evaluate_samples_are_bounded(capsys, sphere_ply, samples):
+    code, out, err = psdr(capsys, "evaluate", sphere_ply, "--reference", sphere_ply, "--samples", samples)
     assert_one_line_error(code, out, err, f"--samples: expected an integer in [100, 10000000], got {samples}")
 
 
@@ -376,10 +376,10 @@ EVAL_MESHES = {
 
 @pytest.mark.parametrize("role", ["mesh", "reference"])
 @pytest.mark.parametrize("name", list(EVAL_MESHES))
-def test_evaluate_names_the_bad_mesh(tmp_path, capsys, two_meshes, name, role):
+def test_evaluate_names_the_bad_mesh(tmp_path, capsys, sphere_ply, name, role):
     bad = tmp_path / f"{name}.obj"
     bad.write_text(EVAL_MESHES[name])
-    mesh, ref = (bad, two_meshes) if role == "mesh" else (two_meshes, bad)
+    mesh, ref = (bad, sphere_ply) if role == "mesh" else (sphere_ply, bad)
     code, out, err = psdr(capsys, "evaluate", mesh, "--reference", ref, "--samples", "100")
     assert_one_line_error(code, out, err, f"{bad}: ")
 
