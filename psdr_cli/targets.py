@@ -158,7 +158,10 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
 def cached_target(path, key: str, shape: tuple):
     """The cached target image at ``path`` if it can be trusted: it exists, reads back whole (not
     emptied or cut short by a full disk or a copy), was rendered for ``key`` (:func:`target_key`),
-    has the film's (height, width) and finite values; else None (the targets are rendered again)."""
+    has the film's (height, width) and finite values; else None (the targets are rendered again).
+    A missing file is not read (the EXR library would print its own error)."""
+    if not Path(path).is_file():
+        return None
     try:
         exr = fileio.read_exr(path)
         image = np.stack([exr[c] for c in "RGB"], -1).astype(np.float64)

@@ -417,10 +417,13 @@ def test_resume_after_an_edit_keeps_the_old_run(run_copy, capsys):
 GUIDED = copy.deepcopy(SMALL)
 GUIDED["estimator"].update(guiding="grid", grid={"resolution": [16, 4, 4], "samples_per_cell": 16})
 GUIDED["optimize"].update(iterations=6, guide_every=3, albedo={"init": [0.3, 0.4, 0.5]})
-#: Kd-tree guides of the direct term fitted to the loop's own samples (at 3 and 6), 64 samples per pixel
+#: Kd-tree guides of the direct term fitted to the loop's own samples (at 3 and 6), 64 samples per
+#: pixel, the blob's shadow on a floor (the direct term's signal)
 LOOP_FED = copy.deepcopy(GUIDED)
 LOOP_FED["estimator"].update(guiding="kdtree", boundary_spp=64, edge_sort=True)
 LOOP_FED["estimator"].pop("grid")
+LOOP_FED["scene"]["objects"].append({"name": "floor", "mesh": {"shape": "plane", "size": 4},
+                                     "bsdf": {"type": "diffuse", "reflectance": 0.5}, "edges": False})
 LOOP_FED["optimize"].update(iterations=8)
 
 
