@@ -1,16 +1,22 @@
 #!/usr/bin/env python
-"""Equal-time shape reconstruction: psdr's estimators vs Mitsuba's own recipe, in one loop.
+"""Equal-time shape reconstruction: psdr's estimators, guided and not, vs Mitsuba's own recipe, in one loop.
 
 For every scene (the bunny of ``configs/reconstruct_bunny.yaml`` and the stand-ins
-``reconstruct_ears.yaml`` (thin ears) and ``reconstruct_groove.yaml`` (creases, concave groove))
-and every seed, two runs of ``psdr optimize`` fit the same targets from the same initial sphere
-with the same batches, L1 loss, LargeSteps, Adam and remeshing; they differ only in
-``estimator.engine``:
+``reconstruct_ears.yaml`` (thin ears) and ``reconstruct_groove.yaml`` (creases, concave groove);
+with ``--scenes shadow glass`` the two Fig. 10 experiments) and every seed, one run of ``psdr
+optimize`` per engine (``--engines``, default psdr and mitsuba) fits the same targets from the same
+initial sphere with the same batches, L1 loss, LargeSteps, Adam and remeshing; they differ only
+in the estimator (and, with ``--lr ENGINE=RATE``, in the learning rate):
 
 - **psdr**: the experiment's own estimator (interior + primary + direct terms);
-- **mitsuba**: Mitsuba's ``direct_projective`` as its shape-optimisation tutorial sets it up
-  (shadow term off, 16 spp; :mod:`psdr_cli.engines`), the loss's sign taken from that same
-  render as in the tutorial (``optimize.adjoint_spp`` 0, whatever the experiment sets).
+- **psdr-kdtree**: the same, the direct term guided by Kd-trees fitted to the loop's own samples
+  (:mod:`psdr_cli.guiding.loop_fed`; MIS, sorted edges);
+- **mitsuba**: Mitsuba's ``direct_projective`` (``prb_projective`` for deeper paths) as its
+  shape-optimisation tutorial sets it up (shadow term off, 16 spp; :mod:`psdr_cli.engines`), the
+  loss's sign taken from that same render as in the tutorial (``optimize.adjoint_spp`` 0,
+  whatever the experiment sets);
+- **mitsuba-shadows**: the same with its shadow (indirect-visibility) term on, the only Mitsuba
+  recipe that sees shapes carried by shadows or glass (the Fig. 10 scenes).
 
 **Load sharing.** All runs live in one process and advance in rounds: in round k every run is
 resumed until its optimisation time reaches k·``--chunk`` seconds (``optimize.seconds`` and
@@ -71,8 +77,13 @@ from psdr_cli.plots import plt, save  # noqa: E402
 from psdr_cli.runs import RunFiles, read_log  # noqa: E402
 
 SCENES = {"bunny": "configs/reconstruct_bunny.yaml", "ears": "configs/reconstruct_ears.yaml",
-          "groove": "configs/reconstruct_groove.yaml"}
-ENGINES = ("psdr", "mitsuba")
+          "groove": "configs/reconstruct_groove.yaml", "shadow": "configs/paper/cpu/fig10_shadow.yaml",
+          "glass": "configs/paper/cpu/fig10_glass.yaml"}
+#: what each engine of ``--engines`` runs: the experiment's own estimator, the same with loop-fed
+#: Kd-tree guides of the direct term (MIS, sorted edges), Mitsuba's recipe (shadow term off), and
+#: Mitsuba with its shadow (indirect-visibility) term on
+ENGINES = ("psdr", "psdr-kdtree", "mitsuba", "mitsuba-shadows")
+COLOURS = {"psdr": "tab:blue", "psdr-kdtree": "tab:green", "mitsuba": "tab:orange", "mitsuba-shadows": "tab:red"}
 
 
 def quick_experiment(exp):
@@ -93,17 +104,26 @@ def from_truth_experiment(exp, vertices: int):
                                          init_transform=obj.transform, remesh=remesh))
 
 
-def run_experiment(base, engine: str, seed: int, root: Path, psdr_spp=None, mitsuba_spp: int = 16):
-    """One run: ``base`` with ``estimator.engine`` and ``seed`` replaced, the targets of the
-    base seed, a folder ``<root>/<engine>_s<seed>``, no iteration limit (the time decides).
-    ``psdr_spp``: (interior, primary, boundary, adjoint) spp replacing the experiment's."""
-    if engine == "psdr" and psdr_spp:
+def run_experiment(base, engine: str, seed: int, root: Path, psdr_spp=None, mitsuba_spp: int = 16,
+                   learning_rate: float | None = None):
+    """One run of ``engine`` (:data:`ENGINES`): ``base`` with its estimator and ``seed`` replaced,
+    the targets of the base seed, a folder ``<root>/<engine>_s<seed>``, no iteration limit (the
+    time decides). ``psdr_spp``: (interior, primary, boundary, adjoint) spp replacing the
+    experiment's; ``learning_rate`` replaces the experiment's."""
+    psdr = engine.startswith("psdr")
+    if psdr and psdr_spp:
         base = with_estimator(base, spp=psdr_spp[0], primary_spp=psdr_spp[1], boundary_spp=psdr_spp[2])
         base = replace(base, optimize=replace(base.optimize, adjoint_spp=psdr_spp[3]))
-    exp = (with_estimator(base, engine=engine, mitsuba_spp=mitsuba_spp) if engine == "mitsuba"
-           else with_estimator(base, engine=engine))
-    adjoint = exp.optimize.adjoint_spp if engine == "psdr" else 0
-    opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,), adjoint_spp=adjoint)
+    if engine == "psdr":
+        exp = with_estimator(base, engine="psdr")
+    elif engine == "psdr-kdtree":
+        exp = with_estimator(base, engine="psdr", guiding="kdtree", edge_sort=True)
+    else:
+        exp = with_estimator(base, engine="mitsuba", mitsuba_spp=mitsuba_spp,
+                             mitsuba_shadows=engine == "mitsuba-shadows")
+    opt = replace(exp.optimize, target_seed=base.seed, iterations=100_000, preview_views=(0,),
+                  adjoint_spp=exp.optimize.adjoint_spp if psdr else 0,
+                  learning_rate=learning_rate or exp.optimize.learning_rate, variants=())
     return replace(exp, seed=seed, name=f"{engine}_s{seed}", output=root, optimize=opt)
 
 
@@ -147,22 +167,25 @@ def at_time(curve: list, t: float):
     return done[0][2], done[0][3], done[0][0]
 
 
-def table(results: dict, times: list) -> str:
-    """Markdown: per scene, engine and time, mean ± half-range over seeds of Chamfer-L1 and
-    Hausdorff, the ratio psdr / Mitsuba of the means, and each seed's iterations done by then."""
-    lines = ["| scene | seconds | iterations psdr / Mitsuba | psdr Chamfer-L1 | Mitsuba Chamfer-L1 | ratio "
-             "| psdr Hausdorff | Mitsuba Hausdorff | ratio |",
-             "|---|---|---|---|---|---|---|---|---|"]
+def table(results: dict, times: list, engines) -> str:
+    """Markdown: per scene and time, mean ± half-range over seeds of Chamfer-L1 and Hausdorff for
+    every engine, the ratio of each engine's mean to the first engine's, and each seed's
+    iterations done by then."""
+    head = ["iterations " + " / ".join(engines)]
+    for metric in ("Chamfer-L1", "Hausdorff"):
+        head += [f"{e} {metric}" for e in engines] + [f"{e} / {engines[0]}" for e in engines[1:]]
+    lines = ["| scene | seconds | " + " | ".join(head) + " |", "|---|---|" + "---|" * len(head)]
     for scene, runs in results.items():
         for t in times:
-            its = {e: "+".join(str(at_time(c, t)[2]) for (e2, _), c in runs.items() if e2 == e) for e in ENGINES}
-            cells, means = [f"{its['psdr']} / {its['mitsuba']}"], {}
+            its = {e: "+".join(str(at_time(c, t)[2]) for (e2, _), c in runs.items() if e2 == e) for e in engines}
+            cells = [" / ".join(its[e] for e in engines)]
             for metric in (0, 1):
-                for engine in ENGINES:
+                means = {}
+                for engine in engines:
                     v = np.array([at_time(c, t)[metric] for (e, _), c in runs.items() if e == engine])
                     means[engine] = float(np.mean(v))
                     cells.append(f"{np.mean(v):.4f} ± {(v.max() - v.min()) / 2:.4f}")
-                cells.append(f"{means['psdr'] / means['mitsuba']:.2f}")
+                cells += [f"{means[e] / means[engines[0]]:.2f}" for e in engines[1:]]
             lines.append(f"| {scene} | {t:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -170,12 +193,11 @@ def table(results: dict, times: list) -> str:
 def plot(path: Path, results: dict):
     """Chamfer-L1 (top) and Hausdorff (bottom) against optimisation seconds, a column per scene."""
     fig, axes = plt.subplots(2, len(results), figsize=(4.2 * len(results), 6.5), squeeze=False)
-    colours = {"psdr": "tab:blue", "mitsuba": "tab:orange"}
     for col, (scene, runs) in enumerate(results.items()):
         for (engine, seed), curve in runs.items():
             t = [c[1] for c in curve]
             for row, metric in ((0, 2), (1, 3)):
-                axes[row][col].plot(t, [c[metric] for c in curve], "o-", ms=2, color=colours[engine],
+                axes[row][col].plot(t, [c[metric] for c in curve], "o-", ms=2, color=COLOURS[engine],
                                     alpha=0.9 if seed == 0 else 0.55,
                                     label=f"{engine} (seed {seed})")
         axes[0][col].set_title(scene)
@@ -189,18 +211,24 @@ def plot(path: Path, results: dict):
 
 
 def allocations(args) -> str:
-    """The sample counts of the two engines, as the report states them."""
+    """What each engine runs, as the report states it."""
     psdr = ("the experiment's estimator and adjoint render" if not args.psdr_spp else
             "interior/primary/boundary spp {}/{}/{}, a {}-spp adjoint render".format(*args.psdr_spp))
-    return (f"`psdr`: {psdr}; `mitsuba`: `direct_projective`, shadow term off, {args.mitsuba_spp} spp, "
-            "the loss on that render (the tutorial's recipe" + (")" if args.mitsuba_spp == 16 else
-                                                              f", at {args.mitsuba_spp} instead of 16 spp)") + ". ")
+    said = {"psdr": f"`psdr`: {psdr}",
+            "psdr-kdtree": "`psdr-kdtree`: the same with the direct term guided by Kd-trees fitted to the loop's "
+                           "own samples (MIS, sorted edges)",
+            "mitsuba": f"`mitsuba`: Mitsuba's projective integrator, shadow term off, {args.mitsuba_spp} spp, the "
+                       "loss on that render (the tutorial's recipe" + (")" if args.mitsuba_spp == 16 else
+                                                                   f", at {args.mitsuba_spp} instead of 16 spp)"),
+            "mitsuba-shadows": f"`mitsuba-shadows`: the same with its shadow (indirect-visibility) term on"}
+    rates = "; learning rates " + ", ".join(f"{e} {r:g}" for e, r in args.lr.items()) if args.lr else ""
+    return "; ".join(said[e] for e in args.engines) + rates + ". "
 
 
 def write_report(out: Path, args, results: dict, loads: list, wall: float, times: list, floors: dict):
     """``<name>.md``, ``.json`` and ``.png``; ``floors``: {scene: (Chamfer-L1, Hausdorff)} of
     the metric's own floor (reported with ``--from-truth``; empty otherwise)."""
-    md = [f"# Shape reconstruction at equal time: psdr vs Mitsuba's recipe",
+    md = [f"# Shape reconstruction at equal time: {', '.join(args.engines)}",
           "",
           f"`benchmarks/reconstruction.py {' '.join(sys.argv[1:])}` — {time.strftime('%Y-%m-%d %H:%M')}, "
           f"{platform.machine()}, {os.cpu_count()} cores, Dr.Jit threads per optimisation: "
@@ -213,9 +241,9 @@ def write_report(out: Path, args, results: dict, loads: list, wall: float, times
                 f"remeshed to {args.from_truth} vertices and is not remeshed again (the loop's floor). ")
           + allocations(args) + "Runs advance in alternating chunks of "
           f"{args.chunk:g} s so that load is shared. Errors are normalised by the ground truth's bounding box; "
-          "mean ± half-range over seeds; ratio = psdr / Mitsuba (< 1: psdr better).",
+          f"mean ± half-range over seeds; ratios to {args.engines[0]} (< 1: better than it).",
           "",
-          table(results, times),
+          table(results, times, args.engines),
           "",
           *([] if not floors else ["Metric floor (the ground truth against itself, independent samples, "
                                    f"{args.samples} points per mesh): "
@@ -232,12 +260,31 @@ def write_report(out: Path, args, results: dict, loads: list, wall: float, times
     plot(out / f"{args.name}.png", results)
 
 
+def learning_rates(ap, args) -> dict:
+    """{engine: learning rate} from ``--lr ENGINE=RATE`` (an error for an engine not compared)."""
+    rates = {}
+    for item in args.lr:
+        engine, _, rate = item.partition("=")
+        if engine not in args.engines:
+            ap.error(f"--lr {item}: '{engine}' is not among --engines")
+        try:
+            rates[engine] = float(rate)
+        except ValueError:
+            ap.error(f"--lr {item}: expected ENGINE=RATE with a number")
+    return rates
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="32² film, 90 s per run, bunny only (unless --scenes)")
-    ap.add_argument("--scenes", nargs="+", choices=list(SCENES), help="scenes (default: all; quick: bunny)")
+    ap.add_argument("--scenes", nargs="+", choices=list(SCENES),
+                    help="scenes (default: bunny, ears, groove; quick: bunny)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds per engine")
+    ap.add_argument("--engines", nargs="+", choices=ENGINES, default=["psdr", "mitsuba"],
+                    help="what to compare (the first is the ratios' denominator)")
+    ap.add_argument("--lr", nargs="+", default=[], metavar="ENGINE=RATE",
+                    help="an engine's learning rate (default: the experiment's)")
     ap.add_argument("--seconds", type=float, help="optimisation seconds per run (default 120; quick: 90)")
     ap.add_argument("--chunk", type=float, help="seconds per run and round (default 40; quick: 30)")
     ap.add_argument("--samples", type=int, default=50_000, help="surface points per mesh for the distances")
@@ -252,7 +299,8 @@ def main(argv=None):
     ap.add_argument("--from-truth", type=int, metavar="N",
                     help="start from the ground truth remeshed to N vertices, no remeshing (the loop's floor)")
     args = ap.parse_args(argv)
-    scenes = args.scenes or (["bunny"] if args.quick else list(SCENES))
+    args.lr = learning_rates(ap, args)
+    scenes = args.scenes or (["bunny"] if args.quick else ["bunny", "ears", "groove"])
     seconds = args.seconds or (90.0 if args.quick else 120.0)
     args.chunk = args.chunk or (30.0 if args.quick else 40.0)
     rounds = int(np.ceil(seconds / args.chunk))
@@ -262,15 +310,16 @@ def main(argv=None):
         base = quick_experiment(base) if args.quick else base
         base = from_truth_experiment(base, args.from_truth) if args.from_truth else base
         for seed in args.seeds:
-            for engine in ENGINES:
+            for engine in args.engines:
                 folder = args.runs / args.name / ("quick" if args.quick else "full") / scene
-                runs[(scene, engine, seed)] = run_experiment(base, engine, seed, folder, args.psdr_spp, args.mitsuba_spp)
+                runs[(scene, engine, seed)] = run_experiment(base, engine, seed, folder, args.psdr_spp, args.mitsuba_spp,
+                                                             args.lr.get(engine))
     loads, t0 = [], time.time()
     for folder in {exp.output for exp in runs.values()} if not args.evaluate_only else ():
         (folder / "loads.json").unlink(missing_ok=True)  # a fresh benchmark of this scene
     for k in range(1, 0 if args.evaluate_only else rounds + 1):
         budget = min(k * args.chunk, seconds)
-        first = ENGINES if k % 2 else ENGINES[::-1]  # the engines take turns going first
+        first = args.engines if k % 2 else args.engines[::-1]  # the engines take turns going first
         for key, exp in sorted(runs.items(), key=lambda kv: (kv[0][0], kv[0][2], first.index(kv[0][1]))):
             advance(exp, budget, first=k == 1)
             loads.append(os.getloadavg()[0])
