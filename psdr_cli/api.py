@@ -60,12 +60,13 @@ def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: P
     return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn)
 
 
-def guiding_lines(exp: Experiment, labels=None, terms=None) -> list:
-    """What ``psdr grad`` / ``optimize`` guide each boundary term with (``guiding: auto``
-    resolved): one line per run (the experiment, or each selected optimisation variant)."""
+def guiding_lines(exp: Experiment, labels=None, terms=None, loop: bool = False) -> list:
+    """What ``psdr grad`` / ``optimize`` (``loop``) guide each boundary term with (``guiding:
+    auto`` resolved): one line per run (the experiment, or each selected optimisation variant)."""
     if labels is None and not (exp.optimize and exp.optimize.variants):
-        return [gradient.guiding_line(exp, terms)]
-    return [f"{label}: {gradient.guiding_line(run, terms)}" for label, run in runs.variant_experiments(exp, labels)]
+        return [gradient.guiding_line(exp, terms, loop)]
+    return [f"{label}: {gradient.guiding_line(run, terms, loop)}"
+            for label, run in runs.variant_experiments(exp, labels)]
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):

@@ -317,7 +317,7 @@ def optimize(config: Path = ConfigArg,
     warn = lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False)  # noqa: E731
     opts = ray_options(ray, ray_cpus, ray_files)
     label_of = lambda label: f"optimize {label}" if label else "optimize"  # noqa: E731
-    for line in api.guiding_lines(exp, variant or None):
+    for line in api.guiding_lines(exp, variant or None, loop=True):
         out.print(line)
     if opts is None:
         runs = api.optimize_variants(exp, variant, iterations, resume, warn=warn,

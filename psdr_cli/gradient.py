@@ -134,11 +134,12 @@ def uses_guides(settings: Settings, terms, pixels: int) -> bool:
     return any(k != "none" for k in kinds.values())
 
 
-def guiding_line(exp: Experiment, terms=None) -> str:
-    """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved)."""
+def guiding_line(exp: Experiment, terms=None, loop: bool = False) -> str:
+    """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved; ``loop``:
+    in the optimisation loop)."""
     e = exp.estimator
     return auto.describe(e.guiding, parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
-                         e.boundary_spp)
+                         e.boundary_spp, loop)
 
 
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,

@@ -34,6 +34,7 @@ from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
 from .engines import Engine
 from .errors import PsdrError
 from .gradient import Settings
+from .guiding import auto
 from .iteration import (GuideCache, adjoint_image, batch_views, iterate, l1_loss,  # noqa: F401
                         learning_rate_at, rebuild_guides)
 from .problem import Problem, adam_export, adam_import, remeshed_problem, texture_experiment  # noqa: F401
@@ -93,6 +94,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     rows = read_log(files.log, start)
     write_log(files.log, rows)
     settings, terms = Settings.from_experiment(exp), exp.estimator.terms
+    settings = settings.with_estimator(guiding=auto.in_loop(settings.guiding))
     engine = Engine(settings, terms)
     if not engine.needs_edges:
         settings = settings.with_estimator(guiding="none")  # Mitsuba's integrators have their own

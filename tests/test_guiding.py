@@ -379,6 +379,9 @@ def test_auto_guiding_rule():
     assert auto.resolve("auto", ("interior", "primary"), 4, 1) == {}
     line = auto.describe("auto", ("direct", "indirect"), 32 * 32, 64)
     assert line == "guiding auto: direct kdtree, indirect kdtree (boundary pass of 65536 lanes)"
+    # in the optimisation loop auto guides nothing; an explicit kind is kept
+    assert auto.in_loop("auto") == "none" and auto.in_loop("kdtree") == "kdtree" and auto.in_loop("none") == "none"
+    assert "none in the optimisation loop" in auto.describe("auto", ("direct",), 32 * 32, 64, loop=True)
 
 
 def test_kdtree_refresh_from_a_prior_guide(variant):

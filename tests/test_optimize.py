@@ -270,6 +270,22 @@ def test_guided_optimisation_rebuilds_its_guides_on_schedule(tmp_path):
     assert (exp.run_dir / "final.ply").exists()
 
 
+def test_auto_guiding_builds_no_guide_in_the_loop(tmp_path):
+    """guiding: auto on a film whose boundary pass (16² × 256 = 2¹⁶ lanes) `psdr grad` would guide:
+    the optimisation loop runs unguided (no guide time, no guide memory in the log)."""
+    from psdr_cli import api
+    from psdr_cli.experiment import load_experiment
+    from psdr_cli.guiding import auto
+    data = copy.deepcopy(TINY)
+    data["estimator"].update(guiding="auto", boundary_spp=256)
+    data["optimize"].update(iterations=2, guide_every=1, remesh={"method": "none"})
+    exp = load_experiment(write(tmp_path, data))
+    assert auto.resolve("auto", ("direct",), 16 * 16, 256) == {"direct": "kdtree"}
+    api.optimize(exp, warn=lambda m: None)
+    rows = log_rows(exp.run_dir)
+    assert [r["guide_bytes"] for r in rows] == ["0", "0"] and all(float(r["seconds_guiding"]) == 0 for r in rows)
+
+
 def test_rgb_albedo_moments_survive_resume(tmp_path):
     """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
     from psdr_cli import api
