@@ -25,6 +25,6 @@ def test_streams_are_unchanged():
 
 def test_guides_are_keyed_by_term():
     guides = Guides(direct={"light": "g1"}, indirect="g2")
-    assert guides.direct == {"light": "g1"} and guides.indirect == "g2" and guides.primary is None
+    assert guides["direct"] == {"light": "g1"} and guides["indirect"] == "g2" and guides.get("primary") is None
     assert guides.all() == [("direct/light", "g1"), ("indirect/dir", "g2")]
-    assert Guides().direct is None and Guides().all() == []
+    assert Guides().get("direct") is None and Guides().all() == []

@@ -15,7 +15,6 @@ import numpy as np
 from ..estimators.direct import direct_motion_target, direct_target
 from ..estimators.indirect import indirect_target
 from ..estimators.passes import make_sampler
-from ..estimators.registry import TERMS
 from . import auto
 from .grid import build_grid
 from .kdtree import build_kdtree, share_profiles
@@ -74,12 +73,7 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
 class Guides(dict):
     """The guides of one estimate by term name: ``guides["direct"]`` maps a technique (light, dir)
     to its guide, ``guides["indirect"]`` is one guide (of the ``dir`` technique); a term without an
-    entry is unguided. ``guides.<term>`` reads ``guides.get(<term>)``."""
-
-    def __getattr__(self, name):
-        if name in _TERM_NAMES:
-            return self.get(name)
-        raise AttributeError(name)
+    entry is unguided."""
 
     def all(self):
         """[(label, guide)] for reports, e.g. ``direct/light``."""
@@ -90,9 +84,6 @@ class Guides(dict):
             elif guide is not None:
                 out.append((f"{term}/dir", guide))
         return out
-
-
-_TERM_NAMES = frozenset(t.name for t in TERMS)
 
 
 def initial_samples(estimator, pixels: int) -> int:
