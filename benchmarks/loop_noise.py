@@ -14,7 +14,8 @@ the direct boundary term carries all of the shape) run for a fixed number of ite
   8 and 32 spp;
 - learning rates 0.05, 0.1, 0.2, 0.4 at 8 and 32 spp, unguided;
 - learning rates 0.025, 0.05, 0.1 with the direct term guided by Kd-trees fitted to the loop's
-  own samples (``guiding: kdtree``, MIS, sorted edges), 8 spp.
+  own samples (``guiding: kdtree``, MIS, sorted edges), 8 spp; and at its best rate (0.05) at
+  2 spp and at four times the vertices.
 
 Each run is ``psdr optimize`` on a generated YAML file, then ``psdr evaluate`` (Chamfer-L1 of
 every checkpoint against the ground truth, bounding box 1). One seed per configuration (the
@@ -49,6 +50,8 @@ RUNS = {
     **{f"v4_lr0.1_b{b}": (0.1, b, "none", True) for b in (8, 32)},
     **{f"s_lr{lr}_b{b}": (lr, b, "none", False) for lr in (0.05, 0.2, 0.4) for b in (8, 32)},
     **{f"kd_lr{lr}_b8": (lr, 8, "kdtree", False) for lr in (0.025, 0.05, 0.1)},
+    "kd_lr0.05_b2": (0.05, 2, "kdtree", False),
+    "kd_v4_lr0.05_b8": (0.05, 8, "kdtree", True),
 }
 
 
@@ -94,16 +97,20 @@ def table(curves: dict) -> list:
 
 def plot(path: Path, curves: dict):
     """Mean Chamfer-L1 of the last three checkpoints (one run's last value jumps with its steps)
-    against boundary spp (unguided, lr 0.1, both mesh resolutions) and against the learning rate
-    (unguided 8 and 32 spp, Kd-tree 8 spp)."""
+    against boundary spp (unguided at lr 0.1, the loop-fed Kd-tree at 0.05: each one's best; both
+    mesh resolutions) and against the learning rate (unguided 8 and 32 spp, Kd-tree 8 spp)."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     last = {n: sum(c for _, c in curve[-3:]) / len(curve[-3:]) for n, curve in curves.items()}
     for fine, style in ((False, "o-"), (True, "s--")):
         pts = sorted((RUNS[n][1], last[n]) for n in curves if RUNS[n][0] == 0.1 and RUNS[n][2] == "none"
                      and RUNS[n][3] == fine)
-        a.plot(*zip(*pts), style, label="vertices ×4" if fine else "experiment's vertices")
+        a.plot(*zip(*pts), style, label="unguided, lr 0.1, vertices ×4" if fine else "unguided, lr 0.1")
+        pts = sorted((RUNS[n][1], last[n]) for n in curves if RUNS[n][0] == 0.05 and RUNS[n][2] == "kdtree"
+                     and RUNS[n][3] == fine)
+        a.plot(*zip(*pts), style, color="tab:green", mfc="none" if fine else None,
+               label="Kd-tree (loop-fed), lr 0.05" + (", vertices ×4" if fine else ""))
     a.set_xscale("log", base=2)
-    a.set_xlabel("boundary spp (unguided, learning rate 0.1)")
+    a.set_xlabel("boundary spp (each at its best learning rate)")
     a.set_ylabel("Chamfer-L1, mean of the last 3 checkpoints")
     a.legend(fontsize=8)
     for label, pick in (("unguided, 8 spp", ("none", 8)), ("unguided, 32 spp", ("none", 32)),

@@ -220,7 +220,8 @@ def allocations(args) -> str:
             "mitsuba": f"`mitsuba`: Mitsuba's projective integrator, shadow term off, {args.mitsuba_spp} spp, the "
                        "loss on that render (the tutorial's recipe" + (")" if args.mitsuba_spp == 16 else
                                                                    f", at {args.mitsuba_spp} instead of 16 spp)"),
-            "mitsuba-shadows": "`mitsuba-shadows`: the same with its shadow (indirect-visibility) term on"}
+            "mitsuba-shadows": f"`mitsuba-shadows`: Mitsuba's projective integrator with its shadow (indirect-visibility) "
+                               f"term on, {args.mitsuba_spp} spp, the loss on that render"}
     rates = "; learning rates " + ", ".join(f"{e} {r:g}" for e, r in args.lr.items()) if args.lr else ""
     return "; ".join(said[e] for e in args.engines) + rates + ". "
 
