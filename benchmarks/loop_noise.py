@@ -11,11 +11,11 @@ the direct boundary term carries all of the shape) run for a fixed number of ite
 - ``boundary_spp`` 1, 2, 8 (the experiment's), 32 at learning rate 0.1: more samples lower the
   variance of the direct term (∝ 1/spp);
 - the same at four times the vertices (remesh to 2400 → 4800 → 8000 instead of 600 → 1200 → 2000),
-  8 and 32 spp;
+  and at a 96² film instead of 48², 8 and 32 spp;
 - learning rates 0.05, 0.1, 0.2, 0.4 at 8 and 32 spp, unguided;
 - learning rates 0.025, 0.05, 0.1 with the direct term guided by Kd-trees fitted to the loop's
   own samples (``guiding: kdtree``, MIS, sorted edges), 8 spp; and at its best rate (0.05) at
-  2 spp and at four times the vertices.
+  2 spp, at four times the vertices and at the 96² film.
 
 Each run is ``psdr optimize`` on a generated YAML file, then ``psdr evaluate`` (Chamfer-L1 of
 every checkpoint against the ground truth, bounding box 1). One seed per configuration (the
@@ -44,18 +44,20 @@ from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.plots import plt, save  # noqa: E402
 
 BASE = REPO / "configs" / "paper" / "cpu" / "fig10_shadow.yaml"
-#: name -> (learning rate, boundary spp, guiding, vertices ×4)
+#: name -> (learning rate, boundary spp, guiding, scale: vertices ×4 ("v4") or film ×2 ("f2") or None)
 RUNS = {
-    **{f"s_lr0.1_b{b}": (0.1, b, "none", False) for b in (1, 2, 8, 32)},
-    **{f"v4_lr0.1_b{b}": (0.1, b, "none", True) for b in (8, 32)},
-    **{f"s_lr{lr}_b{b}": (lr, b, "none", False) for lr in (0.05, 0.2, 0.4) for b in (8, 32)},
-    **{f"kd_lr{lr}_b8": (lr, 8, "kdtree", False) for lr in (0.025, 0.05, 0.1)},
-    "kd_lr0.05_b2": (0.05, 2, "kdtree", False),
-    "kd_v4_lr0.05_b8": (0.05, 8, "kdtree", True),
+    **{f"s_lr0.1_b{b}": (0.1, b, "none", None) for b in (1, 2, 8, 32)},
+    **{f"v4_lr0.1_b{b}": (0.1, b, "none", "v4") for b in (8, 32)},
+    **{f"f2_lr0.1_b{b}": (0.1, b, "none", "f2") for b in (8, 32)},
+    **{f"s_lr{lr}_b{b}": (lr, b, "none", None) for lr in (0.05, 0.2, 0.4) for b in (8, 32)},
+    **{f"kd_lr{lr}_b8": (lr, 8, "kdtree", None) for lr in (0.025, 0.05, 0.1)},
+    "kd_lr0.05_b2": (0.05, 2, "kdtree", None),
+    "kd_v4_lr0.05_b8": (0.05, 8, "kdtree", "v4"),
+    "kd_f2_lr0.05_b8": (0.05, 8, "kdtree", "f2"),
 }
 
 
-def experiment(name: str, lr: float, spp: int, guiding: str, fine: bool, runs: Path, iterations: int) -> dict:
+def experiment(name: str, lr: float, spp: int, guiding: str, scale, runs: Path, iterations: int) -> dict:
     """The shadow experiment changed as the module docstring says."""
     d = copy.deepcopy(yaml.safe_load(BASE.read_text()))
     d["name"], d["output"] = name, str(runs)
@@ -66,8 +68,10 @@ def experiment(name: str, lr: float, spp: int, guiding: str, fine: bool, runs: P
     o.pop("variants")
     o.pop("seconds")
     o.update(iterations=iterations, learning_rate=lr, checkpoint_every=50)
-    if fine:
+    if scale == "v4":
         o["remesh"].update(initial=2400, vertices=[4800, 8000])
+    if scale == "f2":
+        d["scene"]["film"] = {"width": 96, "height": 96}
     return d
 
 
@@ -86,11 +90,12 @@ def run(name: str, data: dict, runs: Path) -> list:
 
 def table(curves: dict) -> list:
     its = [it for it, _ in next(iter(curves.values()))][1:]
-    out = ["| run | learning rate | boundary spp | guide | vertices | " + " | ".join(f"it. {i}" for i in its) + " |",
+    out = ["| run | learning rate | boundary spp | guide | scale | " + " | ".join(f"it. {i}" for i in its) + " |",
            "|---|---|---|---|---|" + "---|" * len(its)]
+    names = {None: "experiment's", "v4": "vertices ×4", "f2": "film 96²"}
     for name, curve in curves.items():
-        lr, spp, guiding, fine = RUNS[name]
-        out.append(f"| {name} | {lr:g} | {spp} | {guiding} | {'×4' if fine else '×1'} | "
+        lr, spp, guiding, scale = RUNS[name]
+        out.append(f"| {name} | {lr:g} | {spp} | {guiding} | {names[scale]} | "
                    + " | ".join(f"{c:.4f}" for _, c in curve[1:]) + " |")
     return out
 
@@ -101,21 +106,22 @@ def plot(path: Path, curves: dict):
     mesh resolutions) and against the learning rate (unguided 8 and 32 spp, Kd-tree 8 spp)."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     last = {n: sum(c for _, c in curve[-3:]) / len(curve[-3:]) for n, curve in curves.items()}
-    for fine, style in ((False, "o-"), (True, "s--")):
+    for scale, style, colour, said in ((None, "o-", "tab:blue", ""), ("v4", "s--", "tab:orange", ", vertices ×4"),
+                                       ("f2", "^:", "tab:purple", ", film 96²")):
         pts = sorted((RUNS[n][1], last[n]) for n in curves if RUNS[n][0] == 0.1 and RUNS[n][2] == "none"
-                     and RUNS[n][3] == fine)
-        a.plot(*zip(*pts), style, label="unguided, lr 0.1, vertices ×4" if fine else "unguided, lr 0.1")
+                     and RUNS[n][3] == scale)
+        a.plot(*zip(*pts), style, color=colour, label="unguided, lr 0.1" + said)
         pts = sorted((RUNS[n][1], last[n]) for n in curves if RUNS[n][0] == 0.05 and RUNS[n][2] == "kdtree"
-                     and RUNS[n][3] == fine)
-        a.plot(*zip(*pts), style, color="tab:green", mfc="none" if fine else None,
-               label="Kd-tree (loop-fed), lr 0.05" + (", vertices ×4" if fine else ""))
+                     and RUNS[n][3] == scale)
+        a.plot(*zip(*pts), style, color="tab:green", mfc=None if scale is None else "none",
+               label="Kd-tree (loop-fed), lr 0.05" + said)
     a.set_xscale("log", base=2)
     a.set_xlabel("boundary spp (each at its best learning rate)")
     a.set_ylabel("Chamfer-L1, mean of the last 3 checkpoints")
     a.legend(fontsize=8)
     for label, pick in (("unguided, 8 spp", ("none", 8)), ("unguided, 32 spp", ("none", 32)),
                         ("Kd-tree (loop-fed), 8 spp", ("kdtree", 8))):
-        pts = sorted((RUNS[n][0], last[n]) for n in curves if (RUNS[n][2], RUNS[n][1]) == pick and not RUNS[n][3])
+        pts = sorted((RUNS[n][0], last[n]) for n in curves if (RUNS[n][2], RUNS[n][1]) == pick and RUNS[n][3] is None)
         b.plot(*zip(*pts), "o-", label=label)
     b.set_xscale("log", base=2)
     b.set_xlabel("learning rate")
@@ -133,8 +139,8 @@ def main(argv=None):
     args.runs.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     curves = {}
-    for name, (lr, spp, guiding, fine) in RUNS.items():
-        curves[name] = run(name, experiment(name, lr, spp, guiding, fine, args.runs, args.iterations), args.runs)
+    for name, (lr, spp, guiding, scale) in RUNS.items():
+        curves[name] = run(name, experiment(name, lr, spp, guiding, scale, args.runs, args.iterations), args.runs)
         print(f"{name}: Chamfer-L1 {curves[name][-1][1]:.4f} at iteration {curves[name][-1][0]}", flush=True)
     md = ["# Is the loop limited by gradient noise? (fig10_shadow, shape error per iteration)", "",
           f"`benchmarks/loop_noise.py {' '.join(sys.argv[1:])}` — {time.strftime('%Y-%m-%d %H:%M')}, "
@@ -146,7 +152,7 @@ def main(argv=None):
         Path(tmp).write_text("\n".join(md))
     with atomic_path(args.out / "loop_noise.json") as tmp:
         Path(tmp).write_text(json.dumps({"runs": {n: {"config": dict(zip(("learning_rate", "boundary_spp", "guiding",
-                                                                            "vertices_x4"), RUNS[n])),
+                                                                            "scale"), RUNS[n])),
                                                       "chamfer_l1": c} for n, c in curves.items()}}, indent=1))
     plot(args.out / "loop_noise.png", curves)
     print("\n".join(md))
