@@ -58,7 +58,7 @@ class GuideCache:
                                     built)
         log = None
         if fed:
-            log = log_from_arrays(state.guide_arrays, window_budget(exp.optimize))
+            log = log_from_arrays(state.guide_arrays, window_budget(exp.optimize, len(stage.arrays)))
             guides["direct"] = log
         snapshot = (state.guide_V, state.guide_values) if state.guide_V is not None else None
         return cls(guides, snapshot, log)
@@ -75,10 +75,10 @@ class GuideCache:
             guides = make_guides(problem.scene, edges, list(range(views)), built, settings)
             if fed:
                 fitted = {}
-                if self.log is not None:
+                if self.log is not None and self.log.kept and edges.count > 0:
                     P = dr.detach(edges.positions(mi.traverse(problem.scene.mi_scene)))
                     fitted = fitted_guides(self.log, edges.breakpoints(P), settings.estimator)
-                self.log = guides["direct"] = SampleLog(fitted, window_budget(cfg))
+                self.log = guides["direct"] = SampleLog(fitted, window_budget(cfg, views))
         self.guides = guides
         self.snapshot = (problem.vertices(), problem.values())
 
@@ -95,13 +95,13 @@ def split_terms(settings, terms, stage) -> tuple:
     built): the direct term is loop-fed when its guide is a Kd-tree."""
     kinds = auto.resolve(settings.guiding, terms, stage.pixels, settings.boundary_spp)
     fed = kinds.get("direct") == "kdtree"
-    return fed, [t for t in terms if not (fed and t == "direct")]
+    return fed, [t for t, kind in kinds.items() if kind != "none" and not (fed and t == "direct")]
 
 
-def window_budget(cfg) -> int:
+def window_budget(cfg, views: int) -> int:
     """Samples a pass keeps for the loop-fed guides (a window: ``guide_every`` iterations of
-    ``batch_size`` passes)."""
-    return per_pass_budget(cfg.guide_every * cfg.batch_size)
+    ``batch_size`` passes, at most one per view)."""
+    return per_pass_budget(cfg.guide_every * min(cfg.batch_size, views))
 
 
 def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, total: int, warn) -> Step:

@@ -400,7 +400,7 @@ def test_kdtree_refresh_from_a_prior_guide(variant):
     assert abs(f.mean() - truth) < 4 * f.std() / np.sqrt(len(f))
 
 
-def test_thinned_samples_keep_every_sum():
+def test_thinned_samples_keep_every_sum(variant):
     """A pass's thinned samples estimate the same sums: the kept zeros and the kept others
     stand for all of theirs (weights add up to the counts exactly), and Σ factor·f over a
     random box matches the full pass's sum within its sampling error."""
@@ -421,6 +421,13 @@ def test_thinned_samples_keep_every_sum():
     small = np.r_[np.ones(10), np.zeros(5)]
     k, w = thinned(small, 2048)  # under budget: everything kept, weight 1
     assert len(k) == 15 and np.all(w == 1.0)
+    # a NaN or infinite sample is kept as a zero: the saved state stays finite
+    log = SampleLog({}, 64)
+    u = mi.Float(np.linspace(0, 0.9, 100).astype(np.float32))
+    log.record("dir", u, mi.Point2f(u, u), mi.Float(np.r_[np.nan, np.inf, np.ones(98)].astype(np.float32)),
+               mi.Float(1.0))
+    assert all(np.isfinite(a).all() for a in log.arrays().values())
+    assert log.drawn["dir"] == 100 and np.isclose(log.samples("dir")[2].sum(), 1.0)
 
 
 @pytest.mark.slow

@@ -198,6 +198,8 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
     scale = dr.opaque(mi.Float, (width * height) / n_samples)
     for t in (("light", "dir") if technique == "mis" else (technique,)):
         u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
+        if isinstance(guides, SampleLog):
+            dr.eval(u1, u2, g)  # kept: read once by the kernels below and by the log
         v, pixel, ok, size = direct_motion(scene, sensor, edges, P, distr, t, technique == "mis", u1, u2,
                                            dr.detach(scale / g), env_motion)
         if isinstance(guides, SampleLog):

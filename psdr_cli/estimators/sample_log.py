@@ -51,9 +51,11 @@ class SampleLog(dict):
         u = np.stack([np.asarray(u1), np.asarray(u2.x), np.asarray(u2.y)], axis=1).astype(np.float32)
         n = len(u)
         f = np.broadcast_to(np.asarray(size, np.float32), (n,))
+        f = np.where(np.isfinite(f), f, np.float32(0.0))  # a NaN sample says nothing about F̃
         g = np.broadcast_to(np.asarray(g, np.float32), (n,))
         keep, factor = thinned(f, self.per_pass)
-        part = (u[keep], f[keep], (factor / g[keep]).astype(np.float32))
+        r = factor / g[keep]
+        part = (u[keep], f[keep], np.where(np.isfinite(r), r, 0.0).astype(np.float32))
         self.kept.setdefault(technique, []).append(part)
         self.drawn[technique] = self.drawn.get(technique, 0) + n
 

@@ -374,18 +374,23 @@ def fit_kdtree(u, f, w, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold
 
 
 def tree_arrays(guide: KdTreeGuide) -> dict:
-    """The arrays that define ``guide`` (for a saved optimisation state)."""
-    return {"lo": guide.lo, "hi": guide.hi, "corners": guide.corners, "axis": guide.axis,
-            "split": guide.split, "child": guide.child, "leaf": guide.node_leaf,
-            "epsilon": np.array([guide.epsilon])}
+    """The arrays that define ``guide`` (for a saved optimisation state), in float32 and int32."""
+    return {"lo": guide.lo.astype(np.float32), "hi": guide.hi.astype(np.float32),
+            "corners": guide.corners.astype(np.float32), "axis": guide.axis.astype(np.int32),
+            "split": guide.split.astype(np.float32), "child": guide.child.astype(np.int32),
+            "leaf": guide.node_leaf.astype(np.int32), "epsilon": np.array([guide.epsilon])}
 
 
 def tree_from_arrays(a: dict) -> KdTreeGuide:
-    """The guide :func:`tree_arrays` described."""
+    """The guide :func:`tree_arrays` described (the same guide for a tree that went through
+    :func:`tree_arrays` before)."""
     stats = GuideStats("kdtree")
-    return KdTreeGuide(a["lo"], a["hi"], a["corners"], float(np.ravel(a["epsilon"])[0]), stats,
-                       np.asarray(a["axis"]), np.asarray(a["split"]), np.asarray(a["child"]),
-                       np.asarray(a["leaf"]))
+    guide = KdTreeGuide(np.asarray(a["lo"], np.float64), np.asarray(a["hi"], np.float64),
+                        np.asarray(a["corners"], np.float64), float(np.ravel(a["epsilon"])[0]), stats,
+                        np.asarray(a["axis"], np.int64), np.asarray(a["split"], np.float64),
+                        np.asarray(a["child"], np.int64), np.asarray(a["leaf"], np.int64))
+    stats.memory_bytes = guide.memory_bytes()
+    return guide
 
 
 def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,

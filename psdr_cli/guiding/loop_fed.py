@@ -22,9 +22,9 @@ WINDOW_SAMPLES = 32768
 
 
 def per_pass_budget(passes: int) -> int:
-    """Samples each of ``passes`` passes of a window keeps, so that a window keeps about
-    WINDOW_SAMPLES per technique (at least 256, at most PER_PASS per pass)."""
-    return int(np.clip(WINDOW_SAMPLES // max(passes, 1), 256, PER_PASS))
+    """Samples each of ``passes`` passes of a window keeps, so that a window keeps at most
+    WINDOW_SAMPLES per technique (16 to PER_PASS per pass)."""
+    return int(np.clip(WINDOW_SAMPLES // max(passes, 1), 16, PER_PASS))
 
 
 def fitted_guides(log: SampleLog, breaks, estimator) -> dict:
@@ -37,7 +37,8 @@ def fitted_guides(log: SampleLog, breaks, estimator) -> dict:
         if f.any():
             guides[t] = fit_kdtree(u, f, w, breaks, k.samples_per_node, k.threshold, k.max_depth,
                                    k.max_leaves, max(estimator.guide_epsilon, EXPLORE), k.interval_share)
-    return share_profiles(guides, breaks, k.technique_share)
+    shared = share_profiles(guides, breaks, k.technique_share)
+    return {t: tree_from_arrays(tree_arrays(g)) for t, g in shared.items()}  # as saved (float32)
 
 
 def guide_arrays(log: SampleLog) -> dict:
