@@ -511,7 +511,8 @@ class Variant:
     """One estimator variant: a run of an ablation (``optimize.variants``) or an entry of a
     comparison (``compare.variants``). ``None`` keeps the experiment's value. ``seed`` gives a
     run another seed (replicate runs; the targets do not depend on it); ``passes`` gives a
-    comparison entry a fixed number of passes (equal samples) instead of the time budget."""
+    comparison entry a fixed number of passes (equal samples) instead of the time budget;
+    ``learning_rate`` and ``lambda`` give a run its own step (a sweep of step sizes per estimator)."""
     label: str
     guiding: str | None = None
     sampling: str | None = None
@@ -519,6 +520,8 @@ class Variant:
     seed: int | None = None
     passes: int | None = None
     engine: str | None = None
+    learning_rate: float | None = None     # a run's own Adam step (step-size sweeps)
+    lambda_: tuple | None = None           # a run's own LargeSteps λ, one value or one per stage
 
 
 @dataclass
@@ -1225,7 +1228,7 @@ def parse_optimize(base: Path) -> Parser:
             e.done()
         o.seconds = sec.get("seconds", number(positive=True), None)
         if sec.has("variants"):
-            o.variants = tuple(sec.get("variants", list_of(parse_run_variant, min_len=1)))
+            o.variants = tuple(sec.get("variants", list_of(run_variant_parser(stages), min_len=1)))
             unique_labels(o.variants, where)
         sec.done()
         return o
@@ -1242,16 +1245,22 @@ def parse_variant(value, where, guiding=None, sampling=None, edge_sort=None) -> 
     return v, sec
 
 
-def parse_run_variant(value, where) -> Variant:
-    v, sec = parse_variant(value, where)
-    if not v.label or "/" in v.label or v.label in (".", "..") or v.label != v.label.strip():
-        raise where.child("label").fail(f"expected a plain folder name, got '{v.label}'")
-    if v.label == "reference":
-        raise where.child("label").fail("'reference' is taken (the report's reference.ply); choose another label")
-    v.seed = sec.get("seed", integer(0), None)
-    v.engine = sec.get("engine", choice(*ENGINES), None)
-    sec.done()
-    return v
+def run_variant_parser(stages: int) -> Parser:
+    """A run of ``optimize.variants``: estimator keys, ``seed``, ``engine``, and its own
+    ``learning_rate`` and ``lambda`` (one value or one per remesh stage, of ``stages``)."""
+    def parse(value, where) -> Variant:
+        v, sec = parse_variant(value, where)
+        if not v.label or "/" in v.label or v.label in (".", "..") or v.label != v.label.strip():
+            raise where.child("label").fail(f"expected a plain folder name, got '{v.label}'")
+        if v.label == "reference":
+            raise where.child("label").fail("'reference' is taken (the report's reference.ply); choose another label")
+        v.seed = sec.get("seed", integer(0), None)
+        v.engine = sec.get("engine", choice(*ENGINES), None)
+        v.learning_rate = sec.get("learning_rate", number(positive=True), None)
+        v.lambda_ = sec.get("lambda", per_stage(number(minimum=0), stages), None)
+        sec.done()
+        return v
+    return parse
 
 
 def parse_compare_variant(value, where) -> Variant:

@@ -148,8 +148,16 @@ def variant_experiments(exp: Experiment, labels=None) -> list:
     return [(v.label, replace(with_estimator(exp, guiding=v.guiding, sampling=v.sampling, edge_sort=v.edge_sort,
                                                      engine=v.engine),
                               output=exp.run_dir, name=v.label, seed=exp.seed if v.seed is None else v.seed,
-                              optimize=replace(exp.optimize, target_seed=exp.seed)))
+                              optimize=variant_optimize(exp.optimize, v, exp.seed)))
             for v in variants if not labels or v.label in labels]
+
+
+def variant_optimize(opt, v, target_seed: int):
+    """The optimize section of variant ``v``'s run: its own learning rate and λ where it sets
+    them, and the base experiment's seed for the targets (shared by every variant)."""
+    return replace(opt, target_seed=target_seed,
+                   learning_rate=opt.learning_rate if v.learning_rate is None else v.learning_rate,
+                   lambda_=opt.lambda_ if v.lambda_ is None else v.lambda_)
 
 
 def existing_runs(exp: Experiment, command: str) -> list:

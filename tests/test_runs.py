@@ -8,8 +8,8 @@ from dataclasses import field, make_dataclass, replace
 
 from conftest import REPO, run_cli
 from psdr_cli.experiment import parse_experiment
-from psdr_cli.runs import fingerprint_v1, run_fingerprint
-from test_optimize import TINY
+from psdr_cli.runs import fingerprint_v1, run_fingerprint, variant_experiments
+from test_optimize import TINY, write
 
 #: A run written by psdr with version-1 fingerprints: tiny.yaml, 2 iterations (run.json, state, log, targets).
 SAVED_V1 = REPO / "tests" / "data" / "resume_v1"
@@ -89,3 +89,30 @@ def test_a_run_with_a_version_1_fingerprint_resumes(tmp_path):
     r = run_cli("optimize", cfg, "--resume", "--iterations", "3", cwd=tmp_path / "b")
     out = (r.stdout + r.stderr).replace("\n", " ")
     assert r.returncode == 0 and "changed since" in out and "resumed from 0" in out, out
+
+
+def test_a_variant_with_its_own_step_is_a_run_with_that_step(tmp_path):
+    """``optimize.variants`` entries may set ``learning_rate`` and ``lambda`` (a step-size sweep
+    per estimator): the variant's run has them and the fingerprint of the same experiment written
+    with that step, and a variant without them keeps the experiment's."""
+    stepped = copy.deepcopy(TINY)
+    stepped["optimize"].update({"learning_rate": 0.3, "lambda": [7, 3]})   # TINY remeshes once: 2 stages
+    data = copy.deepcopy(TINY)
+    data["optimize"]["variants"] = [{"label": "plain"}, {"label": "step", "learning_rate": 0.3, "lambda": [7, 3]}]
+    exp = parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)
+    (_, plain), (_, step) = variant_experiments(exp)
+    assert plain.optimize.learning_rate == exp.optimize.learning_rate and plain.optimize.lambda_ == exp.optimize.lambda_
+    assert step.optimize.learning_rate == 0.3 and step.optimize.lambda_ == (7.0, 3.0)
+    alone = parse_experiment(stepped, tmp_path / "tiny.yaml", cwd=tmp_path)
+    alone = replace(alone, optimize=replace(alone.optimize, target_seed=alone.seed))   # as every variant's
+    assert run_fingerprint(step) == run_fingerprint(alone) != run_fingerprint(plain)
+
+
+def test_a_variant_step_out_of_range_is_one_line(tmp_path):
+    for bad, needle in (({"learning_rate": 0}, "learning_rate"), ({"lambda": -1}, "lambda"),
+                        ({"lambda": [1, 2, 3, 4, 5]}, "lambda")):
+        data = copy.deepcopy(TINY)
+        data["optimize"]["variants"] = [{"label": "v", **bad}]
+        r = run_cli("optimize", write(tmp_path, data))
+        assert r.returncode == 2 and f"optimize.variants[0].{needle}" in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
