@@ -43,11 +43,13 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import pymeshlab  # noqa: E402
 from psdr_cli import backend  # noqa: E402
-from psdr_cli import optimize as opt  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.engines import mitsuba_image, mitsuba_integrator  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.estimators.passes import pass_seed  # noqa: E402
+from psdr_cli.iteration import adjoint_image, l1_loss  # noqa: E402
+from psdr_cli.problem import Problem  # noqa: E402
+from psdr_cli.targets import ground_truth, initial_shape  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.gradient import Settings, ad_image  # noqa: E402
 from psdr_cli.remesh import remesh  # noqa: E402
@@ -78,7 +80,7 @@ CONFIGS = {
 def fixed_shape(exp, reference, state: str):
     """(V, F) of the shape the gradients are taken at (see the module docstring)."""
     if state == "sphere":
-        return remesh(*opt.initial_shape(exp, reference), 800, "instant")
+        return remesh(*initial_shape(exp, reference), 800, "instant")
     V, F = remesh(*reference, 1500, "isotropic")
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(V, F.astype(np.int32)))
@@ -91,11 +93,11 @@ class Bench:
 
     def __init__(self, exp, state: str):
         self.exp = exp
-        reference = opt.ground_truth(exp)
+        reference = ground_truth(exp)
         scene = build_scene(exp, objects={exp.optimize.object: reference})
         self.targets = {v: mi.Float(np.asarray(render_view(scene, v, 256, seed=7919), np.float32).ravel())
                         for v in VIEWS}
-        self.problem = opt.Problem(exp, *fixed_shape(exp, reference, state), None, {})
+        self.problem = Problem(exp, *fixed_shape(exp, reference, state), None, {})
         self.settings = Settings.from_experiment(exp).with_estimator(guiding="none")
 
     def image(self, config, edges, view: int, draw: int):
@@ -112,7 +114,7 @@ class Bench:
                                              else self.exp.estimator.primary_sampling)
             img = ad_image(self.problem.scene, edges, view, TERMS, s, pass_index=draw)
             adjoint = config[4]
-        return img, (opt.adjoint_image(self.problem.scene, view, adjoint, 12345, draw) if adjoint else None)
+        return img, (adjoint_image(self.problem.scene, view, adjoint, 12345, draw) if adjoint else None)
 
     def gradient(self, config, draw: int) -> np.ndarray:
         """One draw of ∂L/∂u for the 4-view batch."""
@@ -123,7 +125,7 @@ class Bench:
         loss = mi.Float(0.0)
         for v in VIEWS:
             img, adjoint = self.image(config, edges, v, draw)
-            loss += opt.l1_loss(img, self.targets[v], adjoint) / len(VIEWS)
+            loss += l1_loss(img, self.targets[v], adjoint) / len(VIEWS)
         dr.backward(loss)
         g = np.asarray(dr.grad(p.opt["u"]), np.float64).copy()
         dr.set_grad(p.opt["u"], 0.0)

@@ -8,7 +8,7 @@
     evaluate     → :func:`psdr_cli.evaluate.evaluate_meshes` (inputs: :func:`psdr_cli.evaluate.evaluate_inputs`)
     table2       → :func:`psdr_cli.evaluate.table2`
 
-``optimize_variants`` and ``compare`` with ``ray=RayOptions(...)`` run each run / variant as a
+``optimize_variants`` and ``compare`` with ``ray=sweep.RayOptions(...)`` run each run / variant as a
 Ray task (:mod:`psdr_cli.sweep`; needs the optional extra ``psdr[ray]``).
 """
 from __future__ import annotations
@@ -27,7 +27,6 @@ from . import sweep
 from .config import MAX_ITERATIONS, Experiment, option_count
 from .guiding import stats
 from .mitsuba_scene import warn_stderr
-from .sweep import RayOptions  # noqa: F401  (re-exported: api.RayOptions)
 
 
 def load_experiment(path, warn=warn_stderr) -> Experiment:

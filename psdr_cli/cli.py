@@ -24,6 +24,7 @@ from rich.table import Table
 from . import __version__, api
 from .config import with_estimator
 from .errors import PsdrError, PsdrWarning
+from .sweep import RayOptions
 from .verdict import describe
 
 app = typer.Typer(
@@ -123,8 +124,8 @@ RayFilesOption = typer.Option("auto", "--ray-files", help="With --ray: shared (w
 
 
 def ray_options(address, cpus: int, files: str):
-    """api.RayOptions of the --ray options, or None without --ray."""
-    return None if address is None else api.RayOptions(address=address, cpus=cpus, files=files)
+    """sweep.RayOptions of the --ray options, or None without --ray."""
+    return None if address is None else RayOptions(address=address, cpus=cpus, files=files)
 
 
 @app.command()
@@ -384,7 +385,7 @@ def ray_flag(argv: list) -> list:
     experiment file next) it means a local Ray instance, ``--ray local``."""
     out = list(argv)
     for i in [i for i, a in enumerate(out) if a == "--ray"][::-1]:
-        if i + 1 == len(out) or not api.RayOptions.is_address(out[i + 1]):
+        if i + 1 == len(out) or not RayOptions.is_address(out[i + 1]):
             out.insert(i + 1, "local")
     return out
 

@@ -35,16 +35,13 @@ from .engines import Engine
 from .errors import PsdrError
 from .gradient import Settings
 from .guiding import auto
-from .iteration import (GuideCache, adjoint_image, batch_views, iterate, l1_loss,  # noqa: F401
-                        learning_rate_at, rebuild_guides)
-from .problem import Problem, adam_export, adam_import, remeshed_problem, texture_experiment  # noqa: F401
+from .iteration import GuideCache, iterate
+from .problem import Problem, remeshed_problem
 from .render import render_view
-from .runs import (RunFiles, State, append_log, clear_run, keep_previous_run, lock_run, plot_loss,  # noqa: F401
-                   read_log, resumable_state, run_record, variant_experiments, write_checkpoint, write_log,
-                   write_mesh)
-from .stages import downsample, stage_at, stage_experiment, stage_of, stage_value  # noqa: F401
-from .targets import (ground_truth, image_targets, initial_shape, initial_shape_uv, initial_state,  # noqa: F401
-                      load_targets, render_targets, target_key)
+from .runs import (RunFiles, append_log, clear_run, keep_previous_run, lock_run, plot_loss, read_log,
+                   resumable_state, run_record, variant_experiments, write_checkpoint, write_log, write_mesh)
+from .stages import stage_of
+from .targets import initial_state, load_targets
 
 
 @dataclass

@@ -290,7 +290,7 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
     from psdr_cli import api
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.optimize import State
+    from psdr_cli.runs import State
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0]["bsdf"] = {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}
     data["optimize"].update(iterations=2, remesh={"method": "none"}, albedo={"init": 0.3})
@@ -298,7 +298,7 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     api.optimize(exp, warn=lambda m: None)
     saved = State.load(exp.run_dir / "state.npz")
     assert saved.adam["albedo"][0] == 2
-    from psdr_cli.optimize import Problem, adam_import, adam_export
+    from psdr_cli.problem import Problem, adam_import, adam_export
     problem = Problem(exp, saved.V, saved.F, None, saved.values, saved.u, saved.basis)
     adam_import(problem.opt, "albedo", saved.adam["albedo"])
     t, m, v = adam_export(problem.opt, "albedo")
@@ -420,7 +420,8 @@ def test_reports_refuse_unfinished_runs(tmp_path):
 def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
     from psdr_cli.experiment import parse_experiment
-    from psdr_cli.optimize import target_key, variant_experiments
+    from psdr_cli.runs import variant_experiments
+    from psdr_cli.targets import target_key
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
     exp = parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)
@@ -530,7 +531,7 @@ def test_l1_adjoint_from_an_independent_render_removes_the_sign_correlation():
     import drjit as dr
     import mitsuba as mi
     from psdr_cli import backend
-    from psdr_cli.optimize import l1_loss
+    from psdr_cli.iteration import l1_loss
     backend.select_variant("auto")
     rng = np.random.default_rng(0)
     n = 200_000
@@ -567,7 +568,7 @@ def test_learning_rate_final_decays_geometrically_after_the_last_remesh():
     """lr is constant up to the last remesh before the end, then decays geometrically to
     learning_rate_final at the last iteration; unset, it stays constant."""
     from psdr_cli.config import OptimizeConfig, RemeshConfig
-    from psdr_cli.optimize import learning_rate_at
+    from psdr_cli.iteration import learning_rate_at
     cfg = OptimizeConfig(object="x", learning_rate=0.1, learning_rate_final=0.01,
                          remesh=RemeshConfig("instant", 800, (100, 200, 400), (1500, 2500, 4000)))
     assert learning_rate_at(cfg, 0, 300) == 0.1 and learning_rate_at(cfg, 200, 300) == 0.1
@@ -604,7 +605,7 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
     k-th pixel instead does not."""
     from psdr_cli import backend
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.optimize import downsample, stage_experiment
+    from psdr_cli.stages import downsample, stage_experiment
     from psdr_cli.render import render_view
     from psdr_cli.scene import build_scene
     data = copy.deepcopy(TINY)

@@ -84,6 +84,7 @@ def assert_same_runs(a: Path, b: Path, labels, rtol=1e-4):
 def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, sequential_sweep, files):
     from psdr_cli import api
     from psdr_cli.experiment import load_experiment
+    from psdr_cli.sweep import RayOptions
     seq_exp, seq = sequential_sweep
     (tmp_path / "ray").mkdir()
     exp = load_experiment(write(tmp_path / "ray", SWEEP))
@@ -100,7 +101,7 @@ def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, sequential_sw
             events.append((self.label, "advance", n, loss))
 
     results = dict(api.optimize_variants(exp, warn=lambda m: None, progress=Line,
-                                         ray=api.RayOptions(files=files, sync_seconds=0.0)))
+                                         ray=RayOptions(files=files, sync_seconds=0.0)))
     assert sorted(results) == ["grid", "plain"]
     for label in results:
         assert results[label].final == exp.run_dir / label / "final.ply"
@@ -114,7 +115,7 @@ def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, sequential_sw
     # a fresh sweep over finished runs moves them aside (as optimize() does), never deletes them
     finals = {label: (exp.run_dir / label / "final.ply").read_bytes() for label in results}
     said = []
-    dict(api.optimize_variants(exp, iterations=1, warn=said.append, ray=api.RayOptions(files=files, sync_seconds=0.0)))
+    dict(api.optimize_variants(exp, iterations=1, warn=said.append, ray=RayOptions(files=files, sync_seconds=0.0)))
     for label, final in finals.items():
         kept = list(exp.run_dir.glob(f"{label}.previous-*"))
         assert len(kept) == 1 and (kept[0] / "final.ply").read_bytes() == final, (label, said)
@@ -142,6 +143,7 @@ def test_a_killed_worker_is_retried_and_resumes(tmp_path, local_ray):
     run's (to the resume tolerance of test_optimize)."""
     from psdr_cli import api
     from psdr_cli.experiment import load_experiment
+    from psdr_cli.sweep import RayOptions
     data = copy.deepcopy(SWEEP)
     data["optimize"]["iterations"] = 16
     seq_exp, seq = sequential(tmp_path, data)
@@ -164,7 +166,7 @@ def test_a_killed_worker_is_retried_and_resumes(tmp_path, local_ray):
 
     watcher = threading.Thread(target=killer)
     watcher.start()
-    results = dict(api.optimize_variants(exp, warn=warnings.append, ray=api.RayOptions(files="shared")))
+    results = dict(api.optimize_variants(exp, warn=warnings.append, ray=RayOptions(files="shared")))
     watcher.join()
     assert killed, "the runs ended before the workers could be killed"
     assert any("resumes from the saved state" in w for w in warnings), warnings
@@ -201,6 +203,7 @@ def test_ray_compare_matches_the_sequential_run(tmp_path, local_ray):
     with the same numbers (equal samples: no timing in the result)."""
     from psdr_cli import api
     from psdr_cli.experiment import parse_experiment
+    from psdr_cli.sweep import RayOptions
     from test_guiding import SHADOW
     data = copy.deepcopy(SHADOW)
     data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct"], "kdtree": {"initial_samples": 4096}}
@@ -210,7 +213,7 @@ def test_ray_compare_matches_the_sequential_run(tmp_path, local_ray):
     for mode in ("seq", "ray"):
         data["output"] = str(tmp_path / mode)
         exp = parse_experiment(copy.deepcopy(data), tmp_path / "shadow.yaml", cwd=tmp_path)
-        results[mode] = api.compare(exp, ray=api.RayOptions() if mode == "ray" else None)
+        results[mode] = api.compare(exp, ray=RayOptions() if mode == "ray" else None)
     seq, ray_ = results["seq"], results["ray"]
     assert files_of(seq.folder) == files_of(ray_.folder)
     assert [r.variant.label for r in ray_.rows] == ["none", "kdtree"]
