@@ -1,17 +1,28 @@
 """Boundary-segment sampling: a map u = (u1, u2) ∈ [0,1)³ → (x^B, ω) with its density.
 
-- Edge point: u1 picks an edge ∝ length (CDF over the edge list) and a uniform point on it,
-  p(x^B) = 1 / Σℓ per unit length.
-- ``dir`` technique (u2): uniform over the silhouette double wedge of the edge,
-  {ω : sign(n0·ω) ≠ sign(n1·ω)}, p(ω) = 1/(4φ0) with φ0 = acos(n0·n1); open (border) edges use
-  the uniform sphere, p(ω) = 1/(4π).
-- ``light`` technique (u2): Mitsuba's emitter sampling from x^B (emitter selection included),
-  p(ω) in solid angle.
+The mathematics is docs/theory.md §2. u1 picks an edge ∝ its length and a uniform point x^B on
+it, p(x^B) = 1/Σℓ per unit length; u2 picks ω by the ``dir`` technique (uniform over the
+silhouette double wedge, p(ω) = 1/(4φ0), the uniform sphere on open edges) or the ``light``
+technique (Mitsuba's emitter sampling from x^B, p(ω) in solid angle). A guide
+(:mod:`psdr_cli.guiding`, §5) supplies u instead of independent uniforms and the sample is
+divided by its density g(u); edge sorting (:mod:`psdr_cli.edge_sort`, §5) orders the edge list
+into chains, traversing some edges backwards, so that x^B(u1) is continuous along each chain.
 
-A guide (:mod:`psdr_cli.guiding`) supplies u instead of independent uniforms and the sample is
-divided by the guide's density g(u). With edge sorting (:mod:`psdr_cli.edge_sort`) the
-edge list is ordered into chains and some edges are traversed backwards, so that x^B(u1) is
-continuous along each chain.
+Parameters (experiment keys)
+----------------------------
+``estimator.edge_sort`` (bool, default false)
+    Order the edges into chains (:func:`edge_list`).
+``estimator.chains.max_turn`` (float in [0, 180] degrees, default 60)
+    With edge sorting: a chain stops at a sharper turn.
+``estimator.chains.max_length`` (int ≥ 1, default 1024)
+    With edge sorting: most edges per chain.
+``scene.objects[].edges`` (bool, default true)
+    Only these objects' edges are boundary edges.
+``scene.objects[].bsdf.type`` (BSDF name, default ``diffuse``)
+    Objects with a transmissive BSDF (:data:`TRANSMISSIVE`) keep their concave edges (§2).
+
+The technique (``estimator.sampling``) is chosen by the term that draws the samples
+(:mod:`.direct`; :mod:`.indirect` always uses ``dir``).
 """
 from __future__ import annotations
 

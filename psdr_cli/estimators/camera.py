@@ -3,7 +3,15 @@
 Film coordinates are in pixels, q ∈ [0, W) × [0, H). For Mitsuba's perspective camera with a
 horizontal field of view f and aspect a = W/H, a camera-space point (x, y, z) projects to
 
-    q = ( W (½ − ½ x / (z tan(f/2))),  H (½ − ½ a y / (z tan(f/2))) ).
+    q = ( W (½ − ½ x / (z tan(f/2))),  H (½ − ½ a y / (z tan(f/2))) )
+
+(docs/theory.md §4). The camera connection W_e · f_s · |n·d0| of the direct and indirect terms
+is in §3.
+
+Parameters (experiment keys)
+----------------------------
+None: the film size and the field of view come from the scene (``scene.film``,
+``scene.cameras``).
 """
 from __future__ import annotations
 

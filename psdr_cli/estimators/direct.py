@@ -1,33 +1,41 @@
-"""Direct boundary term: boundary segments whose source end lies on an emitter.
+"""Direct boundary term: boundary segments whose source end lies on an emitter (docs/theory.md §3).
 
-A segment (x^B on an edge, direction ω): +ω must reach emission at x^S (an area light or the
-environment), −ω a surface point x^D seen by the camera. Its contribution to the pixel of x^D is
+A segment (x^B on an edge, direction ω, drawn as in §2) must reach emission at x^S along +ω (an
+area light or the environment) and a surface point x^D seen by the camera along −ω. The sample
+adds (W·H/N)·(v − detach(v)) to the pixel of x^D, so primal images are unchanged and only
+derivatives flow (forward and reverse mode alike), with
 
-    F/base = G = W_e(x^D) · f_s(x^D; ω → camera)|n_D·d0| · Le(x^S, −ω) / (p(x^B) p(ω))
+    v = G · t_D sinφ · σ · (m̂ · ω(θ)),   ω(θ) = normalize(x^B(θ) − x^D_λ(θ)),   λ = t_S/(t_S + t_D),
+    G = W_e(x^D) · f_s(x^D; ω → camera)|n_D·d0| · Le(x^S, −ω) / (p(x^B) p(ω)).
 
-and the derivative enters through the normal velocity of the visibility boundary,
+The notation, the lever λ (1 for the environment), the form for a rotating environment and why
+it holds for static sources are in §3. The techniques (``light``, ``dir``, and ``mis`` with the
+balance heuristic on the unguided densities) are §2 and §6; guided sampling (u drawn from a
+guide g, the sample divided by g(u)) is §5.
 
-    v = G · t_D sinφ · σ · (m̂ · ω(θ)),   m̂ = (ê × ω)/|ê × ω|,   σ = sign((ê × ω)·(p2 − p0)),
-    ω(θ) = normalize(x^B(θ) − x^D_λ(θ)),   x^D_λ = x^D + λ (x^D(θ) − x^D),   λ = t_S/(t_S + t_D),
-    t_D = |x^B − x^D|,   t_S = |x^S − x^B|,   sinφ = |ê × ω|,
-
-with x^D(θ) the pixel-tied camera hit (it moves with a moving camera, or on a moving surface) and
-λ = 1 for the environment (t_S = ∞). The lever λ: with the source point x^S fixed, a moving x^D
-turns the segment x^D → x^S about x^S, which passes the edge at λ·ẋ^D; the indirect term's
-m̂·(u̇2 − ẋ^S) reduces to the same m̂·(ẋ^B − λ ẋ^D) for a static source. The sample adds
-(W·H/N)(v − detach(v)) to its pixel, so primal images are unchanged and only derivatives flow
-(forward and reverse mode alike). This velocity form holds for static sources (area lights that
-do not move, environment maps).
-
-``technique``: ``light`` (emitter sampling), ``dir`` (wedge sampling) or ``mis`` (one sample of
-each per pair, balance heuristic 1/(p(x^B)(p_light + p_dir)) on densities in (x^B, ω) measure).
-
-Guided sampling (paper §4): the primary samples u = (u1, u2) of a technique come from a guide g
-and the sample is divided by g(u) as well. With MIS the weights stay the balance heuristic of
-the *unguided* densities, w_t = p_t/(p_light + p_dir); any weights that sum to one give an
-unbiased estimator as long as each guided density is positive wherever its weighted integrand
-is, which the guide's uniform share ε guarantees. (The paper's Eq. 17 approximates the guided
-densities instead; it is not implemented.)
+Parameters (experiment keys)
+----------------------------
+``estimator.terms`` (list of term names, default all four)
+    The term runs when ``direct`` is listed.
+``estimator.boundary_spp`` (int ≥ 1, default 16)
+    Boundary segments per pixel of each view; with ``mis`` pairs of one ``light`` and one
+    ``dir`` sample.
+``estimator.sampling`` (``light`` | ``dir`` | ``mis``, default ``mis``)
+    Emitter sampling, wedge sampling, or one sample of each per pair (§6).
+``estimator.guiding`` (``auto`` | ``none`` | ``grid`` | ``kdtree``, default ``auto``)
+    Guide of each technique's primary samples (§5; ``auto`` picks by the size of one pass,
+    :mod:`psdr_cli.guiding.auto`). In ``psdr optimize`` ``auto`` guides nothing and ``kdtree``
+    trees are fitted to the loop's own samples (:mod:`psdr_cli.guiding.loop_fed`).
+``estimator.guide_epsilon`` (float in [0, 1], default 0.05)
+    Uniform share ε of every guide.
+``estimator.kdtree.*``, ``estimator.grid.*``
+    Build parameters of the guides (:mod:`psdr_cli.guiding.kdtree`, :mod:`psdr_cli.guiding.grid`);
+    ``kdtree.technique_share`` (default 0.3) lets the two MIS trees share their edge profile.
+``estimator.edge_sort`` (bool, default false)
+    Order the edges into chains (:mod:`.boundary_sampling`, §5).
+``estimator.passes`` (int ≥ 1, default 1)
+    Fewest passes each view's samples are split into (more when a pass would exceed
+    :data:`.passes.AD_LANES` lanes).
 """
 from __future__ import annotations
 

@@ -1,30 +1,40 @@
 """Indirect boundary term: general boundary segments (x^D ← x^B → x^S) with subpaths on both ends.
 
-A boundary segment through the edge point x^B in direction ω (``dir`` technique: uniform over the
-silhouette wedge) has a source end x^S (first hit along +ω, or the environment) and a detector
-end x^D (first hit along −ω). Full paths are assembled from
+The mathematics is docs/theory.md §3 ("Indirect term"). The ``dir`` technique draws (x^B, ω)
+(§2); a source subpath path-traced along +ω gives the radiances S_k (k further segments after
+x^S) and a light-tracing walk from x^D gives the camera importances D_j (j segments back to the
+camera). Every split with j + 1 + k ≤ max_depth except (j, k) = (1, 0), the direct term's,
+contributes, for a surface source,
 
-- a source subpath: path tracing from x^B along +ω; S_k is the radiance reaching x^B through
-  x^S with k further segments (S_0 = Le(x^S), the emission the direct term uses);
-- a detector subpath: a light-tracing walk from x^D; D_j is the importance of the j-segment
-  chain camera → … → x^D (D_1: x^D connected to the camera directly, D_j: the walk's (j−1)-th
-  bounce connected to the camera, landing in its own pixel).
+    F_j = D_j · Σ_k S_k / (p(x^B) p(ω)),   v = F_j · sinφ · σ · (t_D/dist) · m̂ · (u2(θ) − x^S(θ)),
 
-With the total path length j + 1 + k ≤ max_depth, every pair except (j, k) = (1, 0) (the direct
-term) contributes F_j = D_j · Σ_k S_k / (p(x^B) p(ω)). The derivative enters through the normal
-velocity of the visibility boundary. For a surface source with normal n_S,
+u2 being where the line from x^D(θ) through x^B(θ) meets the source triangle's plane (for the
+environment v = F_j · sinφ · σ · t_D · m̂ · ω(θ)). Why this is the normal velocity of the
+visibility boundary, and where x^D(θ) is tied (to the pixel for j = 1, a material point for
+j ≥ 2), is in §3; guided sampling is §5.
 
-    v = F_j · sinφ · σ · (t_D / dist) · m̂ · (u2(θ) − x^S(θ)),
+Parameters (experiment keys)
+----------------------------
+``estimator.terms`` (list of term names, default all four)
+    The term runs when ``indirect`` is listed.
+``estimator.boundary_spp`` (int ≥ 1, default 16)
+    Boundary segments per pixel of each view, one subpath pair each.
+``scene.max_depth`` (int ≥ 1, default 2)
+    Longest path in segments; the term needs at least 3 and is zero below that.
+``estimator.guiding`` (``auto`` | ``none`` | ``grid`` | ``kdtree``, default ``auto``)
+    Guide of the ``dir`` samples (§5; ``auto``: :mod:`psdr_cli.guiding.auto`); its target holds
+    one random subpath pair per evaluation.
+``estimator.guide_epsilon`` (float in [0, 1], default 0.05)
+    Uniform share ε of the guide.
+``estimator.kdtree.*``, ``estimator.grid.*``
+    Build parameters of the guide (:mod:`psdr_cli.guiding.kdtree`, :mod:`psdr_cli.guiding.grid`).
+``estimator.edge_sort`` (bool, default false)
+    Order the edges into chains (:mod:`.boundary_sampling`, §5).
+``estimator.passes`` (int ≥ 1, default 1)
+    Fewest passes each view's samples are split into (more when a pass would exceed
+    :data:`.passes.AD_LANES` lanes).
 
-where u2(θ) = x^D + t (x^B − x^D) is where the line from x^D(θ) through x^B(θ) meets the plane
-of the source triangle, t = ((x^S − x^D)·n_S) / ((x^B − x^D)·n_S), x^S(θ) the source material
-point, t_D = |x^B − x^D|, dist = |x^S − x^D|, m̂ = (ê × ω)/|ê × ω|, sinφ = |ê × ω| and
-σ = sign((ê × ω)·(p2 − p0)). Only the component of u̇2 − ẋ^S in the source plane matters and
-m̂ restricted to that plane is ñ (the boundary-curve normal) scaled by |n_S·ω|/sinφ2, which is
-how this form equals F·base·σ·(ñ·u̇2) with base = (t_D/dist)(sinφ/sinφ2)|n_S·ω|. For the
-environment (no source surface) it becomes v = F_j · sinφ · σ · t_D · m̂ · ω(θ) with
-ω(θ) = normalize(x^B(θ) − x^D(θ)). x^D(θ) is tied to the pixel for j = 1 (the camera vertex)
-and a material point for j ≥ 2.
+``estimator.sampling`` is not read: the term always uses the ``dir`` technique.
 """
 from __future__ import annotations
 

@@ -1,32 +1,31 @@
 """Interior term: unidirectional path tracing with next-event estimation (NEE), in material form.
 
-For a camera ray the estimator returns
+The mathematics is docs/theory.md §1 ("The interior term"). For a camera ray the estimator
+returns
 
     L = Σ_{k=0}^{max_depth-1} β_k · [ w_bsdf,k · Le(x_k) + w_light,k · f_s(x_k) · Le(y_k) G / p_light ]
 
-where β_k is the BSDF-sampling throughput up to vertex x_k, the first term is emission hit by the
-ray that reached x_k (environment included on a miss) and the second is NEE towards a sampled
-emitter point y_k. Both are combined with the balance heuristic w_a = p_a / (p_bsdf + p_light);
-delta lobes and delta emitters keep weight 1. ``max_depth = 2`` is direct lighting only, the same
-convention as Mitsuba's ``path`` integrator.
+(BSDF sampling and NEE combined by the balance heuristic; the depth convention of Mitsuba's
+``path`` integrator). With ``ad=True`` the vertex seen through the pixel slides along its fixed
+camera ray and every later vertex is a material point (``RayFlags.FollowShape``), so that each
+segment carries f_s·|n_k·ω_k|/|x_k − x_{k-1}|²·J_k over its detached value: the primal value is
+the render and the product of these ratios carries dL/dθ. At every vertex on a smooth-shaded
+face the terminator term is added by :func:`plane_boundary` (``terminator.py``, §8); its primal
+value is 0.
 
-Derivatives (``ad=True``) follow the material form of the path integral. The camera vertex x_1 is
-tied to the pixel (it slides along the fixed camera ray); every later vertex x_k is a material
-point (``RayFlags.FollowShape``: fixed barycentrics on a moving triangle), so each segment
-x_{k-1} → x_k contributes the factors
-
-    f_s(x_{k-1}, ω_k) · |n_k · ω_k| / |x_k − x_{k-1}|² · J_k,   J_k = A_k / detach(A_k),
-
-with ω_k = normalize(x_k − x_{k-1}) recomputed from the moving points, divided by their detached
-values (sampling densities and MIS weights stay detached). The primal value is unchanged; the
-product of these ratios carries dL/dθ. NEE towards an area-light point y uses
-f_s · Le · |n_y·ω| / |y − x|² the same way; environment directions are solid-angle samples and
-only f_s and Le(ω) (e.g. a rotating environment) carry derivatives.
-
-Smooth shading: at a vertex on a smooth-shaded face the next segment's integrand jumps where ω
-crosses the facet's plane (the facet blocks ω, the shading normal does not). Its boundary term is
-added at every such vertex by :func:`plane_boundary` (``terminator.py``, docs/theory.md §8); its
-primal value is 0.
+Parameters (experiment keys)
+----------------------------
+``estimator.terms`` (list of term names, default all four)
+    The term runs when ``interior`` is listed.
+``estimator.spp`` (int ≥ 1, default 64)
+    Paths per pixel (``psdr render`` renders its images with it too).
+``scene.max_depth`` (int ≥ 1, default 2)
+    Path length in segments: 1 shows emitters only, 2 is direct lighting, 3 adds one bounce.
+``scene.objects[].smooth`` (bool, default false)
+    Smooth shading: adds the terminator term at the object's vertices (§8).
+``estimator.passes`` (int ≥ 1, default 1)
+    Fewest passes each view's samples are split into (more when a pass would exceed
+    :data:`.passes.AD_LANES` lanes).
 """
 from __future__ import annotations
 

@@ -1,25 +1,39 @@
 """Primary boundary term: discontinuities of the image integrand along projected edges.
 
-With the camera vertex tied to the pixel, the pixel integral I = ∫_pixel L(q) dq (q in pixels)
-changes only where the integrand jumps across a moving curve: the projected silhouette edges of
-the moving meshes (and, for flat-shaded meshes, every non-flat edge, across which the shading
-normal jumps). For a projected edge point q(θ) with screen normal n_s,
+The mathematics is docs/theory.md §4. With the camera vertex tied to the pixel, the pixel
+integral changes only where its integrand jumps across a moving curve: the projected silhouettes
+of the moving meshes, every non-flat edge of a flat-shaded mesh (the shading normal jumps
+there), and of a smooth-shaded one when light scatters at the camera vertex (§8). For an edge
+point q(θ) with screen normal n_s,
 
-    dI/dθ = ∫_edges (n_s · q̇) [L(q − ε n_s) − L(q + ε n_s)] dl.
+    dI/dθ = ∫_edges (n_s · q̇) [L(q − ε n_s) − L(q + ε n_s)] dl,
 
-Sampling: an edge e ∝ w_e·ℓ_e (ℓ_e its projected length in pixels), a uniform point on it:
-p(q) = w_e / Σ_e' w_e'·ℓ_e'. Each sample adds (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] to the
-pixel of q. With ``primary_sampling: length`` (the default) every w_e = 1; with ``jump`` an
-inner crease of a flat-shaded mesh (both faces towards the camera, none turned) gets
-w_e = clamp(φ_e / JUMP_ANGLE, JUMP_MIN_WEIGHT, 1), φ_e the angle between its two face normals,
-and every other curve w_e = 1. Across such an edge the radiance jumps only because the
-shading normal turns by φ_e, so ΔL = O(φ_e), while a silhouette's ΔL is the full contrast
-of object and background: on a finely tessellated mesh the inner edges hold ~95 % of the
-projected length and a small part of the gradient, and uniform-length sampling spends most
-samples there. Any w_e > 0 leaves the estimator unbiased; the floor bounds the variance where
-ΔL is larger than φ_e suggests (glossy highlights). ``jump`` suits parameters that move
-silhouettes (a rigid motion, a camera); per-vertex shape gradients draw on the inner creases
-too, and there it does not help (docs/gradients.md).
+estimated by drawing an edge ∝ w_e·ℓ_e (ℓ_e its projected length in pixels) and a uniform point
+on it; each sample adds (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] to the pixel of q. The edge
+weights w_e of ``primary_sampling`` (``length``: all 1; ``jump``: inner creases of flat-shaded
+meshes weighted by their normal angle, :data:`JUMP_ANGLE`, :data:`JUMP_MIN_WEIGHT`), why any
+w_e > 0 is unbiased and when ``jump`` lowers the variance are in §4.
+
+Parameters (experiment keys)
+----------------------------
+``estimator.terms`` (list of term names, default all four)
+    The term runs when ``primary`` is listed.
+``estimator.primary_spp`` (int ≥ 1, default 16)
+    Edge samples per pixel: primary_spp·W·H per view.
+``estimator.primary_sampling`` (``length`` | ``jump``, default ``length``)
+    Edge density: ∝ projected length, or inner creases of flat-shaded meshes down-weighted (§4).
+``scene.max_depth`` (int ≥ 1, default 2)
+    Depth of the radiance read on the two sides of an edge (:func:`.interior.radiance`).
+``scene.objects[].edges`` (bool, default true)
+    Only these objects' edges are image-discontinuity curves.
+``scene.objects[].smooth`` (bool, default false)
+    Flat-shaded meshes contribute every non-flat edge; smooth-shaded ones their silhouettes,
+    and their inner edges too when ``max_depth`` ≥ 2.
+``estimator.passes`` (int ≥ 1, default 1)
+    Fewest passes each view's samples are split into (more when a pass would exceed
+    :data:`.passes.AD_LANES` lanes).
+
+The term is never guided (``estimator.guiding`` does not apply).
 """
 from __future__ import annotations
 

@@ -1,29 +1,28 @@
 """Terminator term: the boundary that smooth shading adds to the interior term.
 
-A smooth-shaded triangle f is still a flat facet. At a path vertex x on f the mesh starts to
-block light where the direction ω towards the next vertex crosses the plane of f, while the
-interpolated shading normal still accepts it (f_s(x, ω) > 0). The material-form integrand of the
-segment x → y therefore jumps on the curve {y : g(y) = 0}, g(y) = n·(y − x) with n the facet's
-normal, and that curve moves whenever f does. Per unit angle φ of the direction
-
-    ω(φ) = cos φ · t + sin φ · b        (t, b spanning the plane of f)
-
-the missing derivative is (docs/theory.md §8)
+The mathematics is docs/theory.md §8. A smooth-shaded triangle f is still a flat facet: at a
+path vertex x on f the facet blocks the directions below its plane that the interpolated shading
+normal still accepts, so the segment integrand jumps on the curve g(y) = n·(y − x) = 0, which
+moves with f. Per unit angle φ of the direction ω in the plane of f the missing derivative is
 
     ∂_θ I_T = ∫_0^{2π} f_s(x, ω) · [ L⁺ · ∂_θ g(y⁺) / r⁺  −  L⁻ · ∂_θ g(y⁻) / r⁻ ] dφ,
 
-where y^± are the material points that rays leaving x just above (+, the viewer's side) and just
-below (−) the plane reach along ω, r^± = |y^± − x| and L^± the radiance they send back towards
-x. This is the curve's normal velocity ∂_θ g / |∇_T g| times the area-measure integrand
-f_s·L·|n_y·ω| / r², written per unit φ (dl / |∇_T g| = r / |n_y·ω| dφ). A ray that leaves the
-scene reads the environment: g = n·ω_env and r = 1, with ω_env the environment's material
-direction. Behind a closed mesh L⁻ = 0 (the ray below the plane meets the mesh's inside); on an
-open sheet both rays reach the same point and the jump vanishes.
+y^± being what rays leaving x just above and just below the plane reach (the derivation, the
+environment, closed and open meshes: §8). It is estimated with one direction per vertex, drawn
+∝ n_s·ω (:class:`PlaneSample`); the estimate has primal value 0 and carries only the derivative
+(each ∂_θ g enters as g − detach(g)). Only reflection is covered: smooth meshes with a
+transmitting BSDF are warned about (:mod:`psdr_cli.shading`).
 
-Estimated with one direction per vertex, drawn in proportion to n_s·ω (:class:`PlaneSample`);
-the estimate has primal value 0 and carries only the derivative: each ∂_θ g enters as
-g − detach(g). Only reflection is covered: smooth meshes with a transmitting BSDF are warned
-about (psdr_cli.shading).
+Parameters (experiment keys)
+----------------------------
+None of its own: :func:`.interior.radiance` adds the term at every smooth vertex of the
+interior term's paths (``estimator.terms``, ``estimator.spp``, ``estimator.passes`` as there).
+
+``scene.objects[].smooth`` (bool, default false)
+    Smooth shading (for a Mitsuba XML scene: meshes with vertex normals); without a smooth mesh
+    the term is not traced.
+``scene.max_depth`` (int ≥ 1, default 2)
+    L^± are read with the path depth left at the vertex.
 """
 from __future__ import annotations
 

@@ -1,8 +1,21 @@
 """Regular-grid guide (Zhang et al. 2020), the baseline the Kd-tree is compared against.
 
 The primary-sample space is cut into nx × ny × nz equal cells; a cell's value is the mean of the
-target F̃ at ``samples_per_cell`` uniform points inside it, and the guide is piecewise constant:
-g(u) = ε + (1 − ε) · value(cell(u)) / Σ_cells value · volume.
+target F̃ at ``samples_per_cell`` uniform points inside it, and the guide is piecewise constant
+(docs/theory.md §5):
+
+    g(u) = ε + (1 − ε) · value(cell(u)) / Σ_cells (value · volume).
+
+Parameters (experiment keys)
+----------------------------
+Used when ``estimator.guiding`` is ``grid`` (``auto`` never picks it):
+
+``estimator.grid.resolution`` ([nx, ny, nz], default [64, 8, 8])
+    Cells over (u1, u2.x, u2.y); at most 2²² cells.
+``estimator.grid.samples_per_cell`` (int ≥ 1, default 64)
+    Target evaluations per cell; cells × samples_per_cell ≤ 2²⁸.
+``estimator.guide_epsilon`` (float in [0, 1], default 0.05)
+    Uniform share ε.
 """
 from __future__ import annotations
 

@@ -1,37 +1,46 @@
-"""Adaptive Kd-tree guide (paper §4.1, Algorithm 1), built from two batches of target samples.
+"""Adaptive Kd-tree guide (paper §4.1, Algorithm 1), built from one or two batches of target samples.
 
-u1 is first cut at the given breakpoints (edge or chain boundaries), so that x^B(u1) is
-continuous inside each interval; a balanced binary tree over those cuts forms the top of the
-tree. The target F̃ is evaluated in two batches only (each one Dr.Jit kernel launch, so the
-build costs about as much as F̃ at its samples, not a kernel trace per tree level):
+The algorithm is docs/theory.md §5 ("Adaptive Kd-tree"). u1 is first cut at the given
+breakpoints (edge or chain ends), so that x^B(u1) is continuous inside each interval. The target
+F̃ is evaluated at a batch of uniform points, and optionally at a second batch drawn from a first
+tree, every sample then weighted by the combined density, w(u) = 1 / (d₀(u) + N₁ g₁(u)). Each
+batch is one Dr.Jit kernel launch, so a build costs about as much as F̃ at its samples. The tree
+is grown level by level from these fixed weighted samples: a node whose weighted linear fit
+F̃ ≈ a + b·(x − ½) leaves an error err_r = |B_r| · Σw|F̃ − fit| / Σw above threshold · Î is
+split in half along the axis whose two half-box fits leave the smallest residual. Each leaf
+holds the fit at its 8 corners (clamped at 0), blended with the mean of its u1 interval. A
+``prior`` guide replaces the first batch and tree, so a refresh costs one batch;
+:func:`fit_kdtree` grows a tree from given weighted samples without evaluating the target (the
+optimisation loop's own samples, :mod:`.loop_fed`). Lookups walk the stored split planes from the
+root (``dr.while_loop``).
 
-1. ``initial_samples`` uniform points, spread over the u1 intervals ∝ their length (at least
-   ``min_interval_samples`` each), sample density d₀(u) = n_k / |interval k| per unit volume;
-   a first tree T₁ is grown from them (step 3);
-2. ``refine_ratio · initial_samples`` points drawn from T₁ (as a guide whose uniform share is at
-   least ``EXPLORE``), density N₁ g₁(u). Every sample of both batches gets the weight of the
-   combined sample set, w(u) = 1 / (d₀(u) + N₁ g₁(u)), so that Σ_{u ∈ B} w F̃(u) ≈ ∫_B F̃ for
-   any box B (deterministic-mixture / balance-heuristic weights);
-3. the final tree is grown level by level from the fixed weighted samples, all nodes of a level
-   at once: fit F̃ ≈ a + b·(x − ½) by weighted least squares in the box's local coordinates
-   x ∈ [0,1)³ (per-node sums of per-sample statistics, no per-node loop); err_r = |B_r| ·
-   Σw|F̃ − fit| / Σw. If err_r > threshold · Î (Î = Σ w F̃) and the node holds at least
-   ``samples_per_node`` samples, it is split in half along the axis whose two half-box fits leave
-   the smallest weighted residual sum of squares (computed from the same sums: a fit in the
-   parent's coordinates restricted to a half spans the same functions as one in the child's).
-   Otherwise, or at ``max_depth``, or when ``max_leaves`` is reached (largest errors split first),
-   it becomes a leaf whose corner values are the fit at the 8 corners, clamped at 0 and rescaled
-   to the weighted sample mean.
-4. Every leaf's function is blended with the mean of F̃ over its u1 interval,
-   f ← (1 − β) f + β · mass_interval / width_interval (β = ``interval_share``): inside an edge
-   (or chain) that carries mass, a sub-region the samples missed keeps a density of at least β
-   times the interval's average instead of only the global uniform share ε.
+Parameters (experiment keys)
+----------------------------
+Used when ``estimator.guiding`` is ``kdtree``, or ``auto`` picks it (:mod:`.auto`):
 
-A ``prior`` guide (the previous guide of an optimisation) replaces batch 1 and T₁: all
-``(1 + refine_ratio) · initial_samples`` points are drawn from it (uniform share ≥ ``EXPLORE``),
-w = 1 / (N g_prior(u)), so a refresh costs one batch.
-
-Lookups walk the stored split planes from the root (``dr.while_loop``).
+``estimator.kdtree.initial_samples`` (int in [0, 2²²], default 0)
+    Target evaluations of the uniform batch; 0: half the lanes of one boundary pass,
+    W·H·``boundary_spp``/2, clamped to [2¹⁷, 2¹⁸] (:func:`.targets.initial_samples`).
+``estimator.kdtree.refine_ratio`` (float in [0, 16], default 0)
+    Second batch of ``refine_ratio`` × ``initial_samples`` points drawn from a first tree;
+    0: one batch.
+``estimator.kdtree.samples_per_node`` (int in [4, 2¹⁶], default 32)
+    A node is split only while it holds at least this many samples.
+``estimator.kdtree.threshold`` (float ≥ 0, default 0.002)
+    A node is split while err_r > threshold · Î (Î ≈ ∫F̃).
+``estimator.kdtree.max_depth`` (int in [1, 64], default 24)
+    Most splits below a u1 interval.
+``estimator.kdtree.max_leaves`` (int in [1, 2²²], default 65536)
+    Leaf budget; when it binds, the largest errors are split first.
+``estimator.kdtree.interval_share`` (float in [0, 1], default 0.1)
+    Share β of the u1 interval's mean blended into each leaf.
+``estimator.kdtree.technique_share`` (float in [0, 1], default 0.3)
+    MIS: share of the two techniques' common edge profile (:func:`share_profiles`).
+``estimator.guide_epsilon`` (float in [0, 1], default 0.05)
+    Uniform share ε of the guide (trees fitted in the loop: at least :data:`EXPLORE`, which is
+    also the share with which a first tree or a prior places its samples).
+``estimator.edge_sort`` (bool, default false)
+    Breakpoints at chain ends instead of edge ends (:mod:`psdr_cli.edge_sort`).
 """
 from __future__ import annotations
 
