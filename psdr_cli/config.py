@@ -541,6 +541,10 @@ class EvaluateConfig:
     seed: int = 0
 
 
+#: Folders of ``<output>/<name>/`` that commands other than ``psdr optimize`` write.
+COMMAND_FOLDERS = ("render", "grad", "compare", "guide_stats")
+
+
 @dataclass
 class Experiment:
     """A parsed experiment file. ``base_dir`` is the folder relative paths are resolved against."""
@@ -565,7 +569,8 @@ class Experiment:
         return self.output / self.name
 
     def command_dir(self, command: str, out: Path | None = None) -> Path:
-        """Output folder of a command: ``<output>/<name>/<command>`` (``out`` replaces ``output``)."""
+        """Output folder of a command: ``<output>/<name>/<command>`` (``out`` replaces ``output``;
+        ``command`` one of :data:`COMMAND_FOLDERS`)."""
         return (Path(out).resolve() / self.name if out else self.run_dir) / command
 
 
@@ -1019,6 +1024,9 @@ def parse_views(views, count: int) -> list[int]:
                     if b < a:
                         raise PsdrError(f"--views: '{part}' is an empty range (expected FIRST-LAST with FIRST <= LAST, "
                                         f"e.g. 0-2)")
+                    if not 0 <= a < count or b >= count:   # before the range is built: 0-9999999999
+                        raise PsdrError(f"--views: view {a if not 0 <= a < count else b} does not exist "
+                                        f"(the experiment has views 0..{count - 1})")
                     out.extend(range(a, b + 1))
                 else:
                     out.append(int(part))
@@ -1245,6 +1253,12 @@ def parse_variant(value, where, guiding=None, sampling=None, edge_sort=None) -> 
     return v, sec
 
 
+#: Names a variant's run folder may not have: they are psdr's own entries of ``<output>/<name>/``.
+RESERVED_LABELS = {**{c: f"psdr {c.replace('_', '-')}'s output folder" for c in COMMAND_FOLDERS},
+                   "reference": "the report's reference.ply", "checkpoints": "a run's checkpoint folder",
+                   "previews": "a run's preview folder", "targets": "a run's target images"}
+
+
 def run_variant_parser(stages: int) -> Parser:
     """A run of ``optimize.variants``: estimator keys, ``seed``, ``engine``, and its own
     ``learning_rate`` and ``lambda`` (one value or one per remesh stage, of ``stages``)."""
@@ -1252,8 +1266,8 @@ def run_variant_parser(stages: int) -> Parser:
         v, sec = parse_variant(value, where)
         if not v.label or "/" in v.label or v.label in (".", "..") or v.label != v.label.strip():
             raise where.child("label").fail(f"expected a plain folder name, got '{v.label}'")
-        if v.label == "reference":
-            raise where.child("label").fail("'reference' is taken (the report's reference.ply); choose another label")
+        if v.label in RESERVED_LABELS:
+            raise where.child("label").fail(f"'{v.label}' is taken ({RESERVED_LABELS[v.label]}); choose another label")
         v.seed = sec.get("seed", integer(0), None)
         v.engine = sec.get("engine", choice(*ENGINES), None)
         v.learning_rate = sec.get("learning_rate", number(positive=True), None)

@@ -38,10 +38,10 @@ from .guiding import auto
 from .iteration import GuideCache, iterate
 from .problem import Problem, remeshed_problem
 from .render import render_view
-from .runs import (RunFiles, append_log, clear_run, keep_previous_run, lock_run, plot_loss, read_log,
+from .runs import (RunFiles, append_log, keep_previous_run, lock_run, plot_loss, read_log,
                    resumable_state, run_record, variant_experiments, write_checkpoint, write_log, write_mesh)
 from .stages import stage_of
-from .targets import initial_state, load_targets
+from .targets import initial_shape_uv, initial_state, load_targets, read_targets
 
 
 @dataclass
@@ -71,6 +71,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     backend.activate(exp)
     check_stages(exp)  # again: the experiment may have been changed in code after loading
     files = RunFiles(exp.run_dir)
+    files.check_files()
     with lock_run(files), backend.optimization_threads():
         return _optimize(exp, files, total, iterations, resume, progress, warn)
 
@@ -79,11 +80,13 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     """:func:`optimize` once the run folder is locked: the loop, from the saved or initial state."""
     cfg = exp.optimize
     state = resumable_state(files, exp, total, resume, warn)
-    targets, cameras, reference = load_targets(exp, files)
-    if state is None:  # a fresh run: a run found in the folder is moved aside (once the inputs loaded)
+    inputs = read_targets(exp)  # every input read and checked before the run folder is touched
+    if state is None:  # a fresh run: a run found in the folder is moved aside, never overwritten
+        shape = initial_shape_uv(exp, inputs.reference)
         keep_previous_run(files, warn)
-        clear_run(files)  # what is left (previews of no run) must not be confused with this run's
-        state = initial_state(exp, files, reference, warn)
+    targets, cameras, reference = load_targets(exp, files, inputs)
+    if state is None:
+        state = initial_state(exp, files, shape, warn)
     fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
     start, seconds = state.iteration, state.seconds
     result = OptimizeResult(files.root, resumed_from=start)

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from . import fileio, plots
-from .config import Experiment, with_estimator
+from .config import COMMAND_FOLDERS, Experiment, with_estimator
 from .errors import PsdrError, PsdrWarning
 from .meshes import write_ply
 
@@ -67,6 +67,14 @@ class RunFiles:
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
+
+    def check_files(self):
+        """Refuse a run folder whose state, log, summary, meshes or plots are not regular files
+        (a folder, a device, a FIFO: :func:`psdr_cli.fileio.check_output_file`), before any of
+        them is read (a FIFO would block) or the run's work is done."""
+        for path in (self.state, self.log, self.reference, self.final, self.summary, self.run,
+                     self.root / "loss.png", self.albedo):
+            fileio.check_output_file(path)
 
 
 @contextmanager
@@ -113,22 +121,47 @@ def move_aside(files: RunFiles) -> Path:
     return target
 
 
+#: Entries of a run folder that are not a run's results: the cached targets (keyed by
+#: content), the reference they were rendered from, the lock's record and other commands' outputs.
+NOT_RESULTS = ("targets", "reference.ply", "run.json", *COMMAND_FOLDERS)
+
+
 def has_results(files: RunFiles) -> bool:
-    """Whether the folder holds anything of a run: a saved state, a log, a summary, a final mesh
-    or a checkpoint."""
-    if any(p.exists() for p in (files.state, files.log, files.summary, files.final)):
-        return True
-    return files.checkpoints.is_dir() and any(files.checkpoints.iterdir())
+    """Whether the folder holds anything a run wrote besides :data:`NOT_RESULTS` (a state, log,
+    checkpoint, preview, plot, texture, ...)."""
+    return files.root.is_dir() and any(p.name not in NOT_RESULTS for p in files.root.iterdir())
+
+
+def clear_run(files: RunFiles):
+    """Remove what a dead attempt of a fresh run wrote (everything but :data:`NOT_RESULTS`): a
+    retried task that starts afresh must not leave the dead attempt's later checkpoints behind.
+    Only for a folder whose previous run :func:`keep_previous_run` has already moved aside."""
+    for p in files.root.iterdir() if files.root.is_dir() else ():
+        if p.name in NOT_RESULTS:
+            continue
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
 
 
 def keep_previous_run(files: RunFiles, warn) -> None:
     """Before a fresh start: a run found in the folder is moved aside (:func:`move_aside`), never
-    deleted; its targets are copied back (a cache keyed by content, :func:`psdr_cli.targets.target_key`)."""
+    deleted. Its targets are copied back (a cache keyed by content, :func:`psdr_cli.targets.target_key`)
+    and the other commands' output folders are moved back (they are not the run's)."""
     if not has_results(files):
         return
     kept = move_aside(files)
-    if (kept / "targets").is_dir():
-        shutil.copytree(kept / "targets", files.targets)
+    try:
+        if (kept / "targets").is_dir():
+            shutil.copytree(kept / "targets", files.targets)
+        for name in COMMAND_FOLDERS:
+            if (kept / name).is_dir():
+                files.root.mkdir(parents=True, exist_ok=True)
+                (kept / name).rename(files.root / name)
+    except OSError as exc:
+        raise PsdrError(f"{files.root}: the previous run is kept in {kept}, but its targets or command outputs "
+                        f"could not be brought back ({fileio.describe_os_error(exc)})") from None
     warn(f"{files.root} held a previous run; it is kept in {kept}")
 
 
@@ -354,17 +387,6 @@ V1_FIELDS = {
 }
 
 
-def clear_run(files: RunFiles):
-    """Remove a previous run's state, checkpoints and previews (targets stay: they are cached by
-    content hash)."""
-    files.state.unlink(missing_ok=True)
-    for folder in (files.checkpoints, files.previews):
-        shutil.rmtree(folder, ignore_errors=True)
-    for path in (files.final, files.summary, files.root / "loss.png", files.root / "chamfer.png",
-                 files.albedo, files.albedo.with_suffix(".png")):
-        path.unlink(missing_ok=True)
-
-
 # --------------------------------------------------------------------------------------------
 # log.csv
 # --------------------------------------------------------------------------------------------
@@ -532,24 +554,25 @@ class State:
                           *(a for _, m, v in adam.values() for a in (m, v))]
         except Exception as exc:  # noqa: BLE001 - a damaged state file
             raise PsdrError(f"{path}: cannot read the saved state ({type(exc).__name__}); "
-                            f"delete it to start over") from None
+                            f"run without --resume to start over (the run is moved aside)") from None
         if not all(np.isfinite(np.asarray(a, float)).all() for a in arrays):
-            raise PsdrError(f"{path}: the saved state holds NaN or infinite values; delete it to start over")
+            raise PsdrError(f"{path}: the saved state holds NaN or infinite values; run without --resume to start over "
+                            "(the run is moved aside)")
         return state
 
 
 def resumable_state(files: RunFiles, exp: Experiment, total: int, resume: bool, warn) -> State | None:
-    """With ``resume``: the run's saved state, if there is one and it belongs to ``exp`` (a run of
-    a changed experiment is moved aside); None for a fresh start."""
+    """With ``resume``: the run's saved state, if there is one and it belongs to ``exp``; None for
+    a fresh start (the caller moves a run found in the folder aside once the inputs are read:
+    :func:`keep_previous_run`)."""
     if not resume:
         return None
     state = State.load(files.state) if files.state.exists() else None
     if state is None:
         warn(f"--resume: no saved state in {files.root}; starting from the beginning")
     if state is not None and not same_experiment(files, exp):
-        kept = move_aside(files)
-        warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; the old run is kept "
-             f"in {kept}, starting from the beginning")
+        warn(f"--resume: {exp.file.name} changed since the run in {files.root} was saved; starting from the "
+             f"beginning (the old run is moved aside)")
         state = None
     if state is not None and state.iteration > total:
         raise PsdrError(f"--iterations: {total} is fewer than the {state.iteration} iterations the run in "

@@ -200,7 +200,7 @@ class TaskProgress:
     def start(self, total: int, done: int = 0):
         self.hub.event.remote(self.label, "start", total, done)
         if self.folder is not None:
-            self.fresh = done == 0          # optimize() cleared the run (clear_run): the driver does too
+            self.fresh = done == 0          # the driver moves a run aside, or clears a dead attempt's files
             self.sync()
 
     def advance(self, n: int, loss: float | None = None):

@@ -8,6 +8,7 @@ import hashlib
 import json
 from dataclasses import asdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,28 +23,45 @@ from .runs import RunFiles, State, scene_identity, write_mesh
 from .scene import build_scene
 
 
-def load_targets(exp, files: RunFiles):
-    """(target images, cameras or None, ground truth (V, F) or None) of a run: ``target.images``,
-    or renders of the ground truth (written to the run folder as ``reference.ply``)."""
+class TargetInputs(NamedTuple):
+    """What a run's targets come from: the ``target.images`` (with their cameras), or the ground
+    truth (V, F) the targets are rendered from."""
+    images: list | None
+    cameras: list | None
+    reference: tuple | None
+
+
+def read_targets(exp) -> TargetInputs:
+    """:class:`TargetInputs` of a run, read and checked (``preview_views`` included) without
+    writing anything: a bad input fails before the run folder is touched."""
     cfg = exp.optimize
-    cameras = reference = None
     if cfg.target_images:
-        targets, cameras = image_targets(exp)
+        images, cameras = image_targets(exp)
+        inputs = TargetInputs(images, cameras, None)
     else:
-        reference = ground_truth(exp)
-        write_mesh(files.reference, *reference)  # the shape this run's targets come from
-        targets = render_targets(exp, files, reference)
-    bad = [v for v in cfg.preview_views if v >= len(targets)]
+        inputs = TargetInputs(None, None, ground_truth(exp))
+    views = len(inputs.images) if inputs.images is not None else len(exp.scene.cameras)
+    bad = [v for v in cfg.preview_views if v >= views]
     if bad:
-        raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{len(targets) - 1})")
-    return targets, cameras, reference
+        raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{views - 1})")
+    return inputs
 
 
-def initial_state(exp, files: RunFiles, reference, warn) -> State:
-    """The state of a fresh run: the initial shape, remeshed (``remesh.initial``) unless
-    ``remesh.method: none``, written as checkpoint 0."""
+def load_targets(exp, files: RunFiles, inputs: TargetInputs):
+    """(target images, cameras or None, ground truth (V, F) or None) of a run: the given images,
+    or renders of the ground truth (cached in ``targets/``; the ground truth is written to the
+    run folder as ``reference.ply``)."""
+    if inputs.images is not None:
+        return inputs.images, inputs.cameras, None
+    write_mesh(files.reference, *inputs.reference)  # the shape this run's targets come from
+    return render_targets(exp, files, inputs.reference), None, inputs.reference
+
+
+def initial_state(exp, files: RunFiles, shape, warn) -> State:
+    """The state of a fresh run from its initial shape (V, F, UV or None: :func:`initial_shape_uv`),
+    remeshed (``remesh.initial``) unless ``remesh.method: none``, written as checkpoint 0."""
     cfg = exp.optimize
-    V, F, uv = initial_shape_uv(exp, reference)
+    V, F, uv = shape
     if cfg.remesh.method != "none":
         V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
         uv = None  # (optimize.albedo.texture refuses remeshing: config.parse_optimize)

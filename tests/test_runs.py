@@ -7,7 +7,8 @@ import shutil
 from dataclasses import field, make_dataclass, replace
 
 from conftest import REPO, run_cli
-from psdr_cli.experiment import parse_experiment
+from psdr_cli.experiment import load_experiment, parse_experiment
+from psdr_cli.optimize import optimize
 from psdr_cli.runs import fingerprint_v1, run_fingerprint, variant_experiments
 from test_optimize import TINY, write
 
@@ -116,3 +117,55 @@ def test_a_variant_step_out_of_range_is_one_line(tmp_path):
         r = run_cli("optimize", write(tmp_path, data))
         assert r.returncode == 2 and f"optimize.variants[0].{needle}" in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_variant_labels_that_are_psdrs_own_folders_are_refused(tmp_path):
+    """A variant's run folder is <output>/<name>/<label>: a label naming a command's folder
+    (render, grad, compare, guide_stats) or a run's own entries would share it."""
+    for label in ("render", "grad", "compare", "guide_stats", "targets", "checkpoints"):
+        data = copy.deepcopy(TINY)
+        data["optimize"]["variants"] = [{"label": label}]
+        r = run_cli("optimize", write(tmp_path, data))
+        assert r.returncode == 2 and f"'{label}' is taken" in r.stderr and "optimize.variants[0].label" in r.stderr
+
+
+def kept_runs(run):
+    return sorted(run.parent.glob(f"{run.name}.previous-*"))
+
+
+def test_a_fresh_run_of_a_changed_target_keeps_the_old_runs_reference_and_targets(tmp_path):
+    """The previous run is moved aside before anything of the new run is written: its
+    reference.ply and targets stay those it was fitted to (they were overwritten by the new
+    target's before the move), and the commands' own output folders stay where they are."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=1, remesh={"method": "none"})
+    exp = load_experiment(write(tmp_path, data))
+    optimize(exp, warn=lambda m: None)
+    run = exp.run_dir
+    (run / "render").mkdir()
+    (run / "render" / "view_000.exr").write_bytes(b"a render of psdr render")
+    reference = (run / "reference.ply").read_bytes()
+    target = (run / "targets" / "view_000.exr").read_bytes()
+    data["scene"]["objects"][0]["mesh"]["size"] = 0.6
+    optimize(load_experiment(write(tmp_path, data)), warn=lambda m: None)
+    [kept] = kept_runs(run)
+    assert (kept / "reference.ply").read_bytes() == reference and (run / "reference.ply").read_bytes() != reference
+    assert (kept / "targets" / "view_000.exr").read_bytes() == target
+    assert (run / "render" / "view_000.exr").read_bytes() == b"a render of psdr render"
+    assert not (kept / "render").exists() and (kept / "log.csv").exists()
+
+
+def test_a_changed_experiment_with_a_bad_input_moves_nothing(tmp_path):
+    """--resume after an edit that also breaks an input: one line, and the old run is neither
+    moved nor touched (the move happened before the inputs were read)."""
+    data = copy.deepcopy(TINY)
+    data["optimize"].update(iterations=1, remesh={"method": "none"})
+    cfg = write(tmp_path, data)
+    exp = load_experiment(cfg)
+    optimize(exp, warn=lambda m: None)
+    before = {p.relative_to(exp.run_dir): p.read_bytes() for p in exp.run_dir.rglob("*") if p.is_file()}
+    data["optimize"]["target"] = {"images": "no_such_folder/*.exr"}   # found missing only when read
+    r = run_cli("optimize", write(tmp_path, data), "--resume")
+    assert r.returncode == 2 and "optimize.target.images: no file matches" in r.stderr, r.stderr
+    assert not kept_runs(exp.run_dir)
+    assert {p.relative_to(exp.run_dir): p.read_bytes() for p in exp.run_dir.rglob("*") if p.is_file()} == before
