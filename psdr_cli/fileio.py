@@ -42,7 +42,8 @@ def remove_temporaries(folder) -> int:
 def atomic_path(path):
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
 
-    A reader never sees a half-written file, and an interrupted write leaves the old file intact.
+    A reader never sees a half-written file, and an interrupted write leaves the old file intact
+    (the file and then its folder are flushed to the disk around the rename: :func:`flush_to_disk`).
     A failure of the file system (the folder is a file or read-only, the disk is full) is raised
     as a :class:`PsdrError` naming ``path``, and so is a ``path`` that is not a regular file
     (:func:`check_output_file`: a folder, a device or a FIFO is never replaced).
@@ -59,12 +60,25 @@ def atomic_path(path):
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
         yield Path(tmp)
         check_output_file(path)
+        flush_to_disk(tmp)
         os.replace(tmp, path)
+        flush_to_disk(path.parent)
     except OSError as exc:
         raise PsdrError(f"{path}: cannot write ({describe_os_error(exc)})") from None
     finally:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def flush_to_disk(path):
+    """``fsync`` of a file or folder: a file's bytes are on the disk before it is renamed onto
+    its final name, and the rename is, once its folder is flushed (so a power cut leaves the old
+    file or the new one, never an empty one)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 #: What a path that is not a regular file is, by the type bits of its mode.
@@ -177,9 +191,11 @@ def read_exr(path) -> dict:
 
 
 def image_size(path) -> tuple | None:
-    """(width, height) of a PNG, JPEG or EXR image, read from its header alone (no pixel is
-    decoded, so a huge image can be refused before it fills the memory); None when the header
-    is not recognised (the decoder then says what is wrong)."""
+    """(width, height) of an image, read from its header alone (no pixel is decoded, so a huge
+    image can be refused before it fills the memory): EXR by OpenEXR, PNG and JPEG by their first
+    chunk, Radiance HDR by its resolution line, PFM and PPM by their first words, BMP and TGA by
+    their fixed headers; None when the header is not recognised (the decoder then says what is
+    wrong)."""
     path = Path(path)
     try:
         if path.suffix.lower() == ".exr":
@@ -187,14 +203,46 @@ def image_size(path) -> tuple | None:
                 lo, hi = f.header()["dataWindow"]
             return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
         with open(path, "rb") as f:
-            head = f.read(24)
+            head = f.read(26)
             if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
                 return struct.unpack(">II", head[16:24])
             if head[:2] == b"\xff\xd8":
                 return _jpeg_size(f)
+            if head[:2] == b"#?":
+                f.seek(0)
+                return _radiance_size(f)
+            if head[:2] in (b"PF", b"Pf", b"P2", b"P3", b"P5", b"P6"):
+                f.seek(0)
+                return _netpbm_size(f.read(4096))
+            if head[:2] == b"BM":
+                width, height = struct.unpack("<ii", head[18:26])
+                return width, abs(height)
+        if path.suffix.lower() == ".tga":
+            return struct.unpack("<HH", head[12:16])
     except Exception:  # noqa: BLE001 - unreadable or damaged: the decoder reports it
         return None
     return None
+
+
+def _netpbm_size(head: bytes) -> tuple | None:
+    """(width, height) of a PFM or PPM/PGM file: the magic, then width and height as the next
+    two words (``#`` comments skipped)."""
+    words = [w for line in head.split(b"\n") for w in line.split(b"#")[0].split()]
+    return int(words[1]), int(words[2])
+
+
+def _radiance_size(f) -> tuple | None:
+    """(width, height) of a Radiance HDR file: header lines up to an empty one, then the
+    resolution line, e.g. ``-Y 512 +X 1024`` (height first for the usual orientation)."""
+    for _ in range(256):
+        line = f.readline(4096).strip()
+        if not line:
+            break
+    words = f.readline(256).split()
+    if len(words) != 4:
+        return None
+    sizes = {words[0][1:]: int(words[1]), words[2][1:]: int(words[3])}
+    return sizes[b"X"], sizes[b"Y"]
 
 
 def image_too_large(path, limit: int) -> str | None:

@@ -293,6 +293,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
     fd_spp = fd_spp or 4 * settings.spp
     min_passes = FD_BATCHES if fd else 1
     folder = fileio.writable_folder(exp.command_dir("grad", out))
+    for v in views:  # before the work: a folder or device there is refused now, not after it
+        fileio.check_output_file(folder / f"view_{v:03d}.exr")
     result = GradResult(folder, views, parameter.name, variant=variant)
     if progress:
         per_view = sum(settings.samples(t) for t in terms) + (2 * fd_spp if fd else 0)

@@ -47,7 +47,7 @@ import numpy as np
 
 from . import backend, fileio, meshes
 from .config import (MAX_COORD, MAX_FILM, MAX_TEXELS, BsdfConfig, CameraConfig, EmitterConfig, Experiment,
-                     MeshSpec, ObjectConfig, SceneConfig, Where, emitter_id, name_problem, sensor_id)
+                     MeshSpec, ObjectConfig, SceneConfig, emitter_id, name_problem, sensor_id)
 from .errors import ConfigError
 from .jitarray import jit_array
 
@@ -71,7 +71,7 @@ ANALYTIC = {"Sphere": "sphere", "Disk": "disk", "Cylinder": "cylinder", "Instanc
 
 
 #: Files of an XML scene whose size is checked before Mitsuba decodes them.
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".rgbe", ".pfm", ".ppm", ".pgm", ".tga", ".bmp")
 
 
 def warn_stderr(message: str):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import BsdfConfig, ObjectConfig, SceneConfig, Where
+from .config import BsdfConfig, SceneConfig, Where
 from .errors import ConfigError
 
 

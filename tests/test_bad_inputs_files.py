@@ -140,8 +140,23 @@ def cut(path, how):
         path.write_bytes(b"")
     elif how == "half":
         path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how in ("nan", "size"):
+        rewrite_target(path, how)
     else:
         path.write_bytes(b"\x76\x2f\x31\x01 garbage" * 10)
+
+
+def rewrite_target(path, how):
+    """The cached target rewritten whole with its own header (its key still matches): one NaN
+    pixel, or one row fewer than the film."""
+    with OpenEXR.File(str(path)) as f:
+        header = {k: v for k, v in f.header().items() if k.startswith("psdr.")}
+        rgb = np.array(f.channels()["RGB"].pixels)
+    if how == "nan":
+        rgb[3, 4, 1] = np.nan
+    else:
+        rgb = np.ascontiguousarray(rgb[:-1])
+    OpenEXR.File(header, {"RGB": rgb}).write(str(path))
 
 
 ONE_ITERATION = dict(SMALL, optimize=dict(SMALL["optimize"], iterations=1, checkpoint_every=1))
@@ -155,11 +170,13 @@ def one_iteration_run(tmp_path_factory):
     return folder
 
 
-@pytest.mark.parametrize("how,resume", [("empty", True), ("half", True), ("garbage", False)],
-                         ids=["empty-resume", "half-resume", "garbage-fresh"])
+@pytest.mark.parametrize("how,resume", [("empty", True), ("half", True), ("garbage", False), ("nan", True),
+                                        ("size", False)],
+                         ids=["empty-resume", "half-resume", "garbage-fresh", "nan-resume", "size-fresh"])
 def test_a_damaged_cached_target_is_rendered_again(one_iteration_run, tmp_path, capsys, how, resume):
-    """A cached target that cannot be read (an earlier full disk, a copy cut short) is rendered
-    again, with or without --resume; it is never trusted, never an internal error."""
+    """A cached target that cannot be read (an earlier full disk, a copy cut short), or that
+    reads back with the right key but a NaN pixel or the wrong size, is rendered again, with or
+    without --resume; it is never trusted, never an internal error."""
     shutil.copytree(one_iteration_run, tmp_path / "copy")
     cfg = write_small(tmp_path / "copy", ONE_ITERATION)
     target = RunFiles(tmp_path / "copy" / "runs" / "small").targets / "view_000.exr"
@@ -241,6 +258,33 @@ def test_render_output_file_that_is_a_folder_is_refused_before_rendering(tmp_pat
     code, out, err = psdr(capsys, "render", cfg)
     assert_one_line_error(code, out, err, f"{blocked}: not a regular file (a folder)")
     assert blocked.is_dir() and not (blocked.parent / "view_000.exr").exists()
+
+
+@pytest.mark.parametrize("name,kind", [("log.csv", "fifo"), ("final.ply", "folder"), ("state.npz", "device")])
+def test_optimize_refuses_run_files_that_are_not_files_before_the_work(tmp_path, capsys, monkeypatch, name, kind):
+    """A run folder whose log is a FIFO (reading it blocked --resume for ever), or whose final
+    mesh or state is a folder or a device, is refused in one line before any iteration (the
+    final mesh was refused only after the whole run)."""
+    monkeypatch.chdir(tmp_path)
+    cfg = write_small(tmp_path, ONE_ITERATION)
+    run = tmp_path / "runs" / "small"
+    run.mkdir(parents=True)
+    not_a_file(run / name, kind)
+    monkeypatch.setattr(module("optimize"), "iterate", lambda *a, **k: pytest.fail("iterated"))
+    code, out, err = psdr(capsys, "optimize", cfg, "--resume")
+    assert_one_line_error(code, out, err, f"{run / name}: not a regular file")
+    assert still_there(run / name, kind)
+
+
+def test_grad_output_that_is_a_folder_is_refused_before_the_work(tmp_path, write_cfg, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cfg = write_cfg(experiment(estimator={"spp": 1}, parameter={"kind": "translate", "object": "ball",
+                                                                "axis": [1, 0, 0]}))
+    blocked = tmp_path / "out" / "t" / "grad" / "view_000.exr"
+    blocked.mkdir(parents=True)
+    monkeypatch.setattr(module("gradient"), "forward_gradient", lambda *a, **k: pytest.fail("estimated"))
+    code, out, err = psdr(capsys, "grad", cfg)
+    assert_one_line_error(code, out, err, f"{blocked}: not a regular file (a folder)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -480,3 +524,39 @@ def test_huge_texture_named_by_an_included_xml(tmp_path, capsys, monkeypatch):
     cfg.write_text(yaml.safe_dump(d, sort_keys=False))
     code, out, err = psdr(capsys, "render", cfg)
     assert_one_line_error(code, out, err, "extra.xml: image huge.png is 20000×20000 pixels")
+
+
+def image_headers(folder: Path, width: int, height: int) -> dict:
+    """Files of every format Mitsuba decodes that claim width × height pixels in their headers
+    (the pixel data cut short: only a header may be read)."""
+    bmp = struct.pack("<2sIHHIIiiHHIIiiII", b"BM", 54, 0, 0, 54, 40, width, height, 1, 24, 0, 0, 0, 0, 0, 0)
+    tga = struct.pack("<BBBHHBHHHHBB", 0, 0, 2, 0, 0, 0, 0, 0, width, height, 24, 0)
+    files = {"a.hdr": b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y %d +X %d\n" % (height, width) + b"\0" * 64,
+             "a.pfm": b"PF\n%d %d\n-1.0\n" % (width, height) + b"\0" * 64,
+             "a.ppm": b"P6\n%d %d\n255\n" % (width, height) + b"\0" * 64,
+             "a.bmp": bmp + b"\0" * 64, "a.tga": tga + b"\0" * 64}
+    paths = {}
+    for name, data in files.items():
+        paths[name] = folder / name
+        paths[name].write_bytes(data)
+    return paths
+
+
+def test_image_sizes_of_every_format_mitsuba_reads_come_from_their_headers(tmp_path):
+    """A 20000 × 20000 image in HDR, PFM, PPM, BMP or TGA is refused from its header (before:
+    only PNG, JPEG and EXR were; the others were decoded whole)."""
+    for name, path in image_headers(tmp_path, 20000, 20000).items():
+        assert fileio.image_size(path) == (20000, 20000), name
+        assert "is 20000×20000 pixels" in fileio.image_too_large(path, 2 ** 27), name
+
+
+@pytest.mark.parametrize("name", ["a.hdr", "a.pfm", "a.bmp"])
+def test_huge_texture_of_another_format_named_by_an_included_xml(tmp_path, capsys, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    cfg = xml_with_include(tmp_path)
+    image_headers(tmp_path, 20000, 20000)
+    d = yaml.safe_load(cfg.read_text())
+    d["scene"]["params"]["tex"] = name
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    code, out, err = psdr(capsys, "render", cfg)
+    assert_one_line_error(code, out, err, f"extra.xml: image {name} is 20000×20000 pixels")

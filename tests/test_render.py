@@ -5,6 +5,8 @@ import pytest
 
 from psdr_cli import fileio as io
 from psdr_cli.api import setup
+from psdr_cli.config import parse_views
+from psdr_cli.errors import PsdrError
 from psdr_cli.experiment import parse_experiment
 from psdr_cli.render import passes_for, render_view
 from psdr_cli.scene import build_scene
@@ -120,3 +122,11 @@ def test_cli_render_writes_exr_png_and_summary(tmp_path, write_cfg):
     proc = run_cli("render", cfg, "--spp", "2", "--out", tmp_path / "elsewhere", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "elsewhere" / "t" / "render" / "view_000.exr").exists()
+
+
+@pytest.mark.parametrize("views", ["0-9999999999", "5-9999999999", "99999999999"])
+def test_a_huge_view_range_is_one_line_before_any_list_is_built(views):
+    """A range is checked against the view count before its indices are listed (the list of
+    10^10 indices ended in an internal MemoryError)."""
+    with pytest.raises(PsdrError, match=r"--views: view \d+ does not exist \(the experiment has views 0..5\)"):
+        parse_views(views, 6)
