@@ -3,7 +3,8 @@
 ``tests/test_real_mesh_gradients.py`` and ``benchmarks/gradients.py``:
 
 - a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side; cut open into a
-  dome, or sunk into the floor;
+  dome, or sunk into the floor; a coarse smooth dome under the studio environment map and an
+  area light;
 - a head with an eye: one mesh of two intersecting shells (flat, or smooth-shaded and lit from
   the side; translated or turned about the vertical);
 - a moving camera over a box, a ball and a floor;
@@ -11,7 +12,7 @@
   a cube with every third triangle turned, a book of pages on one spine with mixed winding, two
   boxes sharing an edge with one of them inside out.
 
-Each ``*_cfg`` returns an experiment dictionary (32×32 px); :func:`load` writes it, with any
+Each ``*_cfg`` returns an experiment dictionary (32×32 px; :func:`envmap_dome_cfg` 24×24); :func:`load` writes it, with any
 procedural meshes as PLY files, into a folder and loads it as an :class:`Experiment`.
 """
 from __future__ import annotations
@@ -29,6 +30,8 @@ from psdr_cli.experiment import load_experiment
 LIGHT_SIDE = {"type": "area", "center": [1.6, 0.3, 1.2], "normal": [-0.8, -0.1, -0.3], "size": [0.5, 0.5],
               "radiance": 20}
 FLOOR = {"name": "floor", "mesh": {"shape": "plane", "size": 4}, "edges": False}
+#: The studio environment map that ships with the repository (read through its path).
+STUDIO = Path(__file__).resolve().parents[1] / "scenes" / "studio.exr"
 
 
 def bumpy_blob(subdivisions=3, radius=0.45, amplitude=0.08):
@@ -40,10 +43,10 @@ def bumpy_blob(subdivisions=3, radius=0.45, amplitude=0.08):
     return V + u * bump[:, None], F
 
 
-def open_dome():
+def open_dome(subdivisions=3):
     """The bumpy blob's upper part, cut open below z = −0.15: a smooth open mesh with a ragged
     boundary and both of its sides in view."""
-    V, F = bumpy_blob()
+    V, F = bumpy_blob(subdivisions)
     return V, F[(V[F][:, :, 2] > -0.15).all(axis=1)]
 
 
@@ -150,6 +153,27 @@ def eye_cfg(smooth: bool = False, kind: str = "translate") -> dict:
                      {"origin": [0, -2.4, 1.0], "target": [0, 0, 0.45], "fov": 40},
                      {"object": "head", "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]},
                      spp=(1024, 256, 256))
+
+
+def envmap_dome_cfg(kind: str = "translate", film: int = 24, spp=(512, 2048, 2048)) -> dict:
+    """A smooth open shape (mesh ``dome``: give it :func:`open_dome`, e.g. ``open_dome(1)``, 44
+    faces) over a floor (edges on) under ``scenes/studio.exr`` at scale 0.6 (its bright lamp low
+    on the +x side) and one area light (above, in front, on the left), translated in x (``kind`` "translate") or
+    turned about the vertical through its bounding box's centre ("rotate", θ in radians); a
+    ``film``² image. As for the smooth head, the dome is turned 10° and the camera moved 0.031
+    sideways, so that no mirror-symmetric edge projects onto a pixel boundary."""
+    dome = {"name": "dome", "mesh": {"shape": "sphere"}, "smooth": True,
+            "transform": {"translate": [0, 0, 0.6], "rotate": {"axis": [0, 0, 1], "angle_deg": 10}},
+            "bsdf": {"type": "diffuse", "reflectance": [0.7, 0.6, 0.5]}}
+    floor = dict(copy.deepcopy(FLOOR), edges=True)
+    light = {"type": "area", "center": [-0.8, -1.2, 2.0], "normal": [0.3, 0.5, -0.8], "size": [0.8, 0.8],
+             "radiance": 6}
+    cfg = scene_cfg("envdome", [dome, floor], [light, {"type": "envmap", "file": str(STUDIO), "scale": 0.6}],
+                    {"origin": [0.031, -2.4, 1.2], "target": [0.031, 0, 0.45], "fov": 40},
+                    {"object": "dome", "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]},
+                    spp=spp)
+    cfg["scene"]["film"] = {"width": film, "height": film}
+    return cfg
 
 
 def camera_cfg(kind: str = "translate") -> dict:
