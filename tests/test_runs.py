@@ -3,10 +3,14 @@ holds a version-1 fingerprint (no ``fingerprint_version``) are still resumed."""
 import copy
 import csv
 import json
+import re
 import shutil
 from dataclasses import field, make_dataclass, replace
 
+import pytest
+
 from conftest import REPO, run_cli
+from psdr_cli.errors import ConfigError
 from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.optimize import optimize
 from psdr_cli.runs import fingerprint_v1, run_fingerprint, variant_experiments
@@ -109,14 +113,13 @@ def test_a_variant_with_its_own_step_is_a_run_with_that_step(tmp_path):
     assert run_fingerprint(step) == run_fingerprint(alone) != run_fingerprint(plain)
 
 
-def test_a_variant_step_out_of_range_is_one_line(tmp_path):
+def test_a_variant_step_out_of_range_names_its_key(tmp_path):
     for bad, needle in (({"learning_rate": 0}, "learning_rate"), ({"lambda": -1}, "lambda"),
                         ({"lambda": [1, 2, 3, 4, 5]}, "lambda")):
         data = copy.deepcopy(TINY)
         data["optimize"]["variants"] = [{"label": "v", **bad}]
-        r = run_cli("optimize", write(tmp_path, data))
-        assert r.returncode == 2 and f"optimize.variants[0].{needle}" in r.stderr, r.stderr
-        assert len(r.stderr.strip().splitlines()) == 1
+        with pytest.raises(ConfigError, match=re.escape(f"optimize.variants[0].{needle}")):
+            parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)
 
 
 def test_variant_labels_that_are_psdrs_own_folders_are_refused(tmp_path):
@@ -125,8 +128,8 @@ def test_variant_labels_that_are_psdrs_own_folders_are_refused(tmp_path):
     for label in ("render", "grad", "compare", "guide_stats", "targets", "checkpoints"):
         data = copy.deepcopy(TINY)
         data["optimize"]["variants"] = [{"label": label}]
-        r = run_cli("optimize", write(tmp_path, data))
-        assert r.returncode == 2 and f"'{label}' is taken" in r.stderr and "optimize.variants[0].label" in r.stderr
+        with pytest.raises(ConfigError, match=re.escape(f"optimize.variants[0].label: '{label}' is taken")):
+            parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)
 
 
 def kept_runs(run):
