@@ -224,9 +224,9 @@ def image_size(path) -> tuple | None:
     return None
 
 
-def _netpbm_size(head: bytes) -> tuple | None:
+def _netpbm_size(head: bytes) -> tuple:
     """(width, height) of a PFM or PPM/PGM file: the magic, then width and height as the next
-    two words (``#`` comments skipped)."""
+    two words (``#`` comments skipped); a damaged header raises (:func:`image_size` says None)."""
     words = [w for line in head.split(b"\n") for w in line.split(b"#")[0].split()]
     return int(words[1]), int(words[2])
 
