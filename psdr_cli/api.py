@@ -53,19 +53,11 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
 
 
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
-         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None):
+         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None, report=None):
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
-    ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings."""
-    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn)
-
-
-def guiding_lines(exp: Experiment, labels=None, terms=None, loop: bool = False) -> list:
-    """What ``psdr grad`` / ``optimize`` (``loop``) guide each boundary term with (``guiding:
-    auto`` resolved): one line per run (the experiment, or each selected optimisation variant)."""
-    if labels is None and not (exp.optimize and exp.optimize.variants):
-        return [gradient.guiding_line(exp, terms, loop)]
-    return [f"{label}: {gradient.guiding_line(run, terms, loop)}"
-            for label, run in runs.variant_experiments(exp, labels)]
+    ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings; ``report``: one
+    line before the work, what guides each boundary term (``guiding: auto`` resolved)."""
+    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn, report)
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):
@@ -87,14 +79,15 @@ def optimize(exp: Experiment, iterations: int | None = None, resume: bool = Fals
 
 
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
-                      progress=None, warn=print, ray: "sweep.RayOptions | None" = None):
+                      progress=None, warn=print, ray: "sweep.RayOptions | None" = None, report=None):
     """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult). With
     ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving
-    one progress object (``start``, ``advance``) per run."""
+    one progress object (``start``, ``advance``) per run. ``report``: one line per run before it
+    starts, what guides its boundary terms in the loop."""
     option_count("--iterations", iterations, 1, MAX_ITERATIONS)  # before any run starts, here or on Ray
     if ray is not None:
-        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress, warn)
-    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn)
+        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress, warn, report)
+    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report)
 
 
 def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,

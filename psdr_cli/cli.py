@@ -164,11 +164,9 @@ def grad(config: Path = ConfigArg,
     exp = load_experiment(config)
     exp = with_estimator(exp, sampling=sampling, guiding=guiding, edge_sort=edge_sort,
                          spp=spp, primary_spp=spp, boundary_spp=spp)
-    for line in api.guiding_lines(exp, terms=terms):
-        out.print(line)
     with Bar("grad") as bar:
         res = api.grad(exp, spp=interior_spp, terms=terms, views=views, out=out_dir, fd=fd, fd_spp=fd_spp, progress=bar,
-                       warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False))
+                       warn=lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False), report=out.print)
     table = Table(title=f"psdr grad: {exp.name} — d/dθ, θ = {res.parameter}")
     for col in ("view", "term", "image sum", "seconds"):
         table.add_column(col, justify="right" if col != "term" else "left")
@@ -318,14 +316,12 @@ def optimize(config: Path = ConfigArg,
     warn = lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False)  # noqa: E731
     opts = ray_options(ray, ray_cpus, ray_files)
     label_of = lambda label: f"optimize {label}" if label else "optimize"  # noqa: E731
-    for line in api.guiding_lines(exp, variant or None, loop=True):
-        out.print(line)
     if opts is None:
-        runs = api.optimize_variants(exp, variant, iterations, resume, warn=warn,
+        runs = api.optimize_variants(exp, variant, iterations, resume, warn=warn, report=out.print,
                                      progress=lambda label: LossBar(label_of(label), log_every))
     else:  # one line per run while they run side by side; the summaries once all have ended
         with RunLines(log_every) as lines:
-            runs = list(api.optimize_variants(exp, variant, iterations, resume, warn=warn, ray=opts,
+            runs = list(api.optimize_variants(exp, variant, iterations, resume, warn=warn, ray=opts, report=out.print,
                                               progress=lambda label: lines.row(label_of(label))))
     for label, res in runs:
         if res.interrupted:

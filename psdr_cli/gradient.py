@@ -103,13 +103,13 @@ def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetu
     """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
     if exp.parameter is None:
         raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
+    settings = Settings.from_experiment(exp, spp)
     option_spp("--spp", spp, exp.scene.width, exp.scene.height)
     backend.activate(exp)
     scene = scene or build_scene(exp)
     if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
         with_all_edges(scene)
         check_camera_motion(scene, exp.parameter.camera)
-    settings = Settings.from_experiment(exp, spp)
     edges = edge_list(scene, exp.estimator, settings.edge_sort)
     return GradientSetup(scene, Parameter(scene, exp.parameter), edges, settings)
 
@@ -269,13 +269,17 @@ def check_fd_step(h: float, scene, parameter: Parameter):
 
 
 def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
-         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None) -> GradResult:
+         fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None, report=None) -> GradResult:
     """Gradient images of every requested view to ``<output>/<name>/grad/view_XXX.exr``.
 
     Channels: the render (R, G, B), one group per term (``interior.R`` …) and ``total.*``; with
     ``fd = h`` also central finite differences ``fd.*`` (common random numbers, 8 batches of
     ``fd_spp`` samples per pixel in total, default 4 × the interior spp) and the agreement
-    statistics. PNG previews use a diverging colour map shared by all terms."""
+    statistics. PNG previews use a diverging colour map shared by all terms. ``report`` gets one
+    line first: what guides each boundary term."""
+    guided_by = guiding_line(exp, terms)
+    if report:
+        report(guided_by)
     option_number("--fd", fd)
     option_spp("--interior-spp", spp, exp.scene.width, exp.scene.height)
     option_spp("--fd-spp", fd_spp, exp.scene.width, exp.scene.height)
@@ -314,7 +318,7 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
                 channels[f"{name}.{ch}"] = g[..., c]
         header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.parameter": parameter.name,
                   "psdr.terms": ",".join(terms), "psdr.sampling": settings.sampling,
-                  "psdr.guiding": guiding_line(exp, terms), "psdr.edge_sort": str(settings.edge_sort),
+                  "psdr.guiding": guided_by, "psdr.edge_sort": str(settings.edge_sort),
                   "psdr.guide_seconds": f"{guide_seconds:.3f}",
                   "psdr.spp": {t: str(settings.samples(t)) for t in terms},
                   "psdr.seconds": {t: f"{e.seconds:.3f}" for t, e in estimates.items()}}

@@ -33,7 +33,7 @@ from . import backend, fileio
 from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
 from .engines import Engine
 from .errors import PsdrError
-from .gradient import Settings
+from .gradient import Settings, guiding_line
 from .guiding import auto
 from .iteration import GuideCache, iterate
 from .problem import Problem, remeshed_problem
@@ -41,7 +41,7 @@ from .render import render_view
 from .runs import (RunFiles, append_log, keep_previous_run, lock_run, plot_loss, read_log,
                    resumable_state, run_record, variant_experiments, write_checkpoint, write_log, write_mesh)
 from .stages import stage_of
-from .targets import initial_shape_uv, initial_state, load_targets, read_targets
+from .targets import initial_state, load_targets, read_targets
 
 
 @dataclass
@@ -80,13 +80,12 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     """:func:`optimize` once the run folder is locked: the loop, from the saved or initial state."""
     cfg = exp.optimize
     state = resumable_state(files, exp, total, resume, warn)
-    inputs = read_targets(exp)  # every input read and checked before the run folder is touched
+    inputs = read_targets(exp, fresh=state is None)  # every input read and checked before the run folder is touched
     if state is None:  # a fresh run: a run found in the folder is moved aside, never overwritten
-        shape = initial_shape_uv(exp, inputs.reference)
         keep_previous_run(files, warn)
     targets, cameras, reference = load_targets(exp, files, inputs)
     if state is None:
-        state = initial_state(exp, files, shape, warn)
+        state = initial_state(exp, files, inputs.initial, warn)
     fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
     start, seconds = state.iteration, state.seconds
     result = OptimizeResult(files.root, resumed_from=start)
@@ -192,15 +191,24 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, it
     return result
 
 
+def loop_guiding_line(label: str, run: Experiment) -> str:
+    """One line: what guides the boundary terms of ``run`` in the loop (``label: ...`` for a variant)."""
+    line = guiding_line(run, loop=True)
+    return f"{label}: {line}" if label else line
+
+
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
-                      progress=None, warn=print):
+                      progress=None, warn=print, report=None):
     """Run every run of ``exp`` (its ``optimize.variants``, or those in ``labels``; the experiment
     itself without variants) one after another; yields (label, OptimizeResult) as each ends.
 
-    ``progress(label)``: optional context manager factory giving each run's progress object."""
+    ``progress(label)``: optional context manager factory giving each run's progress object;
+    ``report``: one line per run as it starts, what guides its boundary terms in the loop."""
     if exp.optimize is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     for label, run in variant_experiments(exp, labels):
+        if report:
+            report(loop_guiding_line(label, run))
         if progress is None:
             yield label, optimize(run, iterations=iterations, resume=resume, warn=warn)
             continue

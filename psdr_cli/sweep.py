@@ -52,7 +52,7 @@ from . import compare as comparison
 from . import backend, fileio
 from .config import Experiment
 from .errors import PsdrError
-from .optimize import optimize
+from .optimize import loop_guiding_line, optimize
 from .runs import RunFiles, clear_run, keep_previous_run, lock_run, variant_experiments
 
 INSTALL = "pip install 'psdr[ray]'"
@@ -351,18 +351,21 @@ def died(ray, exc) -> bool:
 
 
 def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
-                   opts: RayOptions | None = None, progress=None, warn=print):
+                   opts: RayOptions | None = None, progress=None, warn=print, report=None):
     """:func:`psdr_cli.optimize.optimize_variants` on Ray: every run one task; yields
     (label, OptimizeResult) as each ends (in the order they end); raises the first failure once
     every run has ended. A task whose worker died is submitted again (``opts.retries`` times),
     continuing from the run's saved state.
 
     ``progress(label)``: optional factory of an object with ``start(total, done)`` and
-    ``advance(n, loss)`` per run (one progress line per run)."""
+    ``advance(n, loss)`` per run (one progress line per run); ``report``: one line per run before
+    the tasks start, what guides its boundary terms in the loop."""
     opts = opts or RayOptions()
     if exp.optimize is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     runs = dict(variant_experiments(exp, labels))
+    for label, run in runs.items() if report else ():
+        report(loop_guiding_line(label, run))
     with Session(opts) as session, ExitStack() as locks:
         if opts.copy:  # the driver is the one writer of every run folder (shared mode: each task's optimize locks)
             for run in runs.values():

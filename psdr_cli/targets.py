@@ -19,32 +19,35 @@ from .meshes import object_mesh
 from .mitsuba_scene import scene_files
 from .remesh import remesh
 from .render import render_view
-from .runs import RunFiles, State, scene_identity, write_mesh
+from .runs import RunFiles, State, cached_target, scene_identity, write_mesh
 from .scene import build_scene
 
 
 class TargetInputs(NamedTuple):
     """What a run's targets come from: the ``target.images`` (with their cameras), or the ground
-    truth (V, F) the targets are rendered from."""
+    truth (V, F) the targets are rendered from; and, for a fresh run, its initial shape (V, F,
+    UV or None: :func:`initial_shape_uv`)."""
     images: list | None
     cameras: list | None
     reference: tuple | None
+    initial: tuple | None = None
 
 
-def read_targets(exp) -> TargetInputs:
+def read_targets(exp, fresh: bool = False) -> TargetInputs:
     """:class:`TargetInputs` of a run, read and checked (``preview_views`` included) without
-    writing anything: a bad input fails before the run folder is touched."""
+    writing anything: a bad input fails before the run folder is touched. ``fresh``: also the
+    initial shape (a resumed run starts from its saved state)."""
     cfg = exp.optimize
+    views = len(exp.scene.cameras)
     if cfg.target_images:
         images, cameras = image_targets(exp)
-        inputs = TargetInputs(images, cameras, None)
+        inputs, views = TargetInputs(images, cameras, None), len(images)
     else:
         inputs = TargetInputs(None, None, ground_truth(exp))
-    views = len(inputs.images) if inputs.images is not None else len(exp.scene.cameras)
     bad = [v for v in cfg.preview_views if v >= views]
     if bad:
         raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{views - 1})")
-    return inputs
+    return inputs._replace(initial=initial_shape_uv(exp, inputs.reference)) if fresh else inputs
 
 
 def load_targets(exp, files: RunFiles, inputs: TargetInputs):
@@ -53,8 +56,9 @@ def load_targets(exp, files: RunFiles, inputs: TargetInputs):
     run folder as ``reference.ply``)."""
     if inputs.images is not None:
         return inputs.images, inputs.cameras, None
+    images = render_targets(exp, files, inputs.reference)
     write_mesh(files.reference, *inputs.reference)  # the shape this run's targets come from
-    return render_targets(exp, files, inputs.reference), None, inputs.reference
+    return images, None, inputs.reference
 
 
 def initial_state(exp, files: RunFiles, shape, warn) -> State:
@@ -138,12 +142,13 @@ def target_key(exp, reference, spp: int) -> str:
     """Hash of everything a cached target image depends on: the scene, the ground truth, spp and
     seed, and the contents of every file the scene reads (:func:`input_files`), so that an edited
     mesh file, texture, environment map or included XML file makes new targets."""
+    seed, paths = target_seed(exp), input_files(exp)
     h = hashlib.sha256()
     h.update(json.dumps(scene_identity(asdict(exp.scene)), default=str, sort_keys=True).encode())
     h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
     h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
-    h.update(f"{spp}:{target_seed(exp)}".encode())
-    for path in input_files(exp):
+    h.update(f"{spp}:{seed}".encode())
+    for path in paths:
         h.update(path.read_bytes())
     return h.hexdigest()[:16]
 
@@ -151,8 +156,9 @@ def target_key(exp, reference, spp: int) -> str:
 def render_targets(exp, files: RunFiles, reference, progress=None):
     """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
     in ``targets/`` (reused while the scene, the ground truth and spp are unchanged, and only if
-    every cached file can be read back whole: see :func:`cached_target`)."""
+    every cached file can be read back whole: see :func:`psdr_cli.runs.cached_target`)."""
     cfg = exp.optimize
+    seed = target_seed(exp) + 7919
     key = target_key(exp, reference, cfg.target_spp)
     paths = [files.targets / f"view_{v:03d}.exr" for v in range(len(exp.scene.cameras))]
     cached = [cached_target(p, key, (exp.scene.height, exp.scene.width)) for p in paths]
@@ -161,7 +167,7 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
     scene = build_scene(exp, objects={cfg.object: reference})
     images = []
     for v, p in enumerate(paths):
-        image = render_view(scene, v, cfg.target_spp, seed=target_seed(exp) + 7919)
+        image = render_view(scene, v, cfg.target_spp, seed=seed)
         cam = exp.scene.cameras[v]
         fileio.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
                                     "psdr.camera": {"origin": cam.origin, "target": cam.target, "up": cam.up,
@@ -171,23 +177,6 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
         if progress:
             progress(v)
     return images
-
-
-def cached_target(path, key: str, shape: tuple):
-    """The cached target image at ``path`` if it can be trusted: it exists, reads back whole (not
-    emptied or cut short by a full disk or a copy), was rendered for ``key`` (:func:`target_key`),
-    has the film's (height, width) and finite values; else None (the targets are rendered again).
-    A missing file is not read (the EXR library would print its own error)."""
-    if not Path(path).is_file():
-        return None
-    try:
-        exr = fileio.read_exr(path)
-        image = np.stack([exr[c] for c in "RGB"], -1).astype(np.float64)
-    except Exception:  # noqa: BLE001 - missing, empty, truncated or not an EXR at all
-        return None
-    if exr["__header__"].get("psdr.target_key") != key or image.shape[:2] != shape or not np.isfinite(image).all():
-        return None
-    return image
 
 
 def image_targets(exp):

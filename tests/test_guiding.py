@@ -307,6 +307,7 @@ def test_grad_and_guide_stats_cli(tmp_path, write_cfg):
     summary = json.loads((tmp_path / "runs" / "shadow" / "grad" / "summary.json").read_text())
     assert summary["guiding"] == "kdtree" and summary["edge_sort"] is True
     assert "guiding" in summary["views"][0]["seconds"]
+    assert r.stdout.count("guiding kdtree: direct kdtree") == 1  # said once, before the work
     r = run_cli("grad", cfg, "--guiding", "octree")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--guiding" in r.stderr
     r = run_cli("guide-stats", cfg, "--guides", "grid,kdtree")

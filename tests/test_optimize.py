@@ -357,6 +357,7 @@ def test_variants_time_budget_report_and_table2(tmp_path):
     cfg = write(tmp_path, data)
     r = run_cli("optimize", cfg)
     assert r.returncode == 0, r.stderr
+    assert "grid: guiding grid: direct grid" in r.stdout and "plain: guiding none" in r.stdout  # one line per run
     root = tmp_path / "runs" / "tiny"
     counts = {}
     for label in ("grid", "plain"):
