@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import sys
 import time
@@ -69,22 +68,24 @@ def measure(config: Path, spp: int, repeats: int) -> dict:
     for fn in PASSES.values():  # compile both kernels before timing
         timed_render(scene, spp, exp.seed, fn)
     seconds = {name: [] for name in PASSES}
-    images = {}
+    equal = True
     for r in range(repeats):
+        images = []
         for name, fn in PASSES.items():
-            s, images[name] = timed_render(scene, spp, exp.seed + r, fn)
+            s, image = timed_render(scene, spp, exp.seed + r, fn)
             seconds[name].append(s)
-    a, b = images.values()
+            images.append(image)
+        equal &= bool(np.array_equal(*images))
     median = {name: float(np.median(s)) for name, s in seconds.items()}
     return {"config": str(config), "film": list(scene.resolution), "max_depth": scene.config.max_depth, "spp": spp,
             "seconds": median, "speedup": median["one kernel per channel"] / median["one kernel per pass"],
-            "equal_images": bool(np.array_equal(a, b))}
+            "equal_images": equal}
 
 
 def write_report(rows: list, out: Path, spp: int, repeats: int):
     lines = ["# Primal render time: one kernel per pass against one per colour channel", "",
              f"`benchmarks/render_passes.py`, view 0 at {spp} spp, median of {repeats} renders each, alternating; "
-             f"{mi.variant()}, {os.cpu_count()} CPU threads, {platform.processor() or platform.machine()}.", "",
+             f"{mi.variant()}, {dr.thread_count()} Dr.Jit threads, {platform.processor() or platform.machine()}.", "",
              "| scene | film | max_depth | per pass (s) | per channel (s) | speedup | images equal |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:

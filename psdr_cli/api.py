@@ -22,7 +22,6 @@ from . import experiment
 from . import gradient
 from . import optimize as optimization
 from . import render as rendering
-from . import runs
 from . import sweep
 from .config import MAX_ITERATIONS, Experiment, option_count
 from .guiding import stats

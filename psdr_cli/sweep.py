@@ -364,8 +364,9 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
     if exp.optimize is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     runs = dict(variant_experiments(exp, labels))
-    for label, run in runs.items() if report else ():
-        report(loop_guiding_line(label, run))
+    if report:  # before any task is submitted: the progress rows are not drawn yet
+        for label, run in runs.items():
+            report(loop_guiding_line(label, run))
     with Session(opts) as session, ExitStack() as locks:
         if opts.copy:  # the driver is the one writer of every run folder (shared mode: each task's optimize locks)
             for run in runs.values():

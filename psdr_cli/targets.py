@@ -56,9 +56,8 @@ def load_targets(exp, files: RunFiles, inputs: TargetInputs):
     run folder as ``reference.ply``)."""
     if inputs.images is not None:
         return inputs.images, inputs.cameras, None
-    images = render_targets(exp, files, inputs.reference)
     write_mesh(files.reference, *inputs.reference)  # the shape this run's targets come from
-    return images, None, inputs.reference
+    return render_targets(exp, files, inputs.reference), None, inputs.reference
 
 
 def initial_state(exp, files: RunFiles, shape, warn) -> State:

@@ -667,3 +667,17 @@ def test_stage_lists_are_checked_again_when_code_changes_the_experiment(tmp_path
     odd = replace(exp, scene=replace(exp.scene, width=15))
     with pytest.raises(PsdrError, match=r"optimize.downsample\[0\]: 2 does not divide the film's 15×16"):
         api.optimize(odd, warn=lambda m: None)
+
+
+def test_the_loop_guiding_line_names_no_psdr_guide_under_the_mitsuba_engine(tmp_path):
+    """The line `psdr optimize` prints per run says what the loop guides with: under
+    ``estimator.engine: mitsuba`` no psdr guide is built (Mitsuba samples its own boundaries),
+    whatever ``estimator.guiding`` says."""
+    from psdr_cli.config import with_estimator
+    from psdr_cli.experiment import load_experiment
+    from psdr_cli.optimize import loop_guiding_line
+    data = copy.deepcopy(TINY)
+    data["estimator"].update(engine="mitsuba", guiding="kdtree")
+    exp = load_experiment(write(tmp_path, data))
+    assert loop_guiding_line("", exp) == "guiding none: estimator.engine mitsuba samples its own boundaries"
+    assert loop_guiding_line("psdr", with_estimator(exp, engine="psdr")).startswith("psdr: guiding kdtree: direct kdtree")

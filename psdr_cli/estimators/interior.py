@@ -206,7 +206,7 @@ def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp
     ray, weight = camera_rays(sensor, sampler, width, height, spp)
     L = weight * radiance(scene, sampler, ray, max_depth)
     dr.eval(L)  # one kernel for the three channels (each block sum would trace the paths again)
-    sums = [dr.block_sum(L[c], spp) for c in range(3)]
+    sums = [dr.block_sum(L[c], spp, mode="evaluated") for c in range(3)]
     dr.eval(sums)
     return np.stack([np.asarray(s, np.float64) for s in sums], axis=-1).reshape(height, width, 3)
 
@@ -220,7 +220,7 @@ def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth:
     ray, weight = camera_rays(sensor, sampler, width, height, spp)
     L = weight * radiance(scene.mi_scene, sampler, ray, max_depth, ad=True)
     dr.eval(L)  # one kernel for the three channels' primal values
-    return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp) / spp for c in range(3)]))
+    return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") / spp for c in range(3)]))
 
 
 TERM = Term("interior", samples_key="spp", stream=1, guided=False, estimate=estimate)
