@@ -194,8 +194,9 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, it
 def loop_guiding_line(label: str, run: Experiment) -> str:
     """One line: what guides the boundary terms of ``run`` in the loop (``label: ...`` for a variant);
     Mitsuba's projective integrators (``estimator.engine: mitsuba``) take no psdr guide."""
-    line = guiding_line(run, loop=True) if run.estimator.engine == "psdr" else \
-        "guiding none: estimator.engine mitsuba samples its own boundaries"
+    line = "guiding none: estimator.engine mitsuba samples its own boundaries"
+    if run.estimator.engine == "psdr":
+        line = guiding_line(run, loop=True)
     return f"{label}: {line}" if label else line
 
 
