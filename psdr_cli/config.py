@@ -313,6 +313,9 @@ class CameraConfig:
     target: tuple
     up: tuple = (0.0, 0.0, 1.0)
     fov: float = 40.0  # horizontal, degrees
+    #: Mitsuba's ``principal_point_offset_x/y``: the principal point sits at pixel
+    #: (W·(½ − ox), H·(½ − oy)), so a positive offset moves it left / up (fractions of the film).
+    principal_point: tuple = (0.0, 0.0)
 
 
 @dataclass
@@ -800,6 +803,25 @@ def parse_emitter(base: Path) -> Parser:
     return parse
 
 
+#: Largest |offset| of ``principal_point`` (film widths / heights): the principal point within
+#: half a film beyond the film's edge.
+MAX_PRINCIPAL_OFFSET = 1.0
+
+
+def principal_point(value, where):
+    """``principal_point: [ox, oy]``: Mitsuba's principal point offset, fractions of the film's
+    width and height (not pixels), each within ±:data:`MAX_PRINCIPAL_OFFSET`."""
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if not ok:
+        raise where.fail(f"expected [ox, oy], two numbers (fractions of the film width and height), "
+                         f"got {_describe(value)}")
+    if not all(finite(v) and abs(v) <= MAX_PRINCIPAL_OFFSET for v in value):
+        raise where.fail(f"expected two finite numbers within ±{MAX_PRINCIPAL_OFFSET:g} (fractions of the film "
+                         f"width and height, not pixels), got {_describe(list(value))}")
+    return tuple(float(v) for v in value)
+
+
 def _check_camera(cam: CameraConfig, where: Where) -> CameraConfig:
     d = [t - o for t, o in zip(cam.target, cam.origin)]
     length = math.sqrt(sum(c * c for c in d))
@@ -863,6 +885,7 @@ def parse_cameras(value, where, up=(0.0, 0.0, 1.0)) -> list:
             target=sec.get("target", vector(3)),
             up=sec.get("up", vector(3, nonzero=True), up),
             fov=sec.get("fov", number(positive=True, maximum=179), 40.0),
+            principal_point=sec.get("principal_point", principal_point, (0.0, 0.0)),
         )
         sec.done()
         cams.append(_check_camera(cam, w))

@@ -22,14 +22,13 @@ from it and the scene is rebuilt with ``mi.load_dict`` under psdr's naming:
 - **analytic shapes** (``sphere``, ``disk``, ``cylinder``, instances of a ``shapegroup``, ...)
   are rendered, with one warning each: psdr cannot sample their edges, so silhouettes and
   shadows of them carry no derivative.
-- **refused** with one error line: non-``perspective`` sensors or ones with a principal-point
-  offset, delta emitters (``point``, ``spot``, ``directional``, ``projector``), ``mask`` and
+- **refused** with one error line: non-``perspective`` sensors, delta emitters (``point``, ``spot``, ``directional``, ``projector``), ``mask`` and
   ``null`` BSDFs (surfaces rays pass through), participating media (on a shape or a sensor),
   more than one environment, NaN or infinite values in a BSDF or emitter (its textures included).
 - **replaced**: the XML integrator (psdr's estimators render; its ``max_depth`` is the default of
   ``scene.max_depth``), the sampler (``estimator.spp``) and the film's reconstruction filter
-  (psdr integrates box pixels). Sensors keep their ``to_world``, horizontal field of view and
-  clip planes; ``scene.film`` may replace the film size, ``scene.cameras`` the sensors.
+  (psdr integrates box pixels). Sensors keep their ``to_world``, horizontal field of view, clip
+  planes and principal point offset; ``scene.film`` may replace the film size, ``scene.cameras`` the sensors.
 
 Parse errors become one line ``scene.xml: line N, column M: message``.
 """
@@ -46,8 +45,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend, fileio, meshes
-from .config import (MAX_COORD, MAX_FILM, MAX_TEXELS, BsdfConfig, CameraConfig, EmitterConfig, Experiment,
-                     MeshSpec, ObjectConfig, SceneConfig, emitter_id, name_problem, sensor_id)
+from .config import (MAX_COORD, MAX_FILM, MAX_PRINCIPAL_OFFSET, MAX_TEXELS, BsdfConfig, CameraConfig, EmitterConfig,
+                     Experiment, MeshSpec, ObjectConfig, SceneConfig, emitter_id, name_problem, sensor_id)
 from .errors import ConfigError
 from .jitarray import jit_array
 
@@ -174,8 +173,8 @@ class XmlObject:
 @dataclass
 class XmlScene:
     """What psdr takes from an XML scene (see the module docstring)."""
-    sensors: list                     # (to_world 4×4, x_fov, near, far) per XML sensor
-    cameras: list                     # CameraConfig per XML sensor (origin, target, up, fov)
+    sensors: list                     # (to_world 4×4, x_fov, near, far, principal point offset) per XML sensor
+    cameras: list                     # CameraConfig per XML sensor (origin, target, up, fov, principal_point)
     size: tuple | None                # film (width, height) of the XML sensors
     emitters: list                    # EmitterConfig per emitter (area lights included)
     environment: dict = field(default_factory=dict)   # @emitter_NN -> environment emitter instance
@@ -294,18 +293,21 @@ def read_scene(exp: Experiment) -> XmlScene:
                 raise fail(what, f"'{kind}' is not supported (psdr needs perspective sensors: its film "
                                  f"projection and camera connections assume a pinhole)")
             p = mi.traverse(sensor)
-            if any(abs(float(p[k][0])) > 1e-7 for k in ("principal_point_offset_x", "principal_point_offset_y")):
-                raise fail(what, "principal point offsets are not supported (psdr's film projection is centred)")
+            offset = tuple(float(p[f"principal_point_offset_{a}"][0]) for a in "xy")
+            if not all(abs(o) <= MAX_PRINCIPAL_OFFSET for o in offset):
+                raise fail(what, f"principal point offset {list(offset)}: expected offsets within "
+                                 f"±{MAX_PRINCIPAL_OFFSET:g} (fractions of the film width and height)")
             film = sensor.film()
             if tuple(film.crop_size()) != tuple(film.size()) and src.film is None:
                 warnings.append(f"{xml.name}: {what}: the film's crop window is ignored (psdr renders the whole film)")
             M = _matrix(p["to_world"])
             fov = float(p["x_fov"][0])
-            sensors.append((M, fov, float(sensor.near_clip()), float(sensor.far_clip())))
+            sensors.append((M, fov, float(sensor.near_clip()), float(sensor.far_clip()), offset))
             origin = M[:3, 3]
             cameras.append(CameraConfig(origin=tuple(float(c) for c in origin),
                                         target=tuple(float(c) for c in origin + _unit(M[:3, 2])),
-                                        up=tuple(float(c) for c in _unit(M[:3, 1])), fov=fov))
+                                        up=tuple(float(c) for c in _unit(M[:3, 1])), fov=fov,
+                                        principal_point=offset))
         if not sensors:
             raise fail("", "has no sensor (add a perspective <sensor>, or give scene.cameras)")
         if len(sizes) > 1 and src.film is None:
@@ -469,13 +471,20 @@ def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = Fal
 
 
 def sensor_dicts(xs: XmlScene, width: int, height: int) -> list:
-    """Perspective sensors of the XML (to_world, horizontal fov, clip planes) with a box-filtered
-    film of the given size."""
-    return [{"type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mi.ScalarTransform4f(M),
+    """Perspective sensors of the XML (to_world, horizontal fov, clip planes, principal point
+    offset when not centred) with a box-filtered film of the given size (the whole film: an
+    offset is a fraction of it, as Mitsuba's without a crop window)."""
+    out = []
+    for M, fov, near, far, (ox, oy) in xs.sensors:
+        d = {"type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mi.ScalarTransform4f(M),
              "near_clip": near, "far_clip": far,
              "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
                       "rfilter": {"type": "box"}},
-             "sampler": {"type": "independent"}} for M, fov, near, far in xs.sensors]
+             "sampler": {"type": "independent"}}
+        if ox or oy:
+            d["principal_point_offset_x"], d["principal_point_offset_y"] = ox, oy
+        out.append(d)
+    return out
 
 
 def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):

@@ -15,11 +15,26 @@ import drjit as dr
 import numpy as np
 
 from . import backend, fileio
-from .config import Experiment, option_spp, parse_views
+from .config import CameraConfig, Experiment, option_spp, parse_views
 from .estimators.interior import render_pass
 from .estimators.passes import pass_seed, passes_for
 from .estimators.registry import RENDER_STREAM
 from .scene import build_scene
+
+
+def camera_header(cam: CameraConfig) -> dict:
+    """The EXR header ``psdr.camera`` of a camera: origin, target, up, fov, and its principal
+    point offset only when it is not centred (headers of centred cameras are as before)."""
+    d = {"origin": cam.origin, "target": cam.target, "up": cam.up, "fov": cam.fov}
+    if any(cam.principal_point):
+        d["principal_point"] = list(cam.principal_point)
+    return d
+
+
+def header_camera(d: dict) -> CameraConfig:
+    """The camera of a ``psdr.camera`` header (:func:`camera_header`)."""
+    return CameraConfig(origin=tuple(d["origin"]), target=tuple(d["target"]), up=tuple(d["up"]), fov=float(d["fov"]),
+                        principal_point=tuple(float(o) for o in d.get("principal_point", (0.0, 0.0))))
 
 
 def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None = None,
@@ -79,8 +94,7 @@ def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: 
         result.seconds.append(time.perf_counter() - t0)
         cam = exp.scene.cameras[v]
         header = {"psdr.experiment": str(exp.file), "psdr.view": str(v), "psdr.spp": str(spp),
-                  "psdr.seed": str(exp.seed), "psdr.camera": {"origin": cam.origin, "target": cam.target,
-                                                              "up": cam.up, "fov": cam.fov}}
+                  "psdr.seed": str(exp.seed), "psdr.camera": camera_header(cam)}
         exr = exrs[v]
         fileio.write_rgb_exr(exr, image, header)
         fileio.write_preview(exr.with_suffix(".png"), image)

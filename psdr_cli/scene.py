@@ -112,7 +112,9 @@ def look_at(origin, target, up):
 
 
 def sensor_dict(cam, width: int, height: int) -> dict:
-    return {
+    """Mitsuba ``perspective`` sensor of a :class:`CameraConfig`; its principal point offset (in
+    Mitsuba's convention, see ``CameraConfig.principal_point``) only when it is not centred."""
+    d = {
         "type": "perspective",
         "fov": cam.fov,
         "fov_axis": "x",
@@ -121,6 +123,10 @@ def sensor_dict(cam, width: int, height: int) -> dict:
                  "rfilter": {"type": "box"}},
         "sampler": {"type": "independent"},
     }
+    ox, oy = cam.principal_point
+    if ox or oy:
+        d["principal_point_offset_x"], d["principal_point_offset_y"] = float(ox), float(oy)
+    return d
 
 
 def rectangle_frame(center, normal, size) -> np.ndarray:

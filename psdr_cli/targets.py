@@ -13,12 +13,11 @@ from typing import NamedTuple
 import numpy as np
 
 from . import fileio, meshes
-from .config import CameraConfig
 from .errors import PsdrError
 from .meshes import object_mesh
 from .mitsuba_scene import scene_files
 from .remesh import remesh
-from .render import render_view
+from .render import camera_header, header_camera, render_view
 from .runs import RunFiles, State, cached_target, scene_identity, write_mesh
 from .scene import build_scene
 
@@ -137,13 +136,23 @@ def input_files(exp) -> list:
     return sorted(p for p in found if p.is_file())
 
 
+def _scene_dict(scene) -> dict:
+    """``asdict`` of the scene without the camera keys added since target keys were introduced
+    when they hold their default (``principal_point``), so that cached targets stay valid."""
+    d = asdict(scene)
+    for cam in d["cameras"] or []:
+        if not any(cam["principal_point"]):
+            del cam["principal_point"]
+    return d
+
+
 def target_key(exp, reference, spp: int) -> str:
     """Hash of everything a cached target image depends on: the scene, the ground truth, spp and
     seed, and the contents of every file the scene reads (:func:`input_files`), so that an edited
     mesh file, texture, environment map or included XML file makes new targets."""
     seed, paths = target_seed(exp), input_files(exp)
     h = hashlib.sha256()
-    h.update(json.dumps(scene_identity(asdict(exp.scene)), default=str, sort_keys=True).encode())
+    h.update(json.dumps(scene_identity(_scene_dict(exp.scene)), default=str, sort_keys=True).encode())
     h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
     h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
     h.update(f"{spp}:{seed}".encode())
@@ -169,8 +178,7 @@ def render_targets(exp, files: RunFiles, reference, progress=None):
         image = render_view(scene, v, cfg.target_spp, seed=seed)
         cam = exp.scene.cameras[v]
         fileio.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
-                                    "psdr.camera": {"origin": cam.origin, "target": cam.target, "up": cam.up,
-                                                    "fov": cam.fov}})
+                                    "psdr.camera": camera_header(cam)})
         fileio.write_preview(p.with_suffix(".png"), image)
         images.append(image)
         if progress:
@@ -198,6 +206,8 @@ def image_targets(exp):
             raise PsdrError(f"{p}: image is {image.shape[1]}×{image.shape[0]}, but scene.film is "
                             f"{exp.scene.width}×{exp.scene.height}")
         images.append(image)
-        cameras.append(CameraConfig(origin=tuple(cam["origin"]), target=tuple(cam["target"]),
-                                    up=tuple(cam["up"]), fov=float(cam["fov"])))
+        try:
+            cameras.append(header_camera(cam))
+        except (KeyError, TypeError, ValueError):
+            raise PsdrError(f"{p}: its 'psdr.camera' header is not a camera written by `psdr render`") from None
     return images, cameras

@@ -1,17 +1,18 @@
 """Camera helpers shared by the boundary terms: film projection and camera connections.
 
 Film coordinates are in pixels, q ∈ [0, W) × [0, H). For Mitsuba's perspective camera with a
-horizontal field of view f and aspect a = W/H, a camera-space point (x, y, z) projects to
+horizontal field of view f, aspect a = W/H and principal point offset (o_x, o_y) (Mitsuba's
+``principal_point_offset_x/y``, fractions of the film), a camera-space point (x, y, z) projects to
 
-    q = ( W (½ − ½ x / (z tan(f/2))),  H (½ − ½ a y / (z tan(f/2))) )
+    q = ( W (½ − o_x − ½ x / (z tan(f/2))),  H (½ − o_y − ½ a y / (z tan(f/2))) )
 
-(docs/theory.md §4). The camera connection W_e · f_s · |n·d0| of the direct and indirect terms
-is in §3.
+(docs/theory.md §4): the principal point is the pixel (W (½ − o_x), H (½ − o_y)). The camera
+connection W_e · f_s · |n·d0| of the direct and indirect terms is in §3.
 
 Parameters (experiment keys)
 ----------------------------
-None: the film size and the field of view come from the scene (``scene.film``,
-``scene.cameras``).
+None: the film size, the field of view and the principal point come from the scene
+(``scene.film``, ``scene.cameras[].fov``, ``scene.cameras[].principal_point``).
 """
 from __future__ import annotations
 
@@ -34,8 +35,16 @@ def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int,
     return ray, weight
 
 
+def principal_point_offset(sensor: mi.Sensor, params=None) -> tuple:
+    """Mitsuba's (``principal_point_offset_x``, ``_y``) of a perspective sensor, as Python floats."""
+    params = mi.traverse(sensor) if params is None else params
+    return tuple(float(dr.ravel(params[f"principal_point_offset_{a}"])[0]) if f"principal_point_offset_{a}" in params
+                 else 0.0 for a in "xy")
+
+
 class Projection:
-    """World → film (pixels) projection of one perspective sensor, differentiable in the point."""
+    """World → film (pixels) projection of one perspective sensor, differentiable in the point
+    (module docstring: the principal point offset shifts the film centre ½ to ½ − o)."""
 
     def __init__(self, sensor: mi.Sensor):
         params = mi.traverse(sensor)
@@ -44,6 +53,9 @@ class Projection:
         self.origin = params["to_world"].translation()
         self.tan_half = math.tan(math.radians(float(dr.ravel(params["x_fov"])[0])) / 2)
         self.near = float(sensor.near_clip()) if hasattr(sensor, "near_clip") else 1e-2
+        self.offset = principal_point_offset(sensor, params)
+        # ½ − o as Python floats: exactly 0.5 for a centred camera (the same kernel as before)
+        self.centre = (0.5 - self.offset[0], 0.5 - self.offset[1])
 
     def __call__(self, p):
         """(film position in pixels, camera-space depth z) of world points ``p``."""
@@ -52,7 +64,18 @@ class Projection:
         aspect = self.width / self.height
         x = local.x / (z * self.tan_half)
         y = local.y / (z * self.tan_half)
-        return mi.Point2f(self.width * (0.5 - 0.5 * x), self.height * (0.5 - 0.5 * aspect * y)), z
+        cx, cy = self.centre
+        return mi.Point2f(self.width * (cx - 0.5 * x), self.height * (cy - 0.5 * aspect * y)), z
+
+    def importance(self, p):
+        """Importance W_e of the pinhole toward world points ``p`` (no visibility, no film test):
+        1 / (A cos³θ d²) with A = (2 tan(f/2))² / a the film's area at distance 1, θ the angle to
+        the optical axis and d the distance, Mitsuba's ``PerspectiveCamera::importance``."""
+        local = self.to_local @ p
+        dist2 = dr.squared_norm(local)
+        cos = local.z * dr.rsqrt(dist2)
+        area = (2 * self.tan_half) ** 2 * self.height / self.width
+        return dr.select(cos > 0, dr.rcp(area * cos * cos * cos * dist2), 0.0)
 
 
 def film_pixel(uv, width: int):
@@ -70,12 +93,18 @@ def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int,
     """Project x to the film and test that the camera sees it.
 
     Returns (importance W_e, direction to the camera d0, film position in pixels, camera-ray hit, mask).
-    The camera ray through the film position must land on x (scale-relative tolerance).
+    The camera ray through the film position must land on x (scale-relative tolerance). With a
+    principal point offset, W_e is :meth:`Projection.importance` (Mitsuba's is zero on part of the
+    shifted film).
     """
     active = mi.Bool(active)  # a copy: `&=` below must not narrow the caller's mask
     it = dr.zeros(mi.Interaction3f)
     it.p = x
     ds, importance = sensor.sample_direction(it, mi.Point2f(0.5), active)
+    if any(principal_point_offset(sensor)):
+        # Mitsuba 3.9 zeroes the importance outside the *centred* film rectangle, whatever the
+        # offset; inside the shifted film it has the same value (it depends on θ and d only)
+        importance = mi.Spectrum(dr.select(ds.pdf > 0, Projection(sensor).importance(x), 0.0))
     uv = ds.uv
     active &= (ds.pdf > 0) & (dr.max(importance) > 0) & (uv.x >= 0) & (uv.x < width) & (uv.y >= 0) & (uv.y < height)
     si = scene.ray_intersect(camera_ray(sensor, uv, width, height, active), active)
