@@ -140,11 +140,38 @@ def scene_files(src) -> list:
     return sorted(file for file, _ in named_files(src))
 
 
+#: Byte-order marks of the UTF-16 and UTF-32 files Mitsuba's XML parser (pugixml) converts itself.
+_OTHER_BOMS = (b"\x00\x00\xfe\xff", b"\xff\xfe\x00\x00", b"\xfe\xff", b"\xff\xfe")
+
+
+def check_utf8(file: Path):
+    """Refuse an XML file that is not valid UTF-8, with the line and column of its first bad byte
+    (Mitsuba loads it, but its ids and names cannot be read back as text). Files with a UTF-16/32
+    byte-order mark or another declared ``encoding`` are left to Mitsuba's parser."""
+    try:
+        data = file.read_bytes()
+    except OSError:
+        return  # Mitsuba reports it
+    head = re.match(rb"\s*<\?xml[^>]*?encoding\s*=\s*[\"']([^\"']+)", data[:200])
+    if data.startswith(_OTHER_BOMS) or (head and head.group(1).lower().replace(b"_", b"-") not in (b"utf-8", b"utf8")):
+        return
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line, line_start = data.count(b"\n", 0, exc.start) + 1, data.rfind(b"\n", 0, exc.start) + 1
+        column = len(data[line_start:exc.start].decode("utf-8", "replace")) + 1
+        raise ConfigError(file, f"line {line}, column {column}",
+                          f"not valid UTF-8 (byte 0x{data[exc.start]:02x}); save the file as UTF-8") from None
+
+
 def load_xml(src, yaml_file: str | None = None) -> mi.Scene:
     """``mi.load_file(src.file, **src.params)``; any failure is one :class:`ConfigError` line (a
-    ``params`` entry the XML does not use names the experiment file's key). The images the XML
+    ``params`` entry the XML does not use names the experiment file's key). The XML files
+    (``src.file`` and its ``<include>``s) must be UTF-8 (:func:`check_utf8`); the images the XML
     names are refused first when they are too large to decode (:data:`MAX_TEXELS`)."""
     for file, xml in named_files(src):
+        if file == Path(src.file).resolve() or file.suffix.lower() == ".xml":
+            check_utf8(file)
         problem = fileio.image_too_large(file, MAX_TEXELS) if file.suffix.lower() in IMAGE_SUFFIXES else None
         if problem:
             raise ConfigError(xml, "", f"image {problem}")
@@ -430,7 +457,11 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
     :mod:`psdr_cli.experiment`). ``warn`` receives one line per item psdr renders but cannot
     differentiate."""
     scene, src = exp.scene, exp.scene.mitsuba
-    xs = read_scene(exp)
+    try:
+        xs = read_scene(exp)
+    except UnicodeDecodeError:  # an encoding check_utf8 leaves to Mitsuba, which passed the bytes through
+        raise ConfigError(src.file, "", "an id or name in it is not valid UTF-8 once read by Mitsuba "
+                                        "(save the file as UTF-8)") from None
     for message in xs.warnings:
         warn(message)
     width, height = src.film or xs.size

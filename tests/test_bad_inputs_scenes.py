@@ -96,6 +96,25 @@ def case_xml_id_dot(tmp):
     return xml_experiment(tmp, edit=box_id("a.b")), [], "shape 'a.b': id 'a.b' contains '.'"
 
 
+def case_xml_id_not_utf8(tmp):
+    """Bytes that are not UTF-8 in an id: Mitsuba loads the file, Python cannot decode the id."""
+    cfg = xml_experiment(tmp)
+    xml = tmp / "scene.xml"
+    data = xml.read_bytes()
+    line = data[:data.index(b'id="box"')].count(b"\n") + 1
+    xml.write_bytes(data.replace(b'id="box"', b'id="bo\xff\xfex"'))
+    return cfg, [], f"scene.xml: line {line}, column 27: not valid UTF-8 (byte 0xff)"
+
+
+def case_xml_id_not_utf8_declared(tmp):
+    """The same bytes under a declared encoding Mitsuba's parser passes through unconverted."""
+    cfg = xml_experiment(tmp)
+    xml = tmp / "scene.xml"
+    data = xml.read_bytes().replace(b'id="box"', b'id="bo\xff\xfex"')
+    xml.write_bytes(b'<?xml version="1.0" encoding="windows-1252"?>\n' + data)
+    return cfg, [], "scene.xml: an id or name in it is not valid UTF-8"
+
+
 def case_yaml_name_internal(tmp):
     d = experiment()
     d["scene"]["objects"][0]["name"] = "@sensor_000"
