@@ -414,6 +414,7 @@ class SceneConfig:
     emitters: list
     objects: list
     mitsuba: MitsubaSource | None = None   # an XML scene: cameras, emitters, objects come from it
+    hide_background: bool = False          # camera rays that leave the scene see black (a dataset's masked views)
 
 
 @dataclass
@@ -478,9 +479,26 @@ class RemeshConfig:
 
 
 @dataclass
+class DatasetConfig:
+    """``optimize.target.dataset``: photographs and their cameras (:mod:`psdr_cli.datasets`)."""
+    path: Path
+    key: str                               # key path in the file, for error messages
+    format: str = "auto"                   # auto | blender | transforms | colmap
+    images: Path | None = None             # colmap: the image folder (default: <path>/images, <path>/../../images)
+    masks: Path | None = None              # colmap: a folder of mask PNGs named after the images
+    downsample: int = 1                    # area-average factor applied to every image (and its intrinsics)
+    linear: bool = False                   # PNG/JPEG values are linear already (default: sRGB-encoded)
+    holdout_every: int | None = None       # None: the dataset's own splits; k: every k-th frame is held out
+    background: str = "auto"               # auto (hidden when the views have masks) | hidden | visible
+    frame: tuple | None = None             # not a YAML key: (s, c) of the normalised frame, filled when loaded
+    split: str = "train"                   # not a YAML key: the views the scene's cameras are (train | test)
+
+
+@dataclass
 class OptimizeConfig:
     object: str
     target_images: str | None = None       # glob of EXR files written by `psdr render`
+    target_dataset: DatasetConfig | None = None  # photographs with their cameras
     target_mesh: MeshSpec | None = None    # ground-truth mesh (default: the object's own mesh)
     target_spp: int = 256
     init: MeshSpec | None = None           # initial shape (default: a sphere around the target)
@@ -950,7 +968,7 @@ def parse_scene(base: Path) -> Parser:
         scene = SceneConfig(
             width=width, height=height,
             max_depth=sec.get("max_depth", integer(1, MAX_DEPTH), 2),
-            cameras=sec.get("cameras", parse_cameras),
+            cameras=sec.get("cameras", parse_cameras, None),  # None: from optimize.target.dataset
             emitters=sec.get("emitters", list_of(parse_emitter(base), min_len=1)),
             objects=sec.get("objects", list_of(parse_object(base)), []),
         )
@@ -1203,8 +1221,9 @@ def parse_optimize(base: Path) -> Parser:
         o = OptimizeConfig(object=sec.get("object", string, None))
         if sec.has("target"):
             t = Section(sec.get("target", lambda v, _: v), where.child("target"))
-            if t.has("images") and t.has("mesh"):
-                raise where.child("target").fail("give either 'images' or 'mesh', not both")
+            given = [k for k in ("images", "mesh", "dataset") if t.has(k)]
+            if len(given) > 1:
+                raise where.child("target").fail(f"give one of 'images', 'mesh' and 'dataset', not {' and '.join(given)}")
             if t.has("object"):  # target: {object: NAME} is an alias of object: NAME
                 name = t.get("object", string)
                 if o.object is not None and o.object != name:
@@ -1215,6 +1234,7 @@ def parse_optimize(base: Path) -> Parser:
             if o.target_images is not None and not Path(o.target_images).is_absolute():
                 o.target_images = str(base / o.target_images)
             o.target_mesh = t.get("mesh", parse_mesh(base), None)
+            o.target_dataset = t.get("dataset", parse_dataset(base), None)
             o.target_spp = t.get("spp", integer(1, MAX_SPP), o.target_spp)
             t.done()
         if sec.has("init"):
@@ -1263,6 +1283,36 @@ def parse_optimize(base: Path) -> Parser:
             unique_labels(o.variants, where)
         sec.done()
         return o
+    return parse
+
+
+DATASET_FORMATS = ("auto", "blender", "transforms", "colmap")
+BACKGROUNDS = ("auto", "hidden", "visible")
+
+
+def parse_dataset(base: Path) -> Parser:
+    """``optimize.target.dataset``: a folder (or a ``transforms*.json`` file, or a COLMAP model
+    folder) of photographs with their cameras; paths relative to the experiment file."""
+    def folder(value, where):
+        path = Path(string(value, where))
+        return path if path.is_absolute() else base / path
+
+    def parse(value, where) -> DatasetConfig:
+        if isinstance(value, str):
+            value = {"path": value}
+        sec = Section(value, where)
+        d = DatasetConfig(path=sec.get("path", folder), key=where.path)
+        d.format = sec.get("format", choice(*DATASET_FORMATS), d.format)
+        d.images = sec.get("images", folder, None)
+        d.masks = sec.get("masks", folder, None)
+        d.downsample = sec.get("downsample", integer(1, MAX_FILM), d.downsample)
+        d.linear = sec.get("linear", boolean, d.linear)
+        d.holdout_every = sec.get("holdout_every", integer(2, MAX_FILM), None)
+        d.background = sec.get("background", choice(*BACKGROUNDS), d.background)
+        sec.done()
+        if not d.path.exists():
+            raise where.child("path").fail(f"not found: {d.path}")
+        return d
     return parse
 
 
@@ -1368,9 +1418,27 @@ def parse(data, file: Path, cwd: Path | None = None) -> Experiment:
         compare=sec.get("compare", parse_compare, None),
     )
     sec.done()
+    check_camera_source(exp, data.get("scene"), where)
     if "/" in exp.name or exp.name in (".", ".."):
         raise where.child("name").fail(f"expected a plain folder name, got '{exp.name}'")
     return exp
+
+
+def check_camera_source(exp: Experiment, scene_data, where: Where):
+    """The cameras and film come from ``scene`` or, for a dataset, from its photographs: one or
+    the other."""
+    dataset = exp.optimize.target_dataset if exp.optimize else None
+    if dataset is None:
+        if exp.scene.cameras is None:
+            raise where.child("scene").child("cameras").fail("missing (required)")
+        return
+    if exp.scene.mitsuba is not None:
+        raise where.child("optimize").child("target").child("dataset").fail(
+            "is not supported with an XML scene (scene.mitsuba) yet; describe the lights and the object in YAML")
+    for key in ("cameras", "film"):
+        if isinstance(scene_data, dict) and scene_data.get(key) is not None:
+            raise where.child("scene").child(key).fail(
+                "not allowed with optimize.target.dataset (the dataset's photographs give the cameras and the film)")
 
 
 def check_stages(exp: Experiment):

@@ -2,7 +2,8 @@
 then its scene read: a Mitsuba XML scene's cameras, film, emitters and objects filled in
 (:mod:`psdr_cli.mitsuba_scene`, one ``warn`` line per item psdr renders but cannot
 differentiate), split OBJ objects expanded into their parts (:mod:`psdr_cli.obj_parts`); then
-the checks that need object names, views and emitters run. Everything that uses an experiment
+the checks that need object names, views and emitters run. A camera dataset
+(``optimize.target.dataset``) gives the cameras and the film (:mod:`psdr_cli.dataset_scene`). Everything that uses an experiment
 loads it here, so no later step has to ask whether its scene has been read.
 """
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 
 from . import backend, config, mitsuba_scene
 from .config import Experiment, check_experiment, check_scene
+from .dataset_scene import dataset_scene
 from .mitsuba_scene import warn_stderr
 from .obj_parts import expand_objects
 
@@ -37,5 +39,7 @@ def complete(exp: Experiment, warn=warn_stderr) -> Experiment:
         scene = mitsuba_scene.scene_config(exp, warn)
     check_scene(scene, str(exp.file))
     exp = replace(exp, scene=scene)
+    if exp.optimize and exp.optimize.target_dataset:
+        exp = dataset_scene(exp)
     check_experiment(exp)
     return exp

@@ -41,7 +41,7 @@ from .render import render_view
 from .runs import (RunFiles, append_log, keep_previous_run, lock_run, plot_loss, read_log,
                    resumable_state, run_record, variant_experiments, write_checkpoint, write_log, write_mesh)
 from .stages import stage_of
-from .targets import initial_state, load_targets, read_targets
+from .targets import dataset_coordinates, initial_state, load_targets, read_targets
 
 
 @dataclass
@@ -167,7 +167,8 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
         previews = {v: (targets[v], render_view(problem.scene, v, 16, seed=exp.seed))
                     for v in exp.optimize.preview_views}
     texture = problem.texture_image() if problem.texture else None
-    return write_checkpoint(files, iteration, problem.vertices(), problem.F, texture, previews, problem.factor)
+    return write_checkpoint(files, iteration, dataset_coordinates(exp, problem.vertices()), problem.F, texture,
+                            previews, problem.factor)
 
 
 def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, iterations, seconds: float,
@@ -179,7 +180,7 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, it
     if cfg.seconds is not None and cfg.remesh.at and total < max(cfg.remesh.at) and total < (iterations or cfg.iterations):
         warn(f"the time budget ({cfg.seconds:g} s) ended the run at iteration {total}, before the remesh at "
              f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")
-    write_mesh(files.final, problem.vertices(), problem.F)
+    write_mesh(files.final, dataset_coordinates(exp, problem.vertices()), problem.F)
     result.final = files.final
     plot_loss(files, read_log(files.log, total))
     fileio.write_json(files.summary, {

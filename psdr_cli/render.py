@@ -50,7 +50,7 @@ def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None
     with dr.suspend_grad():
         for p, n in enumerate(passes_for(spp, width * height)):
             total += render_pass(scene.mi_scene, sensor, width, height, n, max_depth,
-                                 pass_seed(seed, view, p, RENDER_STREAM))
+                                 pass_seed(seed, view, p, RENDER_STREAM), scene.config.hide_background)
             if progress:
                 progress(n)
     return (total / spp).astype(np.float32)

@@ -1,6 +1,6 @@
 """What an optimisation fits and where it starts: the ground-truth shape, the target images
-(rendered once from it and cached in the run folder, or EXR files from ``psdr render``) and
-the initial shape."""
+(rendered once from it and cached in the run folder, EXR files from ``psdr render``, or the
+photographs of a camera dataset: :mod:`psdr_cli.dataset_targets`) and the initial shape."""
 from __future__ import annotations
 
 import glob
@@ -13,6 +13,8 @@ from typing import NamedTuple
 import numpy as np
 
 from . import fileio, meshes
+from .dataset_scene import to_dataset
+from .dataset_targets import dataset_initial_shape, dataset_targets
 from .errors import PsdrError
 from .meshes import object_mesh
 from .mitsuba_scene import scene_files
@@ -38,7 +40,12 @@ def read_targets(exp, fresh: bool = False) -> TargetInputs:
     initial shape (a resumed run starts from its saved state)."""
     cfg = exp.optimize
     views = len(exp.scene.cameras)
-    if cfg.target_images:
+    hull = None
+    if cfg.target_dataset:
+        images, dataset = dataset_targets(exp)
+        inputs, views = TargetInputs(images, None, None), len(images)
+        hull = dataset if fresh and cfg.init is None else None
+    elif cfg.target_images:
         images, cameras = image_targets(exp)
         inputs, views = TargetInputs(images, cameras, None), len(images)
     else:
@@ -46,6 +53,8 @@ def read_targets(exp, fresh: bool = False) -> TargetInputs:
     bad = [v for v in cfg.preview_views if v >= views]
     if bad:
         raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{views - 1})")
+    if hull is not None:
+        return inputs._replace(initial=(*dataset_initial_shape(exp, hull), None))
     return inputs._replace(initial=initial_shape_uv(exp, inputs.reference)) if fresh else inputs
 
 
@@ -67,8 +76,15 @@ def initial_state(exp, files: RunFiles, shape, warn) -> State:
     if cfg.remesh.method != "none":
         V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
         uv = None  # (optimize.albedo.texture refuses remeshing: config.parse_optimize)
-    write_mesh(files.checkpoint(0), V, F)
+    write_mesh(files.checkpoint(0), dataset_coordinates(exp, V), F)
     return State(0, V, F, uv=uv)
+
+
+def dataset_coordinates(exp, V):
+    """Vertices ``V`` in the coordinates the user gave: a dataset's own (``V`` is in its normalised
+    frame: :mod:`psdr_cli.dataset_scene`), else the scene's (unchanged)."""
+    dataset = exp.optimize.target_dataset
+    return to_dataset(V, dataset.frame if dataset else None)
 
 
 def ground_truth(exp):
@@ -138,8 +154,10 @@ def input_files(exp) -> list:
 
 def _scene_dict(scene) -> dict:
     """``asdict`` of the scene without the camera keys added since target keys were introduced
-    when they hold their default (``principal_point``), so that cached targets stay valid."""
+    when they hold their default (``principal_point``, ``hide_background``), so that cached targets stay valid."""
     d = asdict(scene)
+    if not d["hide_background"]:
+        del d["hide_background"]
     for cam in d["cameras"] or []:
         if not any(cam["principal_point"]):
             del cam["principal_point"]

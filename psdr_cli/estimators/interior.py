@@ -123,12 +123,14 @@ def plane_boundary(scene, sampler, si, bsdf, depth_left: int, env_motion, active
 
 
 def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True,
-             ad: bool = False, by_depth: bool = False):
+             ad: bool = False, by_depth: bool = False, hide_background: bool = False):
     """Radiance arriving along ``ray`` (Python-unrolled over ``max_depth`` path vertices).
 
     ``ad``: attach material-form derivatives (the ray must be detached). ``by_depth``: return the
     list [L_1, …, L_max_depth] where L_n sums the paths with n segments (L_1 is the emission seen
-    directly along ``ray``)."""
+    directly along ``ray``). ``hide_background``: ``ray`` leaving the scene sees 0 instead of the
+    environment (a camera ray of a masked photograph: the render is then colour × coverage, the
+    premultiplied composite; the environment still lights every later vertex)."""
     ctx = mi.BSDFContext()
     parts = [mi.Color3f(0.0) for _ in range(max_depth)]
     beta = mi.Color3f(1.0)
@@ -151,6 +153,8 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
             pdf_em = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_delta)
             w_bsdf = dr.select(prev_delta, 1.0, mis_weight(prev_pdf, pdf_em))
         Le = ds.emitter.eval(si, active)
+        if depth == 0 and hide_background:
+            Le = dr.select(si.is_valid(), Le, 0.0)
         if depth > 0 and env_motion is not None:
             Le = dr.select(si.is_valid(), Le, dr.detach(Le))  # attached to its material direction
         parts[depth] += dr.select(active, beta * carry * w_bsdf * Le, 0.0)
@@ -199,12 +203,12 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
 
 
 def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
-                max_depth: int, seed: int) -> np.ndarray:
+                max_depth: int, seed: int, hide_background: bool = False) -> np.ndarray:
     """One primal pass of the renderer (:func:`psdr_cli.render.render_view`): the sum over ``spp``
     samples of every pixel, as a (H, W, 3) float64 array."""
     sampler = make_sampler(seed, width * height * spp)
     ray, weight = camera_rays(sensor, sampler, width, height, spp)
-    L = weight * radiance(scene, sampler, ray, max_depth)
+    L = weight * radiance(scene, sampler, ray, max_depth, hide_background=hide_background)
     dr.eval(L)  # one kernel for the three channels (each block sum would trace the paths again)
     sums = [dr.block_sum(L[c], spp, mode="evaluated") for c in range(3)]
     dr.eval(sums)
@@ -218,7 +222,8 @@ def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth:
     width, height = sensor.film().size()
     sampler = make_sampler(seed, width * height * spp)
     ray, weight = camera_rays(sensor, sampler, width, height, spp)
-    L = weight * radiance(scene.mi_scene, sampler, ray, max_depth, ad=True)
+    L = weight * radiance(scene.mi_scene, sampler, ray, max_depth, ad=True,
+                          hide_background=scene.config.hide_background)
     dr.eval(L)  # one kernel for the three channels' primal values
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") / spp for c in range(3)]))
 

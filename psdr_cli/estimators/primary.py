@@ -355,9 +355,14 @@ def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: 
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                     sampler: mi.Sampler, max_depth: int, sampling: str = "length"):
+                     sampler: mi.Sampler, max_depth: int, sampling: str = "length", hide_background: bool = False,
+                     coverage: bool = False):
     """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` curve points
-    (mesh edges and intersection curves), edges drawn ∝ w_e·ℓ_e (``sampling``: module docstring)."""
+    (mesh edges and intersection curves), edges drawn ∝ w_e·ℓ_e (``sampling``: module docstring);
+    ``hide_background``: the far side of a silhouette against the sky reads 0, as the interior
+    term's camera rays do (:func:`.interior.radiance`); ``coverage``: the jump of the coverage
+    indicator (whether a camera ray hits any geometry) instead of the radiance's
+    (:mod:`.coverage`)."""
     proj = Projection(sensor)
     width, height = proj.width, proj.height
     img = dr.zeros(mi.Float, width * height * 3)
@@ -402,7 +407,11 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         # common random numbers: both sides trace the same samples, so their difference keeps
         # the jump and loses most of the noise (each side alone stays unbiased)
         twin = sampler.clone()
-        sides = [interior.radiance(scene, s, ray, max_depth, ok) for s, ray in zip((sampler, twin), rays)]
+        if coverage:  # the indicator of a hit: 1 on the object's side, 0 on the background's
+            sides = [mi.Color3f(dr.select(scene.ray_intersect(ray, ok).is_valid(), 1.0, 0.0)) for ray in rays]
+        else:
+            sides = [interior.radiance(scene, s, ray, max_depth, ok, hide_background=hide_background)
+                     for s, ray in zip((sampler, twin), rays)]
         # 1/(N·p(q)) = Σw·ℓ / (N·w_e); opaque: the sum changes with the geometry and must not be
         # baked into the kernel
         inv_pdf = dr.opaque(mi.Float, total / n_samples) / dr.gather(mi.Float, weight, k)
@@ -422,7 +431,7 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
     ``estimator.primary_sampling``."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed)
     return primary_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth,
-                            estimator.primary_sampling)
+                            estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
 TERM = Term("primary", samples_key="primary_spp", stream=2, guided=False, estimate=estimate)

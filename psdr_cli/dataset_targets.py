@@ -1,0 +1,69 @@
+"""Target images from a camera dataset (``optimize.target.dataset``): the photographs of the
+views the experiment's cameras are (:mod:`psdr_cli.dataset_scene`), decoded to linear RGB at the
+film's size, and the initial shape: the masks' visual hull, or a sphere without masks.
+
+With the background hidden (masked photographs), a target is the premultiplied composite
+T = α·C of the straight colour C and the mask α, the same composite the renderer then draws
+(colour × coverage, :func:`psdr_cli.estimators.interior.radiance`): silhouette pixels are
+compared as partial coverage, neither dark halos nor ignored, and a real background never pulls
+on the shape. With a visible background the photograph is compared as it is.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from . import meshes
+from .dataset_scene import dataset_frames, to_normalised
+from .datasets.views import load_views
+from .errors import PsdrError
+from .visual_hull import visual_hull
+
+
+def dataset_views(exp, cache=None):
+    """The views of the experiment's cameras (``target_dataset.split``), decoded at the film's size,
+    with their cameras moved into the normalised frame."""
+    dataset = exp.optimize.target_dataset
+    _, chosen = dataset_frames(dataset, dataset.split)
+    views = load_views(chosen, downsample=dataset.downsample, linear=dataset.linear, cache=cache)
+    for view in views:
+        if view.image.shape[:2] != (exp.scene.height, exp.scene.width):
+            raise PsdrError(f"{view.name}: the photograph is {view.image.shape[1]}×{view.image.shape[0]} pixels "
+                            f"after downsampling, the other views {exp.scene.width}×{exp.scene.height}")
+    return [normalised_view(v, dataset.frame) for v in views]
+
+
+def normalised_view(view, frame):
+    """A view with its camera position in the normalised frame (rotation and intrinsics kept)."""
+    M = np.array(view.cam_to_world, np.float64)
+    M[:3, 3] = to_normalised(M[:3, 3], frame)
+    return replace(view, cam_to_world=M)
+
+
+def target_image(view, hidden: bool) -> np.ndarray:
+    """The image an optimisation fits for one view: α·C with the background hidden (a view without
+    a mask counts as covered everywhere), the photograph C otherwise."""
+    image = np.asarray(view.image, np.float64)
+    if hidden and view.mask is not None:
+        image = image * np.asarray(view.mask, np.float64)[..., None]
+    if not np.isfinite(image).all():
+        raise PsdrError(f"{view.name}: the decoded photograph has non-finite values")
+    return image
+
+
+def dataset_targets(exp, cache=None):
+    """(target images, views) of the experiment's cameras."""
+    views = dataset_views(exp, cache)
+    return [target_image(v, exp.scene.hide_background) for v in views], views
+
+
+def dataset_initial_shape(exp, views):
+    """(V, F) of the initial shape in the normalised frame: the masks' visual hull when every
+    view has a mask, else a sphere of radius ½ at the cameras' look-at point (the origin)."""
+    if views and all(v.mask is not None for v in views):
+        try:
+            return visual_hull(views)
+        except PsdrError as exc:
+            raise PsdrError(f"{exp.optimize.target_dataset.path}: {exc}") from None
+    return meshes.sphere(radius=0.5, subdivisions=3)
