@@ -47,7 +47,8 @@ from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.engines import mitsuba_image, mitsuba_integrator  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.estimators.passes import pass_seed  # noqa: E402
-from psdr_cli.iteration import adjoint_image, l1_loss  # noqa: E402
+from psdr_cli.iteration import adjoint_image  # noqa: E402
+from psdr_cli.losses.l1 import l1_loss  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
 from psdr_cli.targets import ground_truth, initial_shape  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402

@@ -490,6 +490,7 @@ class DatasetConfig:
     linear: bool = False                   # PNG/JPEG values are linear already (default: sRGB-encoded)
     holdout_every: int | None = None       # None: the dataset's own splits; k: every k-th frame is held out
     background: str = "auto"               # auto (hidden when the views have masks) | hidden | visible
+    silhouette: float = 1.0                # weight of the silhouette loss mean|C − M| of masked views (0: off)
     frame: tuple | None = None             # not a YAML key: (s, c) of the normalised frame, filled when loaded
     split: str = "train"                   # not a YAML key: the views the scene's cameras are (train | test)
 
@@ -1266,10 +1267,6 @@ def parse_optimize(base: Path) -> Parser:
             o.albedo_learning_rate = a.get("learning_rate", number(positive=True), o.albedo_learning_rate)
             o.albedo_texture = a.get("texture", _texture_size, None)
             a.done()
-            if o.albedo_texture is not None and (o.remesh.method != "none" or o.remesh.at):
-                raise where.child("remesh").fail(
-                    "optimize.albedo.texture needs 'remesh: {method: none}' without 'at' (remeshing "
-                    "discards the UV coordinates the texture is laid out in)")
         if sec.has("envmap_rotation"):
             e = Section(sec.get("envmap_rotation", lambda v, _: v), where.child("envmap_rotation"))
             o.envmap_rotation = True
@@ -1309,6 +1306,7 @@ def parse_dataset(base: Path) -> Parser:
         d.linear = sec.get("linear", boolean, d.linear)
         d.holdout_every = sec.get("holdout_every", integer(2, MAX_FILM), None)
         d.background = sec.get("background", choice(*BACKGROUNDS), d.background)
+        d.silhouette = sec.get("silhouette", number(minimum=0), d.silhouette)
         sec.done()
         if not d.path.exists():
             raise where.child("path").fail(f"not found: {d.path}")

@@ -20,8 +20,9 @@ import mitsuba as mi
 
 from . import gradient
 from .config import EstimatorConfig
+from .estimators.coverage import coverage_image
 from .estimators.passes import pass_seed
-from .estimators.registry import MITSUBA_STREAM
+from .estimators.registry import COVERAGE_STREAMS, MITSUBA_STREAM
 from .gradient import Settings
 
 
@@ -76,3 +77,10 @@ class Engine:
                                  self.settings.estimator.mitsuba_spp, seed)
         return gradient.ad_image(problem.scene, edges, view, self.terms, self.settings, pass_index=iteration,
                                  guides=guides)
+
+    def coverage(self, problem, edges, view: int, iteration: int) -> mi.Float:
+        """C_v of ``iteration``: the rendered coverage of a masked view (flat W·H, AD;
+        :mod:`psdr_cli.estimators.coverage`), by psdr's estimators whatever the engine."""
+        est = self.settings.estimator
+        seeds = tuple(pass_seed(self.settings.seed, view, iteration, s) for s in COVERAGE_STREAMS)
+        return coverage_image(problem.scene, edges, view, est.spp, est.primary_spp, seeds, est)

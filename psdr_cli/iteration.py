@@ -1,6 +1,7 @@
 """One iteration of an optimisation: its mini-batch rendered with AD, the L1 loss and its
-adjoint, the guides refreshed on their schedule, and one Adam step at the iteration's learning
-rate (skipped on a non-finite gradient)."""
+adjoint (and, for masked photographs, the silhouette loss: :mod:`psdr_cli.losses`), the guides
+refreshed on their schedule, and one Adam step at the iteration's learning rate (skipped on a
+non-finite gradient)."""
 from __future__ import annotations
 
 import math
@@ -20,6 +21,8 @@ from .guiding import auto
 from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
 from .jitarray import jit_array
+from .losses.l1 import l1_loss
+from .losses.silhouette import silhouette_loss
 from .render import render_view
 
 
@@ -118,11 +121,15 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
         guides.refresh(problem, edges, n_views, terms, settings, stage, cfg)
     t_render = time.perf_counter()
     views = batch_views(exp.seed, it, n_views, cfg.batch_size)
+    weight = cfg.target_dataset.silhouette if cfg.target_dataset else 0.0
     loss = mi.Float(0.0)
     for v in views:
         img = engine.image(problem, edges, v, it, guides.guides)
         adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, exp.seed, it) if cfg.adjoint_spp else None
         loss += l1_loss(img, stage.arrays[v], adjoint) / len(views)
+        if stage.masks is not None and weight > 0:
+            coverage = engine.coverage(problem, edges, v, it)
+            loss += weight * silhouette_loss(coverage, stage.masks[v]) / len(views)
     dr.backward(loss)
     loss_value = float(loss[0])
     t_post = time.perf_counter()
@@ -181,20 +188,3 @@ def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.F
     the derivative of :func:`l1_loss`."""
     image = render_view(scene, view, spp, seed=pass_seed(seed, view, iteration, ADJOINT_STREAM))
     return jit_array(mi.Float, np.ravel(image))
-
-
-def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) -> mi.Float:
-    """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I.
-
-    With ``adjoint`` P (an independent primal render of the same view) the value is mean |P − T|
-    and the derivative mean sign(P − T)·∂I. Taking the sign from the AD image I itself (n
-    samples) gives the exact gradient of E|I_n − T|, the L1 loss of a noisy render: a different
-    objective, minimised where the median (not the mean) of the n-sample pixel estimate meets
-    the target, whose gradient also shrinks wherever the residual is small next to the noise. A
-    P of more samples, independent of those of ∂I, brings the estimate close to the gradient of
-    the noise-free image's L1 loss at the cost of a forward render (docs/optimize.md, "Gradient
-    quality per second")."""
-    if adjoint is None:
-        return dr.mean(dr.abs(image - target))
-    sign = dr.sign(adjoint - target)
-    return dr.mean(dr.abs(adjoint - target)) + dr.mean(sign * (image - dr.detach(image)))

@@ -97,7 +97,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
     engine = Engine(settings, terms)
     if not engine.needs_edges:
         settings = settings.with_estimator(guiding="none")  # Mitsuba's integrators have their own
-    stage = stage_of(problem, targets, settings, terms)
+    stage = stage_of(problem, targets, settings, terms, masks=inputs.masks)
     if progress:
         progress.start(total, start)
     guides = GuideCache.resumed(problem, exp, settings, state, stage)
@@ -110,7 +110,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
             t_start = time.perf_counter()
             if it in cfg.remesh.at and it > 0:
                 problem = remeshed_problem(problem, exp, cameras, it, warn)
-                stage = stage_of(problem, targets, settings, terms, stage)
+                stage = stage_of(problem, targets, settings, terms, stage, inputs.masks)
                 guides.reset()
             step = iterate(problem, exp, engine, settings, stage, guides, it, total, warn)
             seconds += step.t_end - t_start

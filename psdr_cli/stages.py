@@ -51,21 +51,27 @@ def stage_images(targets, k: int):
 @dataclass
 class Stage:
     """What a remesh stage renders against: its downsampling factor, the targets at that factor
-    ((H/k, W/k, 3) arrays and flat ``mi.Float`` copies), whether its film is guided, and its pixels."""
+    ((H/k, W/k, 3) arrays and flat ``mi.Float`` copies), whether its film is guided, its pixels,
+    and the targets' masks at that factor (flat ``mi.Float``, or None without masks)."""
     factor: int
     images: list
     arrays: list
     guided: bool
     pixels: int
+    masks: list | None = None
 
 
-def stage_of(problem, targets, settings, terms, previous: Stage | None = None) -> Stage:
-    """The stage ``problem`` renders (``previous`` again while its downsampling is unchanged)."""
+def stage_of(problem, targets, settings, terms, previous: Stage | None = None, masks=None) -> Stage:
+    """The stage ``problem`` renders (``previous`` again while its downsampling is unchanged);
+    ``masks``: the targets' (H, W) masks, or None."""
     if previous is not None and previous.factor == problem.factor:
         return previous
     images, arrays = stage_images(targets, problem.factor)
     pixels = pixel_count(problem)
-    return Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixels), pixels)
+    mask_arrays = None
+    if masks is not None:
+        mask_arrays = stage_images([m[..., None] for m in masks], problem.factor)[1]
+    return Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixels), pixels, mask_arrays)
 
 
 def pixel_count(problem) -> int:

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import fileio, meshes
+from . import atlas, fileio, meshes
 from .dataset_scene import to_dataset
 from .dataset_targets import dataset_initial_shape, dataset_targets
 from .errors import PsdrError
@@ -26,12 +26,14 @@ from .scene import build_scene
 
 class TargetInputs(NamedTuple):
     """What a run's targets come from: the ``target.images`` (with their cameras), or the ground
-    truth (V, F) the targets are rendered from; and, for a fresh run, its initial shape (V, F,
-    UV or None: :func:`initial_shape_uv`)."""
+    truth (V, F) the targets are rendered from; for a fresh run, its initial shape (V, F, UV or
+    None: :func:`initial_shape_uv`); and the targets' (H, W) masks when every photograph of a
+    dataset has one (else None)."""
     images: list | None
     cameras: list | None
     reference: tuple | None
     initial: tuple | None = None
+    masks: list | None = None
 
 
 def read_targets(exp, fresh: bool = False) -> TargetInputs:
@@ -43,7 +45,8 @@ def read_targets(exp, fresh: bool = False) -> TargetInputs:
     hull = None
     if cfg.target_dataset:
         images, dataset = dataset_targets(exp)
-        inputs, views = TargetInputs(images, None, None), len(images)
+        masks = [v.mask for v in dataset] if all(v.mask is not None for v in dataset) else None
+        inputs, views = TargetInputs(images, None, None, masks=masks), len(images)
         hull = dataset if fresh and cfg.init is None else None
     elif cfg.target_images:
         images, cameras = image_targets(exp)
@@ -74,8 +77,16 @@ def initial_state(exp, files: RunFiles, shape, warn) -> State:
     cfg = exp.optimize
     V, F, uv = shape
     if cfg.remesh.method != "none":
+        if uv is not None:  # split at UV seams: the remeshers want one vertex per position
+            V, F = meshes.weld_vertices(V, F)
         V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
-        uv = None  # (optimize.albedo.texture refuses remeshing: config.parse_optimize)
+        uv = None
+        if cfg.albedo and cfg.albedo_texture is not None:  # the texture starts uniform: new UVs suffice
+            try:
+                V, F, uv = atlas.unwrap(V, F, cfg.albedo_texture)
+            except Exception as exc:  # noqa: BLE001 - xatlas failed on the remeshed initial shape
+                raise PsdrError(f"{exp.file}: optimize.albedo.texture: no UV atlas for the remeshed initial shape "
+                                f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     write_mesh(files.checkpoint(0), dataset_coordinates(exp, V), F)
     return State(0, V, F, uv=uv)
 

@@ -15,7 +15,8 @@ from psdr_cli.engines import Engine
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.gradient import Settings
 from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
-from psdr_cli.iteration import adjoint_image, l1_loss
+from psdr_cli.iteration import adjoint_image
+from psdr_cli.losses.l1 import l1_loss
 from psdr_cli.problem import Problem
 from psdr_cli.targets import ground_truth, initial_shape
 from test_optimize import TINY, write

@@ -532,7 +532,7 @@ def test_l1_adjoint_from_an_independent_render_removes_the_sign_correlation():
     import drjit as dr
     import mitsuba as mi
     from psdr_cli import backend
-    from psdr_cli.iteration import l1_loss
+    from psdr_cli.losses.l1 import l1_loss
     backend.select_variant("auto")
     rng = np.random.default_rng(0)
     n = 200_000

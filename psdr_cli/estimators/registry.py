@@ -6,7 +6,8 @@ files are checked against, in order); the module of this package with that name 
 
 Streams (the last argument of :func:`~.passes.pass_seed`) keep images from sharing random
 numbers: renders 0, each term its own (interior 1, primary 2, direct 3, indirect 4), Mitsuba's
-renders 9, the adjoint renders of an optimisation 10. They are checked to differ on import.
+renders 9, the adjoint renders of an optimisation 10, the coverage images of masked views 11
+(hits) and 12 (silhouettes). They are checked to differ on import.
 """
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ RENDER_STREAM = 0
 MITSUBA_STREAM = 9
 #: Random-number stream of an optimisation's adjoint renders (``optimize.adjoint_spp``).
 ADJOINT_STREAM = 10
+#: Random-number streams of the coverage images (:mod:`.coverage`): camera-ray hits, silhouettes.
+COVERAGE_STREAMS = (11, 12)
 
 #: The terms, in :data:`psdr_cli.config.TERMS` order.
 TERMS: tuple[Term, ...] = tuple(import_module(f"{__package__}.{name}").TERM for name in NAMES)
@@ -42,7 +45,7 @@ def _check():
     misnamed = [(n, t.name) for n, t in zip(NAMES, TERMS) if n != t.name]
     if misnamed:
         raise RuntimeError(f"estimators/{misnamed[0][0]}.py declares TERM {misnamed[0][1]!r}")
-    streams = [RENDER_STREAM, MITSUBA_STREAM, ADJOINT_STREAM] + [t.stream for t in TERMS]
+    streams = [RENDER_STREAM, MITSUBA_STREAM, ADJOINT_STREAM, *COVERAGE_STREAMS] + [t.stream for t in TERMS]
     if len(set(streams)) != len(streams):
         raise RuntimeError(f"random-number streams are shared: {streams}")
 

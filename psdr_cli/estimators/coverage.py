@@ -1,0 +1,49 @@
+"""The coverage image of a view, with its derivative: the share of each pixel's camera rays that
+hit any geometry,
+
+    C(p) = ∫_pixel 1[ray(q) hits the scene] dq,
+
+the quantity a mask (a photograph's alpha) measures. The indicator is constant on each side of
+a silhouette, so C has no interior derivative: dC/dθ is the primary boundary term with the jump
+ΔC = 1 − 0 across silhouette edges (:func:`.primary.primary_boundary` with ``coverage``; the
+same edge sampling, film projection and side offsets as the radiance's, docs/theory.md §4). The
+primal value is the mean of ``spp`` hit indicators per pixel.
+
+Parameters (experiment keys)
+----------------------------
+``estimator.spp`` (hit samples per pixel) and ``estimator.primary_spp`` (silhouette samples per
+pixel), as for the colour image.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .camera import camera_rays
+from .passes import make_sampler
+from .primary import primary_boundary
+from .term import boundary_pass
+
+
+def hit_share(scene, view: int, spp: int, seed: int) -> mi.Float:
+    """Mean of ``spp`` hit indicators per pixel (flat W·H, no derivative)."""
+    width, height = scene.resolution
+    with dr.suspend_grad():
+        sampler = make_sampler(seed, width * height * spp)
+        ray, _ = camera_rays(scene.sensors[view], sampler, width, height, spp)
+        hit = dr.select(scene.mi_scene.ray_intersect(ray).is_valid(), 1.0, 0.0)
+        dr.eval(hit)
+        return dr.block_sum(hit, spp, mode="evaluated") / spp
+
+
+def coverage_image(scene, edges, view: int, spp: int, primary_spp: int, seeds: tuple, estimator) -> mi.Float:
+    """C of ``view`` (flat W·H, AD): the hit share plus the silhouettes' boundary term (primal 0),
+    from the random streams ``seeds`` = (hits, silhouettes)."""
+    width, height = scene.resolution
+    image = hit_share(scene, view, spp, seeds[0])
+    if edges is None or (edges.count == 0 and not edges.meshes):
+        return image
+    n, sampler, P = boundary_pass(scene, edges, primary_spp, seeds[1])
+    boundary = primary_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, 1,
+                                estimator.primary_sampling, coverage=True)
+    return image + dr.gather(mi.Float, boundary, dr.arange(mi.UInt32, width * height) * 3)

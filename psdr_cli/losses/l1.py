@@ -1,0 +1,22 @@
+"""The photometric loss: mean absolute difference of a render and its target."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) -> mi.Float:
+    """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I.
+
+    With ``adjoint`` P (an independent primal render of the same view) the value is mean |P − T|
+    and the derivative mean sign(P − T)·∂I. Taking the sign from the AD image I itself (n
+    samples) gives the exact gradient of E|I_n − T|, the L1 loss of a noisy render: a different
+    objective, minimised where the median (not the mean) of the n-sample pixel estimate meets
+    the target, whose gradient also shrinks wherever the residual is small next to the noise. A
+    P of more samples, independent of those of ∂I, brings the estimate close to the gradient of
+    the noise-free image's L1 loss at the cost of a forward render (docs/optimize.md, "Gradient
+    quality per second")."""
+    if adjoint is None:
+        return dr.mean(dr.abs(image - target))
+    sign = dr.sign(adjoint - target)
+    return dr.mean(dr.abs(adjoint - target)) + dr.mean(sign * (image - dr.detach(image)))

@@ -1,0 +1,19 @@
+"""The silhouette loss of a masked photograph: the mean absolute difference of the rendered
+coverage C (the share of a pixel's camera rays that hit the scene:
+:mod:`psdr_cli.estimators.coverage`) and the mask M,
+
+    L_s = mean |C − M|,   ∂L_s = mean sign(C − M)·∂C.
+
+C's primal value is a Monte Carlo mean, exact only in the limit, so the sign is taken from that
+primal (as :func:`.l1.l1_loss` does without an adjoint render); its derivative ∂C comes only from
+the silhouettes (C is piecewise constant in the scene's parameters elsewhere).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+def silhouette_loss(coverage: mi.Float, mask: mi.Float) -> mi.Float:
+    """L_s = mean |C − M| (module docstring), flat W·H arrays."""
+    return dr.mean(dr.abs(coverage - mask))
