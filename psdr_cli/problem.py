@@ -10,9 +10,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import atlas
 from .config import BitmapConfig, BsdfConfig, ParameterConfig
 from .errors import PsdrError
 from .jitarray import jit_array
+from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
 from .runs import State
@@ -156,13 +158,20 @@ def texture_experiment(exp, texture):
     if name is None:
         raise PsdrError(f"{exp.file}: optimize.albedo.texture: the object's BSDF '{obj.bsdf.type}' has no "
                         f"reflectance or base_color (use diffuse or principled)")
-    given = obj.bsdf.params.get(name)
-    bitmap = BitmapConfig(data=np.asarray(texture, np.float32))
-    if isinstance(given, BitmapConfig):  # the object's own lookup settings
-        bitmap = replace(given, file=None, raw=False, data=bitmap.data)
+    bitmap = replace(texture_lookup(exp), data=np.asarray(texture, np.float32))
     bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
     objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
     return replace(exp, scene=replace(exp.scene, objects=objects))
+
+
+def texture_lookup(exp) -> BitmapConfig:
+    """The bitmap settings the recovered texture is looked up with: the object's own bitmap's
+    ``filter_type`` and ``wrap_mode`` (file, raw and data cleared), or bilinear and repeat."""
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    given = [v for k, v in obj.bsdf.params.items() if k in ("reflectance", "base_color")]
+    if given and isinstance(given[0], BitmapConfig):
+        return replace(given[0], file=None, raw=False, data=None)
+    return BitmapConfig()
 
 
 def adam_export(opt, key):
@@ -189,8 +198,33 @@ def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
     the stage's vertex count, the extra unknowns carried over (the old problem is released)."""
     cfg = exp.optimize
     k = cfg.remesh.at.index(it)
-    V2, F2 = remesh(problem.vertices(), problem.F, cfg.remesh.vertices[k], cfg.remesh.method
-                    if cfg.remesh.method != "none" else "isotropic",
-                    warn=lambda m: warn(f"iteration {it}: {m}"))
+    say = lambda m: warn(f"iteration {it}: {m}")  # noqa: E731
+    V, F = problem.vertices(), problem.F
+    if problem.uv is not None:  # split at UV seams: the remeshers want one vertex per position
+        V, F = weld_vertices(V, F)
+    V2, F2 = remesh(V, F, cfg.remesh.vertices[k], cfg.remesh.method if cfg.remesh.method != "none" else "isotropic",
+                    warn=say)
+    values, uv2 = problem.values(), None
+    if problem.texture:
+        V2, F2, uv2, values = retextured(problem, V2, F2, say)
     problem.release()
-    return Problem(exp, V2, F2, cameras, problem.values(), stage=stage_at(cfg, it))
+    return Problem(exp, V2, F2, cameras, values, uv=uv2, stage=stage_at(cfg, it))
+
+
+def retextured(problem: Problem, V, F, warn):
+    """(V', F', UV, values) of a remeshed shape (V, F) of a textured problem: an xatlas atlas of
+    the new mesh and the texture transferred onto it from the current one (:mod:`psdr_cli.atlas`),
+    the other unknowns as they are. Adam's moments of the texture restart (a new :class:`Problem`),
+    as the shape's do. Should the unwrap or the transfer fail, the current mesh, UVs and texture
+    are kept (with a warning): a remesh never ends a run."""
+    W, H = problem.cfg.albedo_texture
+    lookup = texture_lookup(problem.exp)
+    old = (problem.vertices(), problem.F, problem.uv)
+    try:
+        V2, F2, uv2 = atlas.unwrap(V, F, (W, H))
+        texture = atlas.transfer(old, V2, F2, uv2, problem.texture_image(), lookup.filter_type, lookup.wrap_mode)
+    except Exception as exc:  # noqa: BLE001 - xatlas or a degenerate atlas: keep the textured mesh
+        warn(f"texture transfer after the remesh failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
+             f"keeping the current mesh")
+        return (*old, problem.values())
+    return V2, F2, uv2, {**problem.values(), "albedo": texture}

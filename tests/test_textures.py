@@ -200,12 +200,11 @@ def test_stopped_and_resumed_texture_run_reproduces_the_uninterrupted_one(tmp_pa
 
 
 def test_texture_config_errors(tmp_path, capsys):
-    """albedo.texture refuses remeshing (naming optimize.remesh), a bad size, and an init shape
-    without UVs, each in one line."""
+    """albedo.texture refuses a bad size and an init shape without UVs, each in one line
+    (remeshing is allowed: tests/test_texture_remesh.py)."""
     path, _ = texture_run(tmp_path)
     base = yaml.safe_load(path.read_text())
-    cases = [({"remesh": {"method": "instant", "initial": 100}}, "optimize.remesh"),
-             ({"albedo": {"texture": [8]}}, "expected [width, height]"),
+    cases = [({"albedo": {"texture": [8]}}, "expected [width, height]"),
              ({"albedo": {"texture": [0, 4]}}, "expected an integer >= 1"),
              ({"init": {"mesh": {"shape": "sphere", "radius": 0.8}}}, "no UV coordinates")]
     for change, expected in cases:
