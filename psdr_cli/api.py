@@ -7,6 +7,7 @@
     optimize     → :func:`psdr_cli.optimize.optimize` (``optimize_variants``: every run of an ablation)
     evaluate     → :func:`psdr_cli.evaluate.evaluate_meshes` (inputs: :func:`psdr_cli.evaluate.evaluate_inputs`)
     table2       → :func:`psdr_cli.evaluate.table2`
+    export       → :func:`psdr_cli.export.export`
 
 ``optimize_variants`` and ``compare`` with ``ray=sweep.RayOptions(...)`` run each run / variant as a
 Ray task (:mod:`psdr_cli.sweep`; needs the optional extra ``psdr[ray]``).
@@ -19,6 +20,7 @@ from . import backend
 from . import compare as comparison
 from . import evaluate as evaluation
 from . import experiment
+from . import export as exporting
 from . import gradient
 from . import optimize as optimization
 from . import render as rendering
@@ -100,3 +102,9 @@ def evaluate(paths, reference: Path | None = None, samples: int | None = None, j
 def table2(experiments: list, out: Path) -> Path:
     """``psdr table2``: the paper's Table 2 for finished runs, written to ``out``."""
     return evaluation.table2(experiments, out)
+
+
+def export(source, out: Path | None = None, texture: Path | None = None, warn=print):
+    """``psdr export``: a run folder or mesh file as OBJ + MTL + PNG and binary glTF (and the
+    rotated environment map of a run that recovered its rotation); an ExportResult."""
+    return exporting.export(source, out, texture, warn)

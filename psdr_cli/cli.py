@@ -376,6 +376,18 @@ def table2(configs: list[Path] = typer.Argument(..., help="Experiment files whos
     out.print(f"written: {path}")
 
 
+@app.command()
+@guarded
+def export(source: Path = typer.Argument(..., help="A `psdr optimize` run folder, or a .ply/.obj mesh.", show_default=False),
+           out_dir: Optional[Path] = typer.Option(None, "--out", help="Output folder (default: the run's export/, or <mesh>_export/)."),
+           texture: Optional[Path] = typer.Option(None, "--texture", help="A mesh file's albedo texture (PNG/JPEG/EXR), looked up at its UVs.")):
+    """Write a reconstruction as OBJ + MTL + PNG and binary glTF (.glb), with the rotated
+    environment map of a run that recovered its rotation."""
+    warn = lambda m: console.print(f"[yellow]note:[/] {escape(m)}", highlight=False, soft_wrap=True)  # noqa: E731
+    res = api.export(source, out_dir, texture, warn=warn)
+    out.print(f"exported to {res.folder}: {', '.join(p.name for p in res.files)}")
+
+
 def ray_flag(argv: list) -> list:
     """``--ray`` takes an optional address: without one (end of the line, an option or the
     experiment file next) it means a local Ray instance, ``--ray local``."""
