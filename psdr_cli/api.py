@@ -93,7 +93,11 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
 
 def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,
              report: Path | None = None, progress=None):
-    """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult."""
+    """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult
+    (for an experiment with a camera dataset: held-out view scores, a HeldOutReport)."""
+    dataset = evaluation.dataset_experiment(paths)
+    if dataset is not None:
+        return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress)
     reference, targets, samples, seed, report, labels, title = evaluation.evaluate_inputs(
         paths, reference, samples, report)
     return evaluation.evaluate_meshes(reference, targets, samples, seed, json_out, progress, report, labels, title)

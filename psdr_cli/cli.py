@@ -348,6 +348,9 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
     """Normalised Chamfer and Hausdorff distances to a reference mesh (tables, JSON, plots)."""
     with Bar("evaluate") as bar:
         res = api.evaluate(paths, reference, samples, json_out, report, progress=bar)
+    if hasattr(res, "folders"):  # a camera dataset: held-out views
+        print_held_out(res)
+        return
     table = Table(title=f"psdr evaluate: reference {res.reference}")
     for col in ("mesh", "iteration", "seconds", "Chamfer-L1", "Chamfer-L2²", "Hausdorff"):
         table.add_column(col, justify="left" if col == "mesh" else "right")
@@ -363,6 +366,22 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
         out.print(f"plot: {p}")
     if res.report:
         out.print(f"report: {res.report} (evaluate.md, chamfer.png, meshes.png, evaluate.json)")
+
+
+def print_held_out(res):
+    """The table of ``psdr evaluate`` on a dataset experiment (held-out views)."""
+    table = Table(title=f"psdr evaluate: held-out views of {res.experiment.name}")
+    cols = ("mesh", "iteration", "views", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU", "Chamfer-L1")
+    for col in cols:
+        table.add_column(col, justify="left" if col == "mesh" else "right")
+    fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
+    for r in res.rows:
+        table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), fmt(r["psnr"], ".2f"),
+                      fmt(r["psnr_mask"], ".2f"), fmt(r["ssim"], ".4f"), fmt(r["ssim_mask"], ".4f"),
+                      fmt(r["iou"], ".4f"), fmt(r.get("chamfer_l1"), ".5f"))
+    out.print(table)
+    for folder in res.folders:
+        out.print(f"report: {folder} (held_out.md, held_out.json, a target | render | error strip per view)")
 
 
 @app.command()

@@ -13,6 +13,7 @@ surface are on average ~0.5/√N·(area)^½ apart; :func:`noise_floor` measures 
 """
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -24,6 +25,8 @@ from scipy.spatial import cKDTree
 from . import backend, fileio, plots
 from .config import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES, option_count, read_file
 from .errors import PsdrError
+from .experiment import load_experiment
+from .held_out import score_mesh
 from .meshes import face_areas, read_mesh_file
 from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
 from .scene import look_at, mitsuba_mesh
@@ -217,6 +220,98 @@ def write_run_report(folder: Path, ref, runs: list, labels: list, result: Evalua
     with fileio.atomic_path(folder / "reference.ply") as tmp:
         shutil.copyfile(result.reference, tmp)
     return folder
+
+
+# --------------------------------------------------------------------------------------------
+# psdr evaluate on a camera dataset: held-out views
+# --------------------------------------------------------------------------------------------
+@dataclass
+class HeldOutReport:
+    """Scores of a dataset run's initial and final meshes on the held-out views
+    (:mod:`psdr_cli.held_out`), one row per mesh, with Chamfer/Hausdorff when a reference is given."""
+    experiment: Path
+    folders: list = field(default_factory=list)
+    rows: list = field(default_factory=list)
+
+
+def dataset_experiment(paths):
+    """The experiment of ``paths`` when they are one experiment file that reconstructs from a
+    camera dataset (``optimize.target.dataset``), else None."""
+    configs = [str(p) for p in paths or [] if str(p).endswith((".yaml", ".yml"))]
+    if len(configs) != 1 or len(paths) != 1:
+        return None
+    exp = read_file(configs[0])
+    return load_experiment(configs[0]) if exp.optimize and exp.optimize.target_dataset else None
+
+
+def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples: int) -> dict:
+    """One mesh of a run scored on the held-out views (means over the views), and against
+    ``reference`` (V, F) when given."""
+    values = run_values(exp.run_dir) if iteration > 0 else {}
+    scores = score_mesh(exp, mesh, out=out, values=values)
+    row = {"mesh": str(mesh), "iteration": iteration, "views": len(scores.views),
+           **{k: scores.mean(k) for k in ("psnr", "psnr_mask", "ssim", "ssim_mask", "iou")}}
+    if reference is not None:
+        row.update(asdict(distance(load(mesh), reference, samples)))
+    return row
+
+
+def run_values(folder: Path) -> dict:
+    """The unknowns a finished run recovered (``optimize.json`` ``values``), or {} without them."""
+    try:
+        return json.loads(RunFiles(folder).summary.read_text()).get("values", {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def evaluate_held_out(exp, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,
+                      progress=None) -> HeldOutReport:
+    """``psdr evaluate`` of a dataset experiment: each run's initial and last checkpoint
+    rendered from the held-out cameras and scored (PSNR, SSIM, mask IoU), with a
+    target | render | error strip per view in ``<run>/held_out/``, ``held_out.json`` and
+    ``held_out.md`` there; Chamfer and Hausdorff too with ``reference`` (or ``evaluate.reference``)."""
+    reference = reference or (exp.evaluate.reference if exp.evaluate else None)
+    samples = samples or (exp.evaluate.samples if exp.evaluate else 100_000)
+    if json_out:
+        fileio.check_output_file(json_out, "--json")
+    ref = load(reference) if reference is not None else None
+    result = HeldOutReport(exp.file)
+    runs = variant_experiments(exp)
+    jobs = []
+    for _, run in runs:
+        if not RunFiles(run.run_dir).checkpoints.is_dir():
+            raise PsdrError(f"evaluate: {run.run_dir} holds no run yet (run `psdr optimize {exp.file}` first)")
+        found = run_checkpoints(run.run_dir)
+        jobs += [(run, i, path) for i, path in (found[:1] + found[1:][-1:])]  # the initial and the last mesh
+    if progress:
+        progress.start(len(jobs))
+    for run, iteration, path in jobs:
+        folder = fileio.writable_folder(run.run_dir / "held_out")
+        result.rows.append(held_out_row(run, path, iteration, folder, ref, samples))
+        if folder not in result.folders:
+            result.folders.append(folder)
+        if progress:
+            progress.advance(1)
+    for folder in result.folders:
+        rows = [r for r in result.rows if Path(r["mesh"]).parent in (folder.parent, folder.parent / "checkpoints")]
+        fileio.write_json(folder / "held_out.json", {"experiment": str(exp.file), "meshes": rows})
+        with fileio.atomic_path(folder / "held_out.md") as tmp:
+            Path(tmp).write_text(held_out_table(rows))
+    if json_out:
+        fileio.write_json(Path(json_out), {"experiment": str(exp.file), "meshes": result.rows})
+    return result
+
+
+def held_out_table(rows: list) -> str:
+    """A markdown table of held-out scores (:func:`evaluate_held_out`)."""
+    fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
+    lines = ["| mesh | iteration | views | PSNR | PSNR in mask | SSIM | SSIM in mask | mask IoU | Chamfer-L1 |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {Path(r['mesh']).name} | {r['iteration']} | {r['views']} | {fmt(r['psnr'], '.2f')} | "
+                     f"{fmt(r['psnr_mask'], '.2f')} | {fmt(r['ssim'], '.4f')} | {fmt(r['ssim_mask'], '.4f')} | "
+                     f"{fmt(r['iou'], '.4f')} | {fmt(r.get('chamfer_l1'), '.5f')} |")
+    return "\n".join(lines) + "\n"
 
 
 def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = None, report: Path | None = None):

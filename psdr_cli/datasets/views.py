@@ -176,7 +176,14 @@ def read_frames(spec, *, base=None, where: str = "dataset") -> list[Frame]:
     if model is None:
         raise DatasetError(folder, "", "no COLMAP model (expected cameras and images files in the folder, "
                                        "sparse/0, sparse or colmap/sparse/0)")
-    return read_colmap(model, spec.get("images") or colmap_images(folder), spec.get("masks"))
+    return read_colmap(model, spec.get("images") or colmap_images(folder), spec.get("masks") or colmap_masks(folder))
+
+
+def colmap_masks(folder: Path) -> Path | None:
+    """The ``masks`` folder beside a COLMAP dataset's images (``folder/masks``), if there is one:
+    masks are used whenever they are there."""
+    candidate = Path(folder) / "masks"
+    return candidate if candidate.is_dir() else None
 
 
 def check_image_size(array: np.ndarray, frame: Frame, path: Path, what: str):

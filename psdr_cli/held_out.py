@@ -1,0 +1,144 @@
+"""A reconstruction scored without a ground-truth mesh: its renders from a dataset's held-out
+cameras against the photographs (``psdr evaluate`` on an experiment with
+``optimize.target.dataset``).
+
+Per held-out view, with the render R and the target T (the premultiplied composite α·C when the
+background is hidden, :mod:`psdr_cli.dataset_targets`), both linear and clipped to [0, 1]:
+
+    PSNR = 10 log10(1 / MSE(R, T))    over the whole image, and over the mask's pixels (α ≥ ½);
+    SSIM = scikit-image's structural similarity (Gaussian window, σ = 1.5), its mean over the
+           whole image and over the mask's pixels;
+    IoU  = |{c ≥ ½} ∩ {α ≥ ½}| / |{c ≥ ½} ∪ {α ≥ ½}|, with c the rendered coverage (the share
+           of a pixel's camera rays that hit the object).
+
+Each view also gets a target | render | |error| strip (PNG, sRGB).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from skimage.metrics import structural_similarity
+
+from . import backend, fileio, meshes
+from .dataset_scene import dataset_scene, to_normalised
+from .dataset_targets import dataset_views, target_image
+from .config import ParameterConfig
+from .errors import PsdrError
+from .estimators.camera import camera_rays
+from .estimators.passes import make_sampler
+from .parameters import Parameter
+from .render import render_view
+from .scene import build_scene
+
+
+@dataclass
+class ViewScore:
+    view: str
+    psnr: float
+    psnr_mask: float | None
+    ssim: float
+    ssim_mask: float | None
+    iou: float | None
+
+
+@dataclass
+class HeldOutResult:
+    mesh: Path
+    views: list = field(default_factory=list)   # of ViewScore
+    strips: list = field(default_factory=list)
+
+    def mean(self, key: str) -> float | None:
+        values = [getattr(v, key) for v in self.views if getattr(v, key) is not None]
+        return float(np.mean(values)) if values else None
+
+
+def psnr(render: np.ndarray, target: np.ndarray, where: np.ndarray | None = None) -> float:
+    """10 log10(1 / MSE) of images in [0, 1], over the pixels ``where`` (all by default)."""
+    err = (np.clip(render, 0, 1) - np.clip(target, 0, 1)) ** 2
+    mse = float(err.mean() if where is None else err[where].mean())
+    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def ssim(render: np.ndarray, target: np.ndarray, where: np.ndarray | None = None) -> float:
+    """Mean structural similarity of (H, W, 3) images in [0, 1] over the pixels ``where``."""
+    _, full = structural_similarity(np.clip(render, 0, 1), np.clip(target, 0, 1), channel_axis=-1, data_range=1.0,
+                                    gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True)
+    full = full.mean(axis=-1)
+    return float(full.mean() if where is None else full[where].mean())
+
+
+def coverage(scene, view: int, spp: int = 16, seed: int = 0) -> np.ndarray:
+    """(H, W) share of each pixel's ``spp`` camera rays that hit any geometry."""
+    width, height = scene.resolution
+    with dr.suspend_grad():
+        sampler = make_sampler(seed, width * height * spp)
+        ray, _ = camera_rays(scene.sensors[view], sampler, width, height, spp)
+        hit = dr.select(scene.mi_scene.ray_intersect(ray).is_valid(), 1.0, 0.0)
+        share = dr.block_sum(mi.Float(hit), spp, mode="evaluated") / spp
+    return np.asarray(share, np.float64).reshape(height, width)
+
+
+def score_view(name: str, render: np.ndarray, target: np.ndarray, mask, covered) -> ViewScore:
+    """The scores of one view (module docstring); ``mask`` None: no mask-restricted scores."""
+    inside = None if mask is None else np.asarray(mask) >= 0.5
+    iou = None
+    if inside is not None:
+        union = (covered >= 0.5) | inside
+        iou = float(((covered >= 0.5) & inside).sum() / max(int(union.sum()), 1))
+    masked = inside is not None and inside.any()
+    return ViewScore(name, psnr(render, target), psnr(render, target, inside) if masked else None,
+                     ssim(render, target), ssim(render, target, inside) if masked else None, iou)
+
+
+def error_strip(target: np.ndarray, render: np.ndarray) -> np.ndarray:
+    """target | render | |error| side by side, sRGB 8-bit."""
+    error = np.abs(render - target)
+    return np.round(255 * fileio.srgb(np.concatenate([target, render, error], axis=1))).astype(np.uint8)
+
+
+def apply_values(scene, exp, values: dict):
+    """Set the unknowns a run recovered (``optimize.json`` ``values``) in ``scene``: a constant
+    albedo and the environment's rotation angle (a recovered texture needs the run's UVs, which
+    its meshes do not carry: it is not applied)."""
+    params = mi.traverse(scene.mi_scene)
+    name = exp.optimize.object
+    albedo = values.get("albedo")
+    if albedo is not None and not isinstance(albedo, str):
+        keys = [k for k in params.keys() if k.startswith(f"{name}.bsdf.") and k.endswith(("reflectance.value",
+                                                                                         "base_color.value"))]
+        for k in keys[:1]:
+            params[k] = mi.Color3f(*(float(a) for a in np.ravel(albedo)[:3]))
+    params.update()
+    if values.get("envmap_angle") is not None:
+        rotation = Parameter(scene, ParameterConfig(kind="envmap_rotate", axis=exp.optimize.envmap_axis), params)
+        rotation.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
+
+
+def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 64, values: dict | None = None) -> HeldOutResult:
+    """Render ``mesh`` (in the dataset's coordinates) with the recovered ``values``
+    (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
+    the photographs; strips go to ``out`` when given."""
+    test = dataset_scene(exp, split="test")
+    backend.activate(test)
+    views = dataset_views(test)
+    V, F = meshes.read_mesh_file(mesh)
+    scene = build_scene(test, objects={test.optimize.object: (to_normalised(V, test.optimize.target_dataset.frame), F)})
+    apply_values(scene, test, values or {})
+    result = HeldOutResult(Path(mesh))
+    if out is not None:
+        fileio.writable_folder(out)
+    for v, view in enumerate(views):
+        target = target_image(view, test.scene.hide_background)
+        render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
+        result.views.append(score_view(view.name, render, target, view.mask, coverage(scene, v)))
+        if out is not None:
+            path = out / f"{Path(mesh).stem}_view_{v:03d}.png"
+            fileio.write_png(path, error_strip(target, render))
+            result.strips.append(path)
+    if not result.views:
+        raise PsdrError(f"{exp.file}: optimize.target.dataset: no held-out views to score")
+    return result

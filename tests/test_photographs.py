@@ -1,0 +1,215 @@
+"""Reconstruction from photographs (optimize.target.dataset): the shipped example dataset (rendered
+by Mitsuba's own path integrator, not by psdr) end to end, the normalised frame, the formats
+agreeing, the visual hull's topology, held-out scores and one-line errors."""
+import copy
+import json
+import shutil
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from psdr_cli import backend
+from psdr_cli.dataset_scene import look_at_point, to_dataset, to_normalised
+from psdr_cli.datasets.views import View
+from psdr_cli.errors import PsdrError
+from psdr_cli.experiment import load_experiment, parse_experiment
+from psdr_cli.held_out import psnr, score_view, ssim
+from psdr_cli.visual_hull import visual_hull
+from conftest import run_cli
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "data" / "photo_bunny"
+EXAMPLE = ROOT / "configs" / "photos" / "bunny_blender.yaml"
+
+
+def experiment_data(dataset: Path, **optimize) -> dict:
+    """The example experiment with absolute paths, on ``dataset``, at test scale."""
+    data = yaml.safe_load(EXAMPLE.read_text())
+    data["scene"]["emitters"][0]["file"] = str(ROOT / "scenes" / "studio.exr")
+    data["optimize"]["target"]["dataset"] = {"path": str(dataset)}
+    data["optimize"].update({"iterations": 4, "batch_size": 2, "checkpoint_every": 2, "preview_views": [0],
+                             "remesh": {"method": "none"}, "adjoint_spp": 0, **optimize})
+    return data
+
+
+def write(tmp_path, data, name="photos.yaml") -> Path:
+    data = copy.deepcopy(data)
+    data["output"] = str(tmp_path / "runs")
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def moved_blender_dataset(src: Path, dst: Path, scale: float, shift) -> Path:
+    """A copy of a Blender dataset whose world is x ↦ scale·x + shift."""
+    shutil.copytree(src, dst)
+    for f in dst.glob("transforms_*.json"):
+        d = json.loads(f.read_text())
+        for frame in d["frames"]:
+            M = np.array(frame["transform_matrix"])
+            M[:3, 3] = scale * M[:3, 3] + np.asarray(shift)
+            frame["transform_matrix"] = M.tolist()
+        f.write_text(json.dumps(d))
+    return dst
+
+
+def test_the_example_dataset_reconstructs_and_is_scored_on_held_out_views(tmp_path):
+    """`psdr optimize` then `psdr evaluate` on the shipped example: meshes in the dataset's own
+    coordinates (the first one, the visual hull, already close to the ground truth), held-out
+    scores for the initial and the last mesh, a strip per held-out view."""
+    config = write(tmp_path, experiment_data(DATA / "blender"))
+    r = run_cli("optimize", config, timeout=400)
+    assert r.returncode == 0, r.stdout + r.stderr
+    run = tmp_path / "runs" / "photos_bunny_blender"
+    r = run_cli("evaluate", config, "--reference", DATA / "ground_truth.ply", timeout=400)
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = json.loads((run / "held_out" / "held_out.json").read_text())["meshes"]
+    assert [row["iteration"] for row in rows] == [0, 4]
+    for row in rows:
+        assert row["views"] == 4 and row["iou"] > 0.9 and row["psnr"] > 15, row
+        assert row["chamfer_l1"] < 0.03, row  # the hull, in the dataset's frame (not the normalised one)
+    assert len(list((run / "held_out").glob("*.png"))) == 8
+
+
+def test_a_dataset_scaled_and_shifted_gives_the_same_reconstruction_scaled_and_shifted(tmp_path):
+    """The normalised frame depends on the cameras alone: the same photographs with the world
+    x ↦ 100·x + 1000 give the same meshes, mapped the same way."""
+    finals = []
+    for name, scale, shift in (("a", 1.0, (0, 0, 0)), ("b", 100.0, (1000.0, 1000.0, 1000.0))):
+        dataset = moved_blender_dataset(DATA / "blender", tmp_path / name / "data", scale, shift)
+        config = write(tmp_path / name, experiment_data(dataset, iterations=3), "photos.yaml")
+        r = run_cli("optimize", config, timeout=400)
+        assert r.returncode == 0, r.stdout + r.stderr
+        finals.append(trimesh.load(tmp_path / name / "runs" / "photos_bunny_blender" / "final.ply", process=False))
+    a, b = (np.asarray(m.vertices, np.float64) for m in finals)
+    assert a.shape == b.shape and np.array_equal(finals[0].faces, finals[1].faces)
+    size = np.ptp(a, axis=0).max()
+    assert np.abs((b - 1000.0) / 100.0 - a).max() < 1e-3 * size
+
+
+def test_the_blender_and_colmap_forms_of_a_dataset_give_the_same_cameras(tmp_path):
+    """The example's COLMAP text model (JPEGs over a backdrop, mask PNGs) and its Blender form
+    (RGBA PNGs) describe the same cameras: the same normalised cameras, film and hidden
+    background (every 5th view held out of the COLMAP form, as the Blender form's test split)."""
+    blender = load_experiment(write(tmp_path, experiment_data(DATA / "blender")))
+    data = experiment_data(DATA / "colmap")
+    data["optimize"]["target"]["dataset"]["holdout_every"] = 5
+    colmap = parse_experiment(data, tmp_path / "colmap.yaml")
+    assert (blender.scene.width, blender.scene.height) == (colmap.scene.width, colmap.scene.height) == (64, 64)
+    assert blender.scene.hide_background and colmap.scene.hide_background
+    # Blender's train split: views i % 5 != 4; COLMAP's with holdout_every 5: i % 5 != 0
+    b = {i: c for i, c in zip([i for i in range(20) if i % 5 != 4], blender.scene.cameras)}
+    c = {i: cam for i, cam in zip([i for i in range(20) if i % 5 != 0], colmap.scene.cameras)}
+    fb, fc = blender.optimize.target_dataset.frame, colmap.optimize.target_dataset.frame
+    for i in set(b) & set(c):
+        ob = to_dataset(np.array([b[i].origin]), fb)[0]
+        oc = to_dataset(np.array([c[i].origin]), fc)[0]
+        assert np.allclose(ob, oc, atol=1e-4), (i, ob, oc)
+        assert b[i].fov == pytest.approx(c[i].fov, abs=1e-4)
+        assert np.allclose(b[i].principal_point, c[i].principal_point, atol=1e-6)
+
+
+def test_the_look_at_point_and_the_normalised_frame():
+    origins = np.array([[2.0, 0, 1], [0, 2.0, 1], [-2.0, 0, 1], [0, -2.0, 1]])
+    axes = -origins / np.linalg.norm(origins, axis=1, keepdims=True)
+    assert np.allclose(look_at_point(origins, axes), 0.0, atol=1e-9)
+    assert look_at_point(origins, np.tile([1.0, 0, 0], (4, 1))) is None  # parallel axes: none
+    frame = (0.25, (1.0, 2.0, 3.0))
+    V = np.random.default_rng(0).normal(size=(10, 3))
+    assert np.allclose(to_dataset(to_normalised(V, frame), frame), V)
+
+
+def ray_hits(mesh, origin, directions) -> np.ndarray:
+    """Whether rays from ``origin`` along ``directions`` hit ``mesh`` (Mitsuba's ray tracer)."""
+    backend.select_variant("auto")
+    shape = mi.Mesh("m", len(mesh.vertices), len(mesh.faces))
+    params = mi.traverse(shape)
+    params["vertex_positions"] = mi.Float(np.ravel(mesh.vertices).astype(np.float32))
+    params["faces"] = mi.UInt32(np.ravel(mesh.faces).astype(np.uint32))
+    params.update()
+    scene = mi.load_dict({"type": "scene", "m": shape})
+    d = mi.Vector3f(*(mi.Float(directions[:, k].astype(np.float32)) for k in range(3)))
+    ray = mi.Ray3f(mi.Point3f(*(float(x) for x in origin)), dr.normalize(d))
+    return np.asarray(scene.ray_intersect(ray).is_valid())
+
+
+def torus_views(count=12, size=40):
+    """Views of a torus (major radius 0.6, minor 0.2) on a ring above it, masks by ray casting."""
+    torus = trimesh.creation.torus(major_radius=0.6, minor_radius=0.2, major_sections=48, minor_sections=16)
+    views = []
+    f = size / (2 * np.tan(np.radians(20)))
+    for i in range(count):
+        a, e = 2 * np.pi * i / count, np.radians(35 if i % 2 else 70)
+        origin = 3.0 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        forward = -origin / np.linalg.norm(origin)
+        right = np.cross(forward, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        M = np.eye(4)
+        M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = right, np.cross(forward, right), forward, origin
+        u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+        d = np.stack([(u - size / 2) / f, (v - size / 2) / f, np.ones_like(u)], -1).reshape(-1, 3) @ M[:3, :3].T
+        hit = ray_hits(torus, origin, d)
+        views.append(View(f"v{i}", np.zeros((size, size, 3)), hit.reshape(size, size).astype(float), M,
+                          f, f, size / 2, size / 2, size, size, "train"))
+    return views
+
+
+def test_the_visual_hull_of_a_torus_keeps_its_hole():
+    """Carved from masks, the initial shape of a torus is one closed surface of genus 1 (Euler
+    characteristic 0), not a sphere."""
+    V, F = visual_hull(torus_views())
+    mesh = trimesh.Trimesh(V, F, process=True)
+    assert mesh.is_watertight
+    assert mesh.euler_number == 0, mesh.euler_number
+    assert 0.7 < np.ptp(V[:, 0]) < 1.8 and np.ptp(V[:, 2]) < 0.9
+
+
+def test_held_out_scores():
+    backend.select_variant("auto")
+    rng = np.random.default_rng(1)
+    target = rng.uniform(0.2, 0.8, (16, 16, 3))
+    assert psnr(target, target) == float("inf")
+    assert psnr(target + 0.1, target) == pytest.approx(20.0, abs=1e-6)
+    assert ssim(target, target) == pytest.approx(1.0)
+    mask = np.zeros((16, 16))
+    mask[4:12, 4:12] = 1.0
+    covered = np.zeros((16, 16))
+    covered[4:12, 4:8] = 1.0
+    score = score_view("v", target, target, mask, covered)
+    assert score.iou == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["scene"].update(cameras=[{"origin": [0, -3, 0], "target": [0, 0, 0]}]),
+     "scene.cameras: not allowed with optimize.target.dataset"),
+    (lambda d: d["scene"].update(film={"width": 32, "height": 32}), "scene.film: not allowed"),
+    (lambda d: d["optimize"]["target"]["dataset"].update(path="missing_folder"), "optimize.target.dataset.path: not found"),
+    (lambda d: d["estimator"].update(engine="mitsuba"), "estimator.engine: 'mitsuba' cannot hide the background"),
+    (lambda d: d["optimize"]["target"]["dataset"].update(holdout_every=1), "holdout_every"),
+    (lambda d: d["optimize"]["target"].update(mesh={"shape": "sphere"}), "give one of 'images', 'mesh' and 'dataset'"),
+])
+def test_bad_dataset_experiments_are_one_line(tmp_path, edit, message):
+    data = experiment_data(DATA / "blender")
+    edit(data)
+    r = run_cli("optimize", write(tmp_path, data), timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = [line for line in r.stderr.strip().splitlines() if line]
+    assert len(lines) == 1 and message in lines[0], r.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_dataset_whose_cameras_share_no_look_at_point_is_one_line(tmp_path):
+    dataset = tmp_path / "parallel"
+    shutil.copytree(DATA / "blender", dataset)
+    for f in dataset.glob("transforms_*.json"):
+        d = json.loads(f.read_text())
+        for i, frame in enumerate(d["frames"]):
+            frame["transform_matrix"] = [[1, 0, 0, float(i)], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+        f.write_text(json.dumps(d))
+    with pytest.raises(PsdrError, match="no common look-at point"):
+        parse_experiment(experiment_data(dataset), tmp_path / "x.yaml")
