@@ -21,12 +21,19 @@ from .errors import PsdrError
 from .visual_hull import visual_hull
 
 
-def dataset_views(exp, cache=None):
+def undistortion_cache(exp):
+    """Where a run keeps its undistorted photographs: ``targets/undistorted/`` in its folder
+    (files named by a hash of their source and intrinsics, so any run may reuse them; the targets
+    folder survives a fresh start)."""
+    return exp.run_dir / "targets" / "undistorted"
+
+
+def dataset_views(exp):
     """The views of the experiment's cameras (``target_dataset.split``), decoded at the film's size,
     with their cameras moved into the normalised frame."""
     dataset = exp.optimize.target_dataset
     _, chosen = dataset_frames(dataset, dataset.split)
-    views = load_views(chosen, downsample=dataset.downsample, linear=dataset.linear, cache=cache)
+    views = load_views(chosen, downsample=dataset.downsample, linear=dataset.linear, cache=undistortion_cache(exp))
     for view in views:
         if view.image.shape[:2] != (exp.scene.height, exp.scene.width):
             raise PsdrError(f"{view.name}: the photograph is {view.image.shape[1]}×{view.image.shape[0]} pixels "
@@ -52,9 +59,9 @@ def target_image(view, hidden: bool) -> np.ndarray:
     return image
 
 
-def dataset_targets(exp, cache=None):
+def dataset_targets(exp):
     """(target images, views) of the experiment's cameras."""
-    views = dataset_views(exp, cache)
+    views = dataset_views(exp)
     return [target_image(v, exp.scene.hide_background) for v in views], views
 
 
