@@ -334,6 +334,7 @@ class EmitterConfig:
     albedo: float = 0.3
     sun_scale: float = 1.0
     sky_scale: float = 1.0
+    up: tuple = (0.0, 0.0, 1.0)  # not a YAML key: the world's up that an envmap's zenith turns to (a dataset's)
 
 
 @dataclass
@@ -491,6 +492,7 @@ class DatasetConfig:
     holdout_every: int | None = None       # None: the dataset's own splits; k: every k-th frame is held out
     background: str = "auto"               # auto (hidden when the views have masks) | hidden | visible
     silhouette: float = 1.0                # weight of the silhouette loss mean|C − M| of masked views (0: off)
+    up: tuple | None = None                # the dataset world's up axis (None: found from the cameras)
     frame: tuple | None = None             # not a YAML key: (s, c) of the normalised frame, filled when loaded
     split: str = "train"                   # not a YAML key: the views the scene's cameras are (train | test)
 
@@ -1307,6 +1309,7 @@ def parse_dataset(base: Path) -> Parser:
         d.holdout_every = sec.get("holdout_every", integer(2, MAX_FILM), None)
         d.background = sec.get("background", choice(*BACKGROUNDS), d.background)
         d.silhouette = sec.get("silhouette", number(minimum=0), d.silhouette)
+        d.up = sec.get("up", vector(3, nonzero=True), None)
         sec.done()
         if not d.path.exists():
             raise where.child("path").fail(f"not found: {d.path}")

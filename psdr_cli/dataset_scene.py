@@ -12,7 +12,8 @@ cameras' common look-at point) and s = 1 / (d · tan(φ/2)), d the median distan
 from c and φ their median horizontal field of view: the frame's unit is the half-width of the
 median view at the object. Everything the experiment's ``scene`` names (area lights, other
 objects) is given in the dataset's coordinates and is mapped with the same similarity; an
-environment map is unchanged (a similarity has no rotation). Meshes are written back with
+environment map keeps its orientation in the dataset's world (a similarity has no rotation), its
+zenith along the world's up axis (``dataset.up``, or found from the cameras: :func:`world_up`). Meshes are written back with
 x = c + x_n / s. Both the frame and the cameras are functions of the cameras alone, so a dataset
 scaled by k and shifted by t gives the same normalised problem.
 """
@@ -83,9 +84,27 @@ def normalised_camera(view, frame: tuple):
         raise PsdrError(f"{view.name}: {exc}") from None
 
 
-def normalised_emitter(em: EmitterConfig, frame: tuple) -> EmitterConfig:
-    """An emitter mapped into the normalised frame: an area light's centre and size; lights at
-    infinity are unchanged."""
+def world_up(frames, given=None) -> tuple:
+    """The dataset world's up axis: ``given``, else the mean of the cameras' up vectors −R·[0,1,0]
+    (people hold cameras upright), snapped to the nearest coordinate axis when within 15° of it."""
+    if given is not None:
+        up = np.asarray(given, np.float64)
+        return tuple(up / np.linalg.norm(up))
+    up = -np.mean([f.cam_to_world[:3, 1] for f in frames], axis=0)
+    if np.linalg.norm(up) < 1e-6:
+        return (0.0, 0.0, 1.0)
+    up = up / np.linalg.norm(up)
+    k = int(np.argmax(np.abs(up)))
+    if abs(up[k]) >= np.cos(np.radians(15)):
+        up = np.eye(3)[k] * np.sign(up[k])
+    return tuple(float(x) for x in up)
+
+
+def normalised_emitter(em: EmitterConfig, frame: tuple, up=(0.0, 0.0, 1.0)) -> EmitterConfig:
+    """An emitter mapped into the normalised frame: an area light's centre and size; an
+    environment map's zenith turned to the world's ``up``; other lights at infinity unchanged."""
+    if em.type == "envmap":
+        return replace(em, up=tuple(up))
     if em.type != "area":
         return em
     s, _ = frame
@@ -131,8 +150,9 @@ def dataset_scene(exp: Experiment, split: str = "train") -> Experiment:
     if hidden and exp.estimator.engine == "mitsuba":
         raise PsdrError(f"{exp.file}: estimator.engine: 'mitsuba' cannot hide the background of masked photographs "
                         f"(use the psdr engine, or optimize.target.dataset.background: visible)")
+    up = world_up(frames, dataset.up)
     scene = replace(exp.scene, width=width, height=height, cameras=cameras, hide_background=hidden,
-                    emitters=[normalised_emitter(e, frame) for e in exp.scene.emitters],
+                    emitters=[normalised_emitter(e, frame, up) for e in exp.scene.emitters],
                     objects=[normalised_object(o, frame, exp.optimize.object) for o in exp.scene.objects])
     opt = replace(exp.optimize, target_dataset=replace(dataset, frame=frame, split=split))
     return replace(exp, scene=scene, optimize=opt)

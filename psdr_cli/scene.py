@@ -147,9 +147,18 @@ def rectangle_frame(center, normal, size) -> np.ndarray:
     return M
 
 
-def environment_to_world(rotate_deg: float):
-    """Lat-long maps are y-up in Mitsuba: turn +y to +z, then rotate about z by ``rotate_deg``."""
-    return mi.ScalarTransform4f().rotate([0, 0, 1], rotate_deg).rotate([1, 0, 0], 90)
+def environment_to_world(rotate_deg: float, up=(0.0, 0.0, 1.0)):
+    """Lat-long maps are y-up in Mitsuba: turn +y to +z, rotate about z by ``rotate_deg``, then
+    turn +z to the world's ``up`` (the shortest rotation; none for z-up worlds)."""
+    turned = mi.ScalarTransform4f().rotate([0, 0, 1], rotate_deg).rotate([1, 0, 0], 90)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    if np.allclose(up, (0.0, 0.0, 1.0)):
+        return turned
+    axis = np.cross((0.0, 0.0, 1.0), up)
+    if np.linalg.norm(axis) < 1e-9:  # up = −z
+        axis = np.array([1.0, 0.0, 0.0])
+    angle = float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
+    return mi.ScalarTransform4f().rotate(list(axis / np.linalg.norm(axis)), angle) @ turned
 
 
 def emitter_dict(em: EmitterConfig, file: str) -> dict:
@@ -169,7 +178,7 @@ def emitter_dict(em: EmitterConfig, file: str) -> dict:
         if texels.dtype.kind == "f" and not np.isfinite(texels).all():
             raise ConfigError(file, em.key + ".file", f"environment map {em.file.name} has "
                               f"{int((~np.isfinite(texels)).sum())} NaN or infinite values")
-        return {"type": "envmap", "bitmap": bitmap, "scale": em.scale, "to_world": environment_to_world(em.rotate_deg)}
+        return {"type": "envmap", "bitmap": bitmap, "scale": em.scale, "to_world": environment_to_world(em.rotate_deg, em.up)}
     if em.type == "sky":
         return {"type": "sunsky", "sun_direction": list(em.sun_direction), "turbidity": em.turbidity,
                 "albedo": em.albedo, "sun_scale": em.sun_scale, "sky_scale": em.sky_scale,

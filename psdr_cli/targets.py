@@ -165,10 +165,13 @@ def input_files(exp) -> list:
 
 def _scene_dict(scene) -> dict:
     """``asdict`` of the scene without the camera keys added since target keys were introduced
-    when they hold their default (``principal_point``, ``hide_background``), so that cached targets stay valid."""
+    when they hold their default (``principal_point``, ``hide_background``, an emitter's ``up``), so that cached targets stay valid."""
     d = asdict(scene)
     if not d["hide_background"]:
         del d["hide_background"]
+    for em in d["emitters"] or []:
+        if tuple(em["up"]) == (0.0, 0.0, 1.0):
+            del em["up"]
     for cam in d["cameras"] or []:
         if not any(cam["principal_point"]):
             del cam["principal_point"]
