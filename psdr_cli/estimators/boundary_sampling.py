@@ -46,8 +46,20 @@ def normalize(v):
 
 def camera_origins(mi_scene: mi.Scene) -> np.ndarray:
     """(n, 3) positions of the scene's sensors: a closed mesh around one of them is a room, whose
-    free space is its inside."""
-    return np.array([np.ravel(s.world_transform().translation()) for s in mi_scene.sensors()], float).reshape(-1, 3)
+    free space is its inside. Remembered for the Dr.Jit variables that hold them (a moved sensor
+    holds new ones; the entry keeps them alive, so their indices are not reused meanwhile): read
+    again, each sensor's translation was a kernel of its own, every iteration of an optimisation."""
+    translations = [s.world_transform().translation() for s in mi_scene.sensors()]
+    key = tuple(t[c].index for t in translations for c in range(3))
+    if 0 in key or key not in _ORIGINS:  # index 0: not a Dr.Jit variable, not remembered
+        if len(_ORIGINS) >= 64:
+            _ORIGINS.clear()
+        _ORIGINS[key] = (translations, np.array([np.ravel(t) for t in translations], float).reshape(-1, 3))
+    return _ORIGINS[key][1].copy()
+
+
+#: camera_origins per tuple of the sensors' translation variables: (those variables, origins)
+_ORIGINS: dict = {}
 
 
 @dataclass
@@ -73,6 +85,20 @@ class BoundaryEdges:
     flip: mi.Bool = None
     chains: object = None
     segments: dict = field(default_factory=dict)
+    #: values computed once per vertex buffer (:meth:`remembered`)
+    memo: dict = field(default_factory=dict)
+
+    def remembered(self, name: str, arrays, make):
+        """``make()``, computed once for the Dr.Jit variables ``arrays`` (by index; the entry holds
+        them, so their indices cannot be reused meanwhile): the views of one iteration share the
+        edge list and the vertex buffer, so what only depends on them is computed once."""
+        key = tuple(a.index for a in arrays)
+        hit = self.memo.get(name)
+        if hit is not None and hit[0] == key and 0 not in key:
+            return hit[2]
+        value = make()
+        self.memo[name] = (key, list(arrays), value)
+        return value
 
     @staticmethod
     def from_scene(scene, sort: bool = False, max_turn: float = 60.0, max_length: int = 1024) -> "BoundaryEdges":
@@ -155,11 +181,14 @@ def primary_sample(sampler: mi.Sampler, guide=None):
 
 
 def edge_distribution(edges: BoundaryEdges, P) -> mi.DiscreteDistribution:
-    """Edge-selection distribution ∝ current (detached) edge lengths."""
-    with dr.suspend_grad():
-        p0 = dr.gather(mi.Point3f, P, edges.ids[0])
-        p1 = dr.gather(mi.Point3f, P, edges.ids[1])
-        return mi.DiscreteDistribution(dr.norm(p1 - p0))
+    """Edge-selection distribution ∝ current (detached) edge lengths (built once per vertex
+    buffer ``P``: every view of an iteration samples the same one)."""
+    def build():
+        with dr.suspend_grad():
+            p0 = dr.gather(mi.Point3f, P, edges.ids[0])
+            p1 = dr.gather(mi.Point3f, P, edges.ids[1])
+            return mi.DiscreteDistribution(dr.norm(p1 - p0))
+    return edges.remembered("distribution", [P], build)
 
 
 def sample_edge_point(edges: BoundaryEdges, P, distr: mi.DiscreteDistribution, u1: mi.Float) -> EdgeSample:

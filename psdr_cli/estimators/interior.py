@@ -123,14 +123,16 @@ def plane_boundary(scene, sampler, si, bsdf, depth_left: int, env_motion, active
 
 
 def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True,
-             ad: bool = False, by_depth: bool = False, hide_background: bool = False):
+             ad: bool = False, by_depth: bool = False, hide_background: bool = False, si=None):
     """Radiance arriving along ``ray`` (Python-unrolled over ``max_depth`` path vertices).
 
     ``ad``: attach material-form derivatives (the ray must be detached). ``by_depth``: return the
     list [L_1, …, L_max_depth] where L_n sums the paths with n segments (L_1 is the emission seen
     directly along ``ray``). ``hide_background``: ``ray`` leaving the scene sees 0 instead of the
     environment (a camera ray of a masked photograph: the render is then colour × coverage, the
-    premultiplied composite; the environment still lights every later vertex)."""
+    premultiplied composite; the environment still lights every later vertex). ``si``: the first
+    hits of ``ray`` when the caller traced them already (with a mask covering ``active``; not with
+    ``ad``), so that they are not traced twice."""
     ctx = mi.BSDFContext()
     parts = [mi.Color3f(0.0) for _ in range(max_depth)]
     beta = mi.Color3f(1.0)
@@ -142,7 +144,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     prev_delta = mi.Bool(True)  # the camera vertex: emission seen directly gets weight 1
     env_motion = environment_motion(scene) if ad else None
     terminator = ad and has_smooth_meshes(scene)
-    si = scene.ray_intersect(ray, active)
+    si = scene.ray_intersect(ray, active) if si is None else si
     for depth in range(max_depth):
         if ad and depth > 0:
             carry *= segment_ratio(env_motion, prev_si, prev_bsdf, si, ray.d, active)

@@ -165,7 +165,7 @@ def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
 def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool,
                      sampling: str = "length") -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
-    V = np.asarray(dr.detach(P), np.float64).reshape(-1, 3)
+    V = edges.remembered("vertices", [P], lambda: np.asarray(dr.detach(P), np.float64).reshape(-1, 3))
     v0, v1, f0, f1, m, strict, inner, weight = primary_edge_ids(edges, V, camera_origin, scattering, sampling)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
@@ -178,14 +178,16 @@ def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
     them: the edge objects' part is ``P`` (AD), the others are constants."""
     shapes = {s.id(): s for s in scene.shapes() if isinstance(s, mi.Mesh)}
     order = [n for n in edges.names if n in shapes] + [n for n in shapes if n not in edges.names]
+    positions = [dr.detach(shapes[n].vertex_positions_buffer()) for n in order]
+    faces = [shapes[n].faces_buffer() for n in order]
+    arrays = edges.remembered("meshes", positions + faces, lambda: [
+        (np.asarray(p, np.float64).reshape(-1, 3), np.asarray(f, np.int64).reshape(-1, 3))
+        for p, f in zip(positions, faces)])  # read once for the views of one geometry
     bufs, out = [], []
-    for n in order:
-        positions = dr.detach(shapes[n].vertex_positions_buffer())
-        V = np.asarray(positions, np.float64).reshape(-1, 3)
-        F = np.asarray(shapes[n].faces_buffer(), np.int64).reshape(-1, 3)
+    for n, p, (V, F) in zip(order, positions, arrays):
         out.append((shapes[n], V, F))
         if n not in edges.names:
-            bufs.append(mi.Float(positions))
+            bufs.append(mi.Float(p))
     buf = P if not bufs else dr.concat([P] + bufs)
     return out, buf, len([n for n in order if n in edges.names])
 
@@ -264,7 +266,7 @@ def edge_depth(ray, p0, p1):
     return (b * dr.dot(w, e) - c * dr.dot(ray.d, w)) / dr.select(denom > 0, denom, 1.0)
 
 
-def edge_visible(scene, rays, p0, p1, own, strict, inner, active):
+def edge_visible(scene, rays, p0, p1, own, strict, inner, active, hits=None):
     """Whether the camera sees the curve point under q: on *both* sides of it (``strict``: flat
     creases and intersection curves; otherwise — smooth silhouettes — on at least one side) the
     first hit is one of the curve's own faces, or lies behind the curve (or is a miss). On an
@@ -276,11 +278,12 @@ def edge_visible(scene, rays, p0, p1, own, strict, inner, active):
     A point counts as hidden as soon as one side hits a foreign surface in front of it: accepting
     a point seen from one side only would let through hidden edges next to a silhouette, just
     behind a grazing front face, and over-count silhouette pixels of dense flat meshes by up to
-    2×. ``own`` = (shape0, face0, shape1, face1) as UInt32 arrays."""
+    2×. ``own`` = (shape0, face0, shape1, face1) as UInt32 arrays. ``hits``: the first hits of
+    ``rays`` if already traced (with the mask ``active``)."""
     t_edge = edge_depth(rays[0], p0, p1)
     every, some = mi.Bool(True), mi.Bool(False)
-    for ray in rays:
-        si = scene.ray_intersect(ray, active)
+    for i, ray in enumerate(rays):
+        si = scene.ray_intersect(ray, active) if hits is None else hits[i]
         mine = is_own_face(si, own)
         at_edge = si.is_valid() & (dr.abs(si.t - t_edge) <= t_edge * DEPTH_TOL)
         behind = ~si.is_valid() | (si.t > t_edge * (1.0 - DEPTH_TOL))
@@ -402,16 +405,18 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         rays = [camera_ray(sensor, qd + o * n_s, width, height, ok) for o in offsets]
         strict = dr.gather(mi.Bool, jit_array(mi.Bool, curves.strict), k)
         inner = dr.gather(mi.Bool, jit_array(mi.Bool, curves.inner), k)
+        # each side's first hit, traced once: for the visibility test and as the radiance's first vertex
+        hits = [scene.ray_intersect(ray, ok) for ray in rays]
         ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
-                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok)
+                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok, hits)
         # common random numbers: both sides trace the same samples, so their difference keeps
         # the jump and loses most of the noise (each side alone stays unbiased)
         twin = sampler.clone()
         if coverage:  # the indicator of a hit: 1 on the object's side, 0 on the background's
-            sides = [mi.Color3f(dr.select(scene.ray_intersect(ray, ok).is_valid(), 1.0, 0.0)) for ray in rays]
+            sides = [mi.Color3f(dr.select(ok & si.is_valid(), 1.0, 0.0)) for si in hits]
         else:
-            sides = [interior.radiance(scene, s, ray, max_depth, ok, hide_background=hide_background)
-                     for s, ray in zip((sampler, twin), rays)]
+            sides = [interior.radiance(scene, s, ray, max_depth, ok, hide_background=hide_background, si=si)
+                     for s, ray, si in zip((sampler, twin), rays, hits)]
         # 1/(N·p(q)) = Σw·ℓ / (N·w_e); opaque: the sum changes with the geometry and must not be
         # baked into the kernel
         inv_pdf = dr.opaque(mi.Float, total / n_samples) / dr.gather(mi.Float, weight, k)
