@@ -131,6 +131,7 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
             coverage = engine.coverage(problem, edges, v, it)
             loss += weight * silhouette_loss(coverage, stage.masks[v]) / len(views)
     dr.backward(loss)
+    problem.applied = None  # the backward pass used up the scene's AD graph: the next apply rebuilds it
     loss_value = float(loss[0])
     t_post = time.perf_counter()
     grads = [np.asarray(dr.grad(problem.opt[k])) for k in problem.opt.keys()]
@@ -170,6 +171,7 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
     seeded, so they are the same guides). The scene is left for :meth:`Problem.apply` to reset."""
     cfg = exp.optimize
     with dr.suspend_grad():
+        problem.applied = None  # the scene is written here, for Problem.apply to reset
         problem.params[problem.key] = jit_array(mi.Float, np.ravel(V))
         if problem.albedo_key and "albedo" in values:
             problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])

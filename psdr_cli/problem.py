@@ -27,6 +27,7 @@ class Problem:
 
     def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None, stage: int = 0):
         self.exp, self.cfg = exp, exp.optimize
+        self.applied = None  # the optimiser's variables last written into the scene (apply)
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if uv is None else np.asarray(uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
@@ -92,7 +93,16 @@ class Problem:
         return problem
 
     def apply(self):
-        """Write the optimiser's variables into the scene (AD-attached)."""
+        """Write the optimiser's variables into the scene (AD-attached). Nothing is done when the
+        variables written last are still the optimiser's and their AD graph is unused (the loop
+        applies after each step, for the checkpoint and the state, and again when the next
+        iteration starts); a backward pass, :meth:`release` or a direct write of ``params`` must
+        set ``applied = None``."""
+        current = [self.opt.state[k][0] for k in self.opt.keys()]
+        if self.applied is not None and len(current) == len(self.applied) and \
+                all(a is b for a, b in zip(current, self.applied)):
+            return
+        self.applied = None
         self.params[self.key] = self.steps.from_differential(self.opt["u"])
         if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
             self.params[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
@@ -100,10 +110,12 @@ class Problem:
             self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
         else:
             self.params.update()
+        self.applied = current  # held, so that `is` above cannot match a recycled object
 
     def release(self):
         """Detach the scene from the optimiser's AD graph (nothing may linger in Dr.Jit's global
         AD state after a run, e.g. for later forward-mode work in the same process)."""
+        self.applied = None
         with dr.suspend_grad():
             self.params[self.key] = dr.detach(self.params[self.key])
             if self.albedo_key:
