@@ -118,7 +118,7 @@ def apply_values(scene, exp, values: dict):
         rotation.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
 
 
-def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 64, values: dict | None = None) -> HeldOutResult:
+def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values: dict | None = None) -> HeldOutResult:
     """Render ``mesh`` (in the dataset's coordinates) with the recovered ``values``
     (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
     the photographs; strips go to ``out`` when given."""
