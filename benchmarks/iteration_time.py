@@ -1,0 +1,237 @@
+#!/usr/bin/env python
+"""Where an optimisation iteration's time goes: per phase (edge list, each term, the adjoint
+render, loss, backward pass, update, state saving) and for the whole iteration, the wall time,
+Dr.Jit's kernel execution, code generation and backend (compile / cache) time, the rest
+("Python": tracing, numpy, launches, waits) and the kernels launched (JIT kernels, memsets, other
+Dr.Jit operations), from Dr.Jit's kernel history (``dr.JitFlag.KernelHistory``).
+
+The experiment is ``configs/reconstruct_bunny.yaml`` as ``psdr optimize`` runs it (one Dr.Jit
+thread, batch 4, 1/4/1 spp with a 4-spp adjoint render), on its initial shape (the sphere
+remeshed to 800 vertices), at the demo's 64² film and at 4× its pixels (128²); targets at 16 spp
+(their content does not change the work). Each scale runs ``--warmup`` iterations (kernels
+compiled or loaded from the cache) and then ``--iterations`` measured ones, the loop body of
+:func:`psdr_cli.optimize._optimize` (iterate, log row, apply, save the state) without
+checkpoints. A phase is the time between entering and leaving one of the loop's functions; a
+kernel belongs to the phase that launched it (Dr.Jit evaluates lazily: work traced in a term may
+run in a later phase's kernel). ``reference`` is the time of a fixed Python loop of 10⁷ steps in
+the same process: compare runs through their ratio to it.
+
+    .venv/bin/python benchmarks/iteration_time.py [--scales 1,2] [--iterations 10] [--out docs/benchmarks]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import drjit as dr  # noqa: E402
+
+import psdr_cli  # noqa: E402
+from psdr_cli import backend, iteration  # noqa: E402
+from psdr_cli.engines import Engine  # noqa: E402
+from psdr_cli.estimators import registry  # noqa: E402
+from psdr_cli.gradient import Settings  # noqa: E402
+from psdr_cli.guiding import auto  # noqa: E402
+from psdr_cli.iteration import GuideCache  # noqa: E402
+from psdr_cli.optimize import log_row, save_state  # noqa: E402
+from psdr_cli.problem import Problem  # noqa: E402
+from psdr_cli.runs import RunFiles, append_log  # noqa: E402
+from psdr_cli.stages import stage_of  # noqa: E402
+from psdr_cli.targets import initial_state, load_targets, read_targets  # noqa: E402
+
+CONFIG = REPO / "configs" / "reconstruct_bunny.yaml"
+FIELDS = ("wall", "execution", "codegen", "backend", "python", "kernels", "jit", "memset", "compiled")
+
+
+def reference_loop() -> float:
+    """Seconds of a fixed 10⁷-step Python loop (the machine's speed at this moment)."""
+    t = time.perf_counter()
+    s = 0
+    for i in range(10_000_000):
+        s += i
+    return time.perf_counter() - t
+
+
+class Phases:
+    """Wall time and kernel history per phase; phases nest (a stack), time goes to the innermost."""
+
+    def __init__(self):
+        self.stack = ["other"]
+        self.acc = defaultdict(lambda: dict.fromkeys(FIELDS, 0.0))
+        self.t = time.perf_counter()
+
+    def _flush(self):
+        now = time.perf_counter()
+        a = self.acc[self.stack[-1]]
+        a["wall"] += now - self.t
+        for k in dr.kernel_history():
+            a["kernels"] += 1
+            a["execution"] += k.get("execution_time", 0.0) / 1e3
+            a["codegen"] += k.get("codegen_time", 0.0) / 1e3
+            a["backend"] += k.get("backend_time", 0.0) / 1e3
+            a["jit"] += k["type"] == dr.KernelType.JIT
+            a["memset"] += k["type"] == dr.KernelType.Memset
+            a["compiled"] += k["type"] == dr.KernelType.JIT and not k.get("cache_hit") and not k.get("cache_disk")
+        self.t = time.perf_counter()  # the history's own cost is left out
+
+    def enter(self, name):
+        self._flush()
+        self.stack.append(name)
+
+    def leave(self):
+        self._flush()
+        self.stack.pop()
+
+    def wrap(self, name, fn):
+        def wrapped(*args, **kwargs):
+            self.enter(name)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.leave()
+        return wrapped
+
+    def reset(self):
+        self._flush()
+        self.acc.clear()
+
+    def result(self, n: int) -> dict:
+        self._flush()
+        out = {}
+        for name, a in self.acc.items():
+            a = {k: v / n for k, v in a.items()}
+            a["python"] = a["wall"] - a["execution"] - a["codegen"] - a["backend"]
+            out[name] = a
+        total = dict.fromkeys(FIELDS, 0.0)
+        for a in out.values():
+            for k in FIELDS:
+                total[k] += a[k]
+        out["iteration"] = total
+        return out
+
+
+class DrProxy:
+    """``drjit`` as :mod:`psdr_cli.iteration` sees it, with ``dr.backward`` timed as a phase."""
+
+    def __init__(self, phases):
+        self._backward = phases.wrap("backward", dr.backward)
+
+    def __getattr__(self, name):
+        return self._backward if name == "backward" else getattr(dr, name)
+
+
+def instrument(phases: Phases):
+    """Time the loop's functions as phases (module attributes and registry entries patched)."""
+    for name, term in list(registry._BY_NAME.items()):
+        registry._BY_NAME[name] = replace(term, estimate=phases.wrap(name, term.estimate))
+    iteration.edge_list = phases.wrap("edges", iteration.edge_list)
+    iteration.adjoint_image = phases.wrap("adjoint", iteration.adjoint_image)
+    iteration.l1_loss = phases.wrap("loss", iteration.l1_loss)
+    iteration.dr = DrProxy(phases)
+
+
+def setup(scale: int, tmp: Path):
+    exp = psdr_cli.load_experiment(CONFIG)
+    exp = replace(exp, output=tmp, scene=replace(exp.scene, width=64 * scale, height=64 * scale),
+                  optimize=replace(exp.optimize, target_spp=16))
+    backend.activate(exp)
+    files = RunFiles(exp.run_dir)
+    inputs = read_targets(exp, fresh=True)
+    targets, cameras, _ = load_targets(exp, files, inputs)
+    state = initial_state(exp, files, inputs.initial, print)
+    problem = Problem.from_state(exp, state, cameras)
+    settings = Settings.from_experiment(exp)
+    settings = settings.with_estimator(guiding=auto.in_loop(settings.guiding))
+    engine = Engine(settings, exp.estimator.terms)
+    stage = stage_of(problem, targets, settings, exp.estimator.terms)
+    return exp, files, problem, settings, engine, stage
+
+
+def run_scale(scale: int, warmup: int, iterations: int, phases: Phases) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        exp, files, problem, settings, engine, stage = setup(scale, Path(tmp))
+        guides = GuideCache()
+        problem.apply = phases.wrap("apply", problem.apply)
+        problem.opt.step = phases.wrap("update", problem.opt.step)
+        total = warmup + iterations
+        seconds = 0.0
+        body = phases.wrap("step", lambda it: iteration.iterate(problem, exp, engine, settings, stage, guides, it,
+                                                                  total, print))
+        save = phases.wrap("save", lambda it, s: save_state(problem, files, it + 1, s, guides))
+        with backend.optimization_threads():
+            for it in range(total):
+                if it == warmup:
+                    phases.reset()
+                    t0 = time.perf_counter()
+                t_start = time.perf_counter()
+                step = body(it)
+                seconds += step.t_end - t_start
+                append_log(files.log, log_row(it, step, t_start, seconds, problem, guides))
+                problem.apply()
+                save(it, seconds)
+            wall = (time.perf_counter() - t0) / iterations
+        problem.release()
+        out = phases.result(iterations)
+        out["iteration"]["wall"] = wall  # the loop's own clock (the phases' sum without the history's cost)
+        out["iteration"]["python"] = wall - sum(out["iteration"][k] for k in ("execution", "codegen", "backend"))
+        out["vertices"] = int(len(problem.vertices()))
+        return out
+
+
+ORDER = ("edges", "interior", "primary", "direct", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other",
+         "iteration")
+
+
+def table(res: dict) -> list:
+    rows = ["| phase | wall ms | kernel exec ms | codegen ms | backend ms | Python/other ms | kernels | JIT | memsets |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name in ORDER:
+        if name not in res:
+            continue
+        a = res[name]
+        label = "**iteration**" if name == "iteration" else name
+        rows.append(f"| {label} | {a['wall'] * 1e3:.1f} | {a['execution'] * 1e3:.1f} | {a['codegen'] * 1e3:.1f} | "
+                    f"{a['backend'] * 1e3:.1f} | {a['python'] * 1e3:.1f} | {a['kernels']:.1f} | {a['jit']:.1f} | "
+                    f"{a['memset']:.1f} |")
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scales", default="1,2", help="film scales: 1 = 64², 2 = 128²")
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--iterations", type=int, default=10)
+    ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    ap.add_argument("--label", default="")
+    ap.add_argument("--no-blocking", action="store_true",
+                    help="asynchronous launches (the loop's mode): kernel times then overlap and include queueing")
+    args = ap.parse_args(argv)
+    phases = Phases()
+    instrument(phases)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.set_flag(dr.JitFlag.LaunchBlocking, not args.no_blocking)
+    results = {"label": args.label, "python": platform.python_version(), "drjit": dr.__version__,
+               "reference_before": reference_loop(), "scales": {}}
+    for s in (int(x) for x in args.scales.split(",")):
+        res = run_scale(s, args.warmup, args.iterations, phases)
+        results["scales"][f"{64 * s}x{64 * s}"] = res
+        print(f"\n{args.label} {64 * s}² ({res['vertices']} vertices), per iteration over {args.iterations}:")
+        print("\n".join(table(res)))
+    results["reference_after"] = reference_loop()
+    print(f"reference loop (10⁷ steps): {results['reference_before']:.3f} s before, "
+          f"{results['reference_after']:.3f} s after")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
