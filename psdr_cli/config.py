@@ -498,6 +498,34 @@ class DatasetConfig:
 
 
 @dataclass
+class EnvmapUnknown:
+    """``optimize.envmap``: the scene's ``envmap`` emitter's lat-long map as an unknown, optimised
+    as log-radiance x (the map is scale · exp(x), positive by construction)."""
+    resolution: tuple = (32, 16)           # (W, H) texels of the lat-long map
+    init: tuple | None = None              # constant radiance (r, g, b); None: the scene map's mean
+    init_file: Path | None = None          # an EXR lat-long map, resampled to the resolution
+    learning_rate: float = 0.05            # Adam step on the log-radiance
+    smoothness: float = 0.0                # weight of the Laplacian prior on the log-radiance
+    mean: str = "auto"                     # fixed | free | auto (fixed when optimize.albedo is set)
+
+
+#: ``optimize.material`` unknowns: (clamp range, {BSDF type: Mitsuba parameter}).
+MATERIAL_UNKNOWNS = {
+    "roughness": ((0.01, 1.0), {"principled": "roughness", "roughconductor": "alpha", "roughdielectric": "alpha"}),
+    "metallic": ((0.0, 1.0), {"principled": "metallic"}),
+    "specular": ((0.0, 1.0), {"principled": "specular"}),
+}
+
+
+@dataclass
+class MaterialUnknown:
+    """One scalar BSDF parameter of ``optimize.material`` (:data:`MATERIAL_UNKNOWNS`)."""
+    name: str
+    init: float | None = None              # default: the object's BSDF value
+    learning_rate: float = 0.02
+
+
+@dataclass
 class OptimizeConfig:
     object: str
     target_images: str | None = None       # glob of EXR files written by `psdr render`
@@ -525,6 +553,8 @@ class OptimizeConfig:
     envmap_axis: tuple = (0.0, 0.0, 1.0)
     envmap_init_deg: float = 0.0
     envmap_learning_rate: float = 0.01
+    envmap: EnvmapUnknown | None = None    # the environment map itself as an unknown
+    material: tuple = ()                   # of MaterialUnknown: roughness, metallic, specular
     seconds: float | None = None           # wall-clock budget of the optimisation (equal-time runs)
     variants: tuple = ()                   # of Variant: one run folder each, <output>/<name>/<label>
     target_seed: int | None = None         # not a YAML key: a variant's targets use its base experiment's seed
@@ -1276,6 +1306,8 @@ def parse_optimize(base: Path) -> Parser:
             o.envmap_init_deg = e.get("init_deg", number(), o.envmap_init_deg)
             o.envmap_learning_rate = e.get("learning_rate", number(positive=True), o.envmap_learning_rate)
             e.done()
+        o.envmap = sec.get("envmap", parse_envmap_unknown(base), None)
+        o.material = sec.get("material", parse_material, ())
         o.seconds = sec.get("seconds", number(positive=True), None)
         if sec.has("variants"):
             o.variants = tuple(sec.get("variants", list_of(run_variant_parser(stages), min_len=1)))
@@ -1283,6 +1315,85 @@ def parse_optimize(base: Path) -> Parser:
         sec.done()
         return o
     return parse
+
+
+ENVMAP_MEANS = ("auto", "fixed", "free")
+
+
+def parse_envmap_unknown(base: Path) -> Parser:
+    """``optimize.envmap: {resolution: [W, H], init: VALUE | [r, g, b] | FILE.exr, learning_rate,
+    smoothness, mean}``; an init file is read here: finite, non-negative texels."""
+    def init_value(value, where):
+        if isinstance(value, str):
+            path = Path(value) if Path(value).is_absolute() else base / value
+            if path.suffix.lower() != ".exr":
+                raise where.fail(f"expected a radiance value, [r, g, b] or an EXR file, got {_describe(value)}")
+            if not path.is_file():
+                raise where.fail(f"file not found: {path}")
+            import numpy as np  # noqa: PLC0415
+            from .fileio import read_exr  # noqa: PLC0415 - OpenEXR only when a file is given
+            try:
+                channels = read_exr(path)
+            except Exception as exc:  # noqa: BLE001 - a damaged file
+                raise where.fail(f"cannot read {path.name}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+            if not all(c in channels for c in "RGB"):
+                raise where.fail(f"{path.name} has no R, G, B channels")
+            texels = np.stack([channels[c] for c in "RGB"], -1)
+            if texels.size == 0:
+                raise where.fail(f"{path.name} is empty")
+            bad = int((~np.isfinite(texels)).sum())
+            if bad:
+                raise where.fail(f"{path.name} has {bad} NaN or infinite values")
+            if texels.min() < 0:
+                raise where.fail(f"{path.name} has negative radiance ({texels.min():g})")
+            return path
+        return color(value, where)
+
+    def parse(value, where) -> EnvmapUnknown:
+        sec = Section(value, where)
+        e = EnvmapUnknown()
+        e.resolution = sec.get("resolution", _envmap_size, e.resolution)
+        init = sec.get("init", init_value, None)
+        if isinstance(init, Path):
+            e.init_file = init
+        elif init is not None:
+            if max(init) <= 0:
+                raise where.child("init").fail(f"expected a radiance > 0 (the map is optimised as its "
+                                               f"logarithm), got {_describe(list(init))}")
+            e.init = init
+        e.learning_rate = sec.get("learning_rate", number(positive=True), e.learning_rate)
+        e.smoothness = sec.get("smoothness", number(minimum=0), e.smoothness)
+        e.mean = sec.get("mean", choice(*ENVMAP_MEANS), e.mean)
+        sec.done()
+        return e
+    return parse
+
+
+def _envmap_size(value, where):
+    """[W, H] of an environment map being optimised: W in 2..4096, H in 2..2048."""
+    if not isinstance(value, list) or len(value) != 2:
+        raise where.fail(f"expected [width, height], got {_describe(value)}")
+    return (integer(2, 4096)(value[0], where.child(0)), integer(2, 2048)(value[1], where.child(1)))
+
+
+def parse_material(value, where) -> tuple:
+    """``optimize.material: {roughness: {init, learning_rate}, metallic: ..., specular: ...}``."""
+    sec = Section(value, where)
+    out = []
+    for name, ((lo, hi), _) in MATERIAL_UNKNOWNS.items():
+        if not sec.has(name):
+            sec.used.add(name)
+            continue
+        w = where.child(name)
+        m = Section(sec.get(name, lambda v, _: v), w)
+        u = MaterialUnknown(name, init=m.get("init", number(minimum=lo, maximum=hi), None),
+                            learning_rate=m.get("learning_rate", number(positive=True), 0.02))
+        m.done()
+        out.append(u)
+    sec.done()
+    if not out:
+        raise where.fail(f"expected at least one of {', '.join(MATERIAL_UNKNOWNS)}")
+    return tuple(out)
 
 
 DATASET_FORMATS = ("auto", "blender", "transforms", "colmap")
@@ -1479,6 +1590,7 @@ def check_experiment(exp: Experiment):
         check_stages(exp)
         if exp.optimize.envmap_rotation and not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("optimize").child("envmap_rotation").fail("needs an envmap or sky emitter")
+        check_unknowns(exp, where.child("optimize"))
     if exp.parameter and exp.parameter.camera is not None and exp.parameter.camera >= len(exp.scene.cameras):
         raise where.child("parameter").child("camera").fail(
             f"camera {exp.parameter.camera} does not exist (the scene has cameras 0..{len(exp.scene.cameras) - 1})")
@@ -1490,6 +1602,27 @@ def check_experiment(exp: Experiment):
     if exp.parameter and exp.parameter.kind == "envmap_rotate":
         if not any(e.type in ("envmap", "sky") for e in exp.scene.emitters):
             raise where.child("parameter").child("kind").fail("'envmap_rotate' needs an envmap or sky emitter")
+
+
+def check_unknowns(exp: Experiment, where: Where):
+    """``optimize.envmap`` needs one ``envmap`` emitter of a YAML scene (its map is replaced) and
+    excludes ``envmap_rotation``; ``optimize.material`` needs BSDF types that have the parameter."""
+    o = exp.optimize
+    if o.envmap is not None:
+        w = where.child("envmap")
+        if exp.scene.mitsuba is not None:
+            raise w.fail("not available for a Mitsuba XML scene (give the scene's emitters in YAML)")
+        if sum(e.type == "envmap" for e in exp.scene.emitters) != 1:
+            raise w.fail("needs one emitter of type 'envmap' in scene.emitters (its map is replaced by the unknown)")
+        if o.envmap_rotation:
+            raise w.fail("excludes optimize.envmap_rotation (a free map holds its rotation)")
+    if o.material and exp.scene.mitsuba is None:
+        obj = next((x for x in exp.scene.objects if x.name == o.object), None)
+        for m in o.material if obj is not None else ():
+            types = MATERIAL_UNKNOWNS[m.name][1]
+            if obj.bsdf.type not in types:
+                raise where.child("material").child(m.name).fail(
+                    f"the object's BSDF '{obj.bsdf.type}' has no {m.name} (use {' or '.join(types)})")
 
 
 class UniqueKeyLoader(yaml.SafeLoader):

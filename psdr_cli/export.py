@@ -7,11 +7,14 @@ texture, written as ``albedo.png``, or one colour); without a recovered albedo, 
 constant reflectance from the run's experiment (``optimize.json`` names it), else grey. With
 ``optimize.envmap_rotation``, the experiment's environment map is written rotated by the recovered
 angle (``environment.exr``: used in place of the emitter's file, with the same ``rotate_deg`` and
-``scale``, it lights the scene as the run's last iteration did). From a mesh file (PLY/OBJ): the
+``scale``, it lights the scene as the run's last iteration did); with ``optimize.envmap``, the
+recovered map exp(x) is that file. From a mesh file (PLY/OBJ): the
 mesh, grey, or with ``--texture`` an image looked up at the mesh's UVs.
 
 Materials are diffuse: MTL ``Kd`` (linear) or ``map_Kd``; glTF metallic-roughness with
-``baseColorTexture`` (sRGB PNG) or ``baseColorFactor`` (linear), metallic 0, roughness 1.
+``baseColorTexture`` (sRGB PNG) or ``baseColorFactor`` (linear), metallic 0, roughness 1, or the
+recovered ``optimize.material`` values (roughnessFactor: a principled roughness as it is, a rough
+conductor's or dielectric's α as √α; the specular level only in ``export.json``).
 UVs are Mitsuba's (v down the image) in the glTF file, as glTF has them, and flipped (v up) in
 the OBJ, as OBJ has them.
 
@@ -62,6 +65,8 @@ class Asset:
     texture: np.ndarray | None = None
     color: tuple = GREY
     environment: np.ndarray | None = None
+    metallic: float = 0.0
+    roughness: float = 1.0
     notes: list = field(default_factory=list)
     record: dict = field(default_factory=dict)
 
@@ -117,7 +122,24 @@ def run_asset(folder: Path, warn) -> Asset:
     if angle is not None:
         asset.record["envmap_angle_deg"] = float(np.degrees(np.ravel(angle)[0]))
         asset.environment = rotated_environment(exp, float(np.ravel(angle)[0]), asset.notes)
+    if state.values.get("envmap_log") is not None:  # optimize.envmap: the recovered map itself
+        asset.environment = np.exp(np.asarray(state.values["envmap_log"], np.float64))
+        asset.record["environment"] = "the recovered optimize.envmap (use it with the emitter's scale and rotate_deg)"
+    recovered_material(asset, exp, state.values)
     return asset
+
+
+def recovered_material(asset: Asset, exp, values: dict):
+    """glTF metallic and roughness factors of the recovered ``optimize.material`` values (the
+    defaults, 0 and 1, for those not recovered); every recovered value in ``export.json``."""
+    obj = run_object(exp)
+    if values.get("metallic") is not None:
+        asset.metallic = float(np.clip(np.ravel(values["metallic"])[0], 0, 1))
+    if values.get("roughness") is not None:
+        r = float(np.clip(np.ravel(values["roughness"])[0], 0, 1))
+        asset.roughness = r if obj is None or obj.bsdf.type == "principled" else float(np.sqrt(r))
+    asset.record.update({k: float(np.ravel(values[k])[0]) for k in ("roughness", "metallic", "specular")
+                         if values.get(k) is not None})
 
 
 def run_experiment(files: RunFiles, notes: list, warn):
@@ -246,7 +268,7 @@ def check_asset(asset: Asset, source: Path):
         if bad:
             raise PsdrError(f"{source}: the texture has {bad} texels with NaN or infinite values")
     if asset.environment is not None and not np.isfinite(asset.environment).all():
-        raise PsdrError(f"{source}: the rotated environment has NaN or infinite values")
+        raise PsdrError(f"{source}: the exported environment has NaN or infinite values")
 
 
 # --------------------------------------------------------------------------------------------
@@ -322,15 +344,16 @@ def write_obj(path: Path, mtl: Path, asset: Asset):
 
 
 def write_glb(path: Path, asset: Asset, png):
-    """Binary glTF 2.0 through trimesh: a metallic-roughness material, metallic 0, roughness 1."""
+    """Binary glTF 2.0 through trimesh: a metallic-roughness material (metallic 0, roughness 1 unless
+    recovered)."""
     if png is not None:
         material = trimesh.visual.material.PBRMaterial(name="material", baseColorTexture=Image.fromarray(png),
-                                                       metallicFactor=0.0, roughnessFactor=1.0)
+                                                       metallicFactor=asset.metallic, roughnessFactor=asset.roughness)
         uv = np.column_stack([asset.uv[:, 0], 1.0 - asset.uv[:, 1]])  # trimesh's (OBJ) convention; flipped back in glTF
         visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
     else:
         material = trimesh.visual.material.PBRMaterial(name="material", baseColorFactor=[*asset.color, 1.0],
-                                                       metallicFactor=0.0, roughnessFactor=1.0)
+                                                       metallicFactor=asset.metallic, roughnessFactor=asset.roughness)
         visual = trimesh.visual.TextureVisuals(material=material)
     mesh = trimesh.Trimesh(asset.V, asset.F, visual=visual, process=False)
     data = trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=False)

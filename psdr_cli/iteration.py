@@ -130,6 +130,9 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
         if stage.masks is not None and weight > 0:
             coverage = engine.coverage(problem, edges, v, it)
             loss += weight * silhouette_loss(coverage, stage.masks[v]) / len(views)
+    prior = problem.prior()  # the unknowns' priors (optimize.envmap.smoothness)
+    if prior is not None:
+        loss += prior
     dr.backward(loss)
     problem.applied = None  # the backward pass used up the scene's AD graph: the next apply rebuilds it
     loss_value = float(loss[0])
@@ -144,6 +147,7 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
         if cfg.learning_rate_final is not None:
             problem.opt.set_learning_rate(learning_rate_at(cfg, it, total))
         problem.opt.step()
+        problem.after_step()  # ranges and the environment's mean (problem.py)
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
 
 
@@ -175,6 +179,7 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
         problem.params[problem.key] = jit_array(mi.Float, np.ravel(V))
         if problem.albedo_key and "albedo" in values:
             problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])
+        problem.write_values(values)
         if problem.envmap and "envmap_angle" in values:
             problem.envmap.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
         else:

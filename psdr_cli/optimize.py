@@ -167,6 +167,9 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
         previews = {v: (targets[v], render_view(problem.scene, v, 16, seed=exp.seed))
                     for v in exp.optimize.preview_views}
     texture = problem.texture_image() if problem.texture else None
+    if problem.environment:  # optimize.envmap: the map as the emitter uses it (before its scale)
+        fileio.write_rgb_exr(files.envmap, problem.environment.radiance(problem.opt["envmap"]),
+                             {"psdr.iteration": str(iteration)})
     return write_checkpoint(files, iteration, dataset_coordinates(exp, problem.vertices()), problem.F, texture,
                             previews, problem.factor)
 
@@ -186,10 +189,20 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, it
     fileio.write_json(files.summary, {
         "experiment": str(exp.file), "iterations": total, "resumed_from": result.resumed_from, "views": n_views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),
-        "values": {k: (str(files.albedo) if k == "albedo" and problem.texture else v.tolist())
-                   for k, v in problem.values().items()}, "skipped_updates": result.skipped,
+        "values": summary_values(problem, files), "skipped_updates": result.skipped,
         "seconds": seconds})
     return result
+
+
+def summary_values(problem, files: RunFiles) -> dict:
+    """The recovered unknowns for optimize.json: numbers, or the file of a texture or map."""
+    out = {}
+    for k, v in problem.values().items():
+        if k == "envmap_log":
+            out["envmap"] = str(files.envmap)
+        else:
+            out[k] = str(files.albedo) if k == "albedo" and problem.texture else v.tolist()
+    return out
 
 
 def loop_guiding_line(label: str, run: Experiment) -> str:

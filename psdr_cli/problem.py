@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import atlas
-from .config import BitmapConfig, BsdfConfig, ParameterConfig
+from .config import MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig, ParameterConfig, emitter_id
 from .errors import PsdrError
 from .jitarray import jit_array
 from .meshes import weld_vertices
@@ -79,6 +79,19 @@ class Problem:
             self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
                                                 else math.radians(self.cfg.envmap_init_deg))
             self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
+        self.environment = Environment(exp, self.params, state_values.get("envmap_log")) if self.cfg.envmap else None
+        if self.environment:
+            self.opt["envmap"] = self.environment.initial
+            self.opt.set_learning_rate({"envmap": self.cfg.envmap.learning_rate})
+        self.materials = {}  # name -> (scene key, (lo, hi))
+        for m in self.cfg.material:
+            self.materials[m.name] = material_key(exp, self.params, m.name)
+            init = state_values.get(m.name)
+            init = float(np.ravel(init)[0]) if init is not None else \
+                (m.init if m.init is not None else float(np.ravel(self.params[self.materials[m.name][0]])[0]))
+            lo, hi = self.materials[m.name][1]
+            self.opt[m.name] = mi.Float(min(max(init, lo), hi))
+            self.opt.set_learning_rate({m.name: m.learning_rate})
 
     @classmethod
     def from_state(cls, exp, state: State, cameras) -> "Problem":
@@ -106,11 +119,39 @@ class Problem:
         self.params[self.key] = self.steps.from_differential(self.opt["u"])
         if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
             self.params[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
+        if self.environment:
+            self.params[self.environment.key] = self.environment.texels(self.opt["envmap"])
+        for name, (key, _) in self.materials.items():
+            self.params[key] = self.opt[name]  # within its range: after_step clamps it
         if self.envmap:
             self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
         else:
             self.params.update()
         self.applied = current  # held, so that `is` above cannot match a recycled object
+
+    def prior(self):
+        """The loss terms of the unknowns' priors (the environment's smoothness), or None."""
+        if self.environment and self.cfg.envmap.smoothness > 0:
+            return self.cfg.envmap.smoothness * self.environment.roughness(self.opt["envmap"])
+        return None
+
+    def after_step(self):
+        """After each Adam step: the material unknowns clamped to their ranges, the environment's
+        mean radiance held at its initial value (``optimize.envmap.mean``). Adam's moments are kept
+        (an assignment of the same shape keeps them)."""
+        for name, (_, (lo, hi)) in self.materials.items():
+            self.opt[name] = dr.clip(self.opt[name], lo, hi)
+        if self.environment and self.environment.fixed_mean:
+            self.opt["envmap"] = self.environment.normalised(self.opt["envmap"])
+
+    def write_values(self, values: dict):
+        """Write the environment and material unknowns of ``values`` (as :meth:`values` gives them)
+        into the scene, without AD (guides rebuilt from a saved state); no ``params.update()``."""
+        if self.environment and "envmap_log" in values:
+            self.params[self.environment.key] = self.environment.texels(jit_array(mi.TensorXf, values["envmap_log"]))
+        for name, (key, _) in self.materials.items():
+            if name in values:
+                self.params[key] = mi.Float(float(np.ravel(values[name])[0]))
 
     def release(self):
         """Detach the scene from the optimiser's AD graph (nothing may linger in Dr.Jit's global
@@ -120,6 +161,10 @@ class Problem:
             self.params[self.key] = dr.detach(self.params[self.key])
             if self.albedo_key:
                 self.params[self.albedo_key] = dr.detach(self.params[self.albedo_key])
+            if self.environment:
+                self.params[self.environment.key] = dr.detach(self.params[self.environment.key])
+            for key, _ in self.materials.values():
+                self.params[key] = dr.detach(self.params[key])
             for k in (self.envmap.keys if self.envmap else ()):
                 self.params[k] = mi.AffineTransform4f(dr.detach(self.params[k].matrix))
             self.params.update()
@@ -151,12 +196,109 @@ class Problem:
             out["albedo"] = a.reshape(self.opt["albedo"].shape) if self.texture else a.ravel()
         if self.envmap:
             out["envmap_angle"] = np.asarray(self.opt["envmap_angle"], np.float64).ravel()
+        if self.environment:
+            out["envmap_log"] = np.asarray(self.opt["envmap"], np.float64)
+        for name in self.materials:
+            out[name] = np.asarray(self.opt[name], np.float64).ravel()
         return out
 
     def export(self, iteration: int, seconds: float) -> State:
         adam = {k: adam_export(self.opt, k) for k in self.opt.keys()}
         return State(iteration, self.vertices(), self.F, adam, self.values(), seconds,
                      np.asarray(self.opt["u"], np.float32), self.basis, uv=self.uv)
+
+
+def material_key(exp, params, name: str) -> tuple:
+    """(scene key, clamp range) of the object's BSDF parameter behind ``optimize.material.NAME``:
+    a constant ``roughness``/``alpha``, ``metallic`` or ``specular``."""
+    (lo, hi), names = MATERIAL_UNKNOWNS[name]
+    prefix = f"{exp.optimize.object}.bsdf."
+    keys = [k for k in params.keys() if k.startswith(prefix) and
+            any(k.endswith(f".{p}.value") or k.endswith(f".{p}") for p in set(names.values()))]
+    if not keys:
+        raise PsdrError(f"{exp.file}: optimize.material.{name}: the object's BSDF has no constant "
+                        f"{'/'.join(sorted(set(names.values())))} to optimise (a texture, an anisotropic "
+                        f"alpha_u/alpha_v, or a BSDF without it)")
+    return keys[0], (lo, hi)
+
+
+class Environment:
+    """``optimize.envmap``: the lat-long map of the scene's ``envmap`` emitter as the unknown
+    x (H, W, 3) of log-radiance; the emitter's texels are exp(x) (its ``scale`` and rotation as
+    given). Mitsuba's ``data`` is (H, W + 2, 3): one halo column either side, refreshed by the
+    emitter from the real columns (each halo's derivative routed onto its source column)."""
+
+    def __init__(self, exp, params, saved=None):
+        cfg = exp.optimize.envmap
+        index = next(i for i, e in enumerate(exp.scene.emitters) if e.type == "envmap")
+        self.key = f"{emitter_id(index)}.data"
+        self.W, self.H = cfg.resolution
+        scene_map = np.asarray(params[self.key], np.float64)[:, 1:-1]  # the map the scene was built with
+        self.weights = solid_angle_weights(self.H, self.W)
+        if cfg.init_file is not None:
+            from .scene import exr_texels  # noqa: PLC0415
+            start = latlong_resample(np.asarray(exr_texels(cfg.init_file), np.float64)[..., :3], self.W, self.H)
+        elif cfg.init is not None:
+            start = np.broadcast_to(np.asarray(cfg.init, np.float64), (self.H, self.W, 3))
+        else:
+            w = solid_angle_weights(*scene_map.shape[:2])
+            start = np.broadcast_to((scene_map * w[..., None]).sum((0, 1)) / w.sum(), (self.H, self.W, 3))
+        start = np.maximum(start, 1e-4 * max(float(start.max()), 1e-30))  # log-radiance needs > 0
+        self.mean = float((start * self.weights[..., None]).sum() / (3 * self.weights.sum()))
+        self.fixed_mean = cfg.mean == "fixed" or (cfg.mean == "auto" and exp.optimize.albedo)
+        self.initial = jit_array(mi.TensorXf, np.log(start) if saved is None else saved)
+        cols = np.concatenate([[self.W - 1], np.arange(self.W), [0]])
+        idx = ((np.arange(self.H)[:, None] * self.W + cols[None, :])[..., None] * 3 + np.arange(3)).ravel()
+        self.halo = jit_array(mi.UInt32, idx)
+        self.w = jit_array(mi.Float, np.repeat(self.weights.ravel() / (3 * self.weights.sum()), 3))
+        right = (np.arange(self.W) + 1) % self.W
+        a = np.arange(self.H * self.W).reshape(self.H, self.W)
+        pairs = np.concatenate([np.stack([a.ravel(), a[:, right].ravel()], 1),
+                                np.stack([a[:-1].ravel(), a[1:].ravel()], 1)])
+        pairs = (pairs[:, :, None] * 3 + np.arange(3)).transpose(0, 2, 1).reshape(-1, 2)
+        self.pairs = (jit_array(mi.UInt32, pairs[:, 0]), jit_array(mi.UInt32, pairs[:, 1]))
+
+    def texels(self, x):
+        """Mitsuba's ``data`` tensor (H, W + 2, 3) of the log-radiance x (AD-attached)."""
+        flat = dr.gather(mi.Float, dr.exp(x.array), self.halo)
+        return mi.TensorXf(flat, (self.H, self.W + 2, 3))
+
+    def radiance(self, x) -> np.ndarray:
+        """exp(x) as (H, W, 3) numpy."""
+        return np.exp(np.asarray(dr.detach(x), np.float64))
+
+    def normalised(self, x):
+        """x shifted so that the solid-angle mean of exp(x) is the initial map's."""
+        mean = dr.sum(self.w * dr.exp(dr.detach(x.array)))
+        return mi.TensorXf(dr.detach(x.array) - dr.log(mean / self.mean), x.shape)
+
+    def roughness(self, x):
+        """Mean squared difference of the log-radiance between neighbouring texels (longitude
+        wraps around, latitude does not): the quadratic form of the grid's graph Laplacian."""
+        d = dr.gather(mi.Float, x.array, self.pairs[0]) - dr.gather(mi.Float, x.array, self.pairs[1])
+        return dr.mean(d * d)
+
+
+def solid_angle_weights(H: int, W: int) -> np.ndarray:
+    """(H, W) solid angles (up to a factor) of the texels of a lat-long map: sin θ of each row."""
+    theta = (np.arange(H) + 0.5) / H * np.pi
+    return np.broadcast_to(np.sin(theta)[:, None], (H, W)).copy()
+
+
+def latlong_resample(image, W: int, H: int) -> np.ndarray:
+    """A lat-long map (h, w, 3) resampled to (H, W, 3): bilinear at texel centres, longitude
+    wrapping around, latitude clamped (the same map when the size is the same)."""
+    h, w = image.shape[:2]
+    if (h, w) == (H, W):
+        return np.asarray(image, np.float64)
+    x = (np.arange(W) + 0.5) / W * w - 0.5
+    y = np.clip((np.arange(H) + 0.5) / H * h - 0.5, 0, h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[None, :, None], (y - y0)[:, None, None]
+    y1 = np.minimum(y0 + 1, h - 1)
+    xa, xb = x0 % w, (x0 + 1) % w
+    row = lambda r: image[r][:, xa] * (1 - fx) + image[r][:, xb] * fx  # noqa: E731
+    return row(y0) * (1 - fy) + row(y1) * fy
 
 
 def texture_experiment(exp, texture):

@@ -64,6 +64,7 @@ class RunFiles:
         self.summary = self.root / "optimize.json"
         self.run = self.root / "run.json"          # fingerprint of the experiment the run belongs to
         self.albedo = self.root / "albedo.exr"      # the recovered texture (optimize.albedo.texture)
+        self.envmap = self.root / "envmap.exr"      # the recovered environment map (optimize.envmap)
 
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
@@ -73,7 +74,7 @@ class RunFiles:
         (a folder, a device, a FIFO: :func:`psdr_cli.fileio.check_output_file`), before any of
         them is read (a FIFO would block) or the run's work is done."""
         for path in (self.state, self.log, self.reference, self.final, self.summary, self.run,
-                     self.root / "loss.png", self.albedo):
+                     self.root / "loss.png", self.albedo, self.envmap):
             fileio.check_output_file(path)
 
 

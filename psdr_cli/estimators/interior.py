@@ -90,6 +90,18 @@ def environment_motion(scene: mi.Scene):
     return T @ dr.detach(T).inverse()
 
 
+def environment_texels(scene: mi.Scene) -> bool:
+    """Whether the environment's texels carry derivatives (``optimize.envmap``): NEE then needs
+    Le attached (Mitsuba's sampling weight Le/p is computed without derivatives; p, the density of
+    the map's own importance sampling, is a function of the texels that stays detached: the samples
+    are drawn from it, so d/dθ E[Le/p] = E[(dLe/dθ)/p])."""
+    env = scene.environment()
+    if env is None:
+        return False
+    params = mi.traverse(env)
+    return "data" in params and dr.grad_enabled(params["data"])
+
+
 def turn(motion, w):
     """The direction ω moved with the environment (ω itself for a static one)."""
     return w if motion is None else motion @ mi.Vector3f(w)
@@ -143,6 +155,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
     prev_pdf = mi.Float(1.0)
     prev_delta = mi.Bool(True)  # the camera vertex: emission seen directly gets weight 1
     env_motion = environment_motion(scene) if ad else None
+    env_texels = ad and environment_texels(scene)
     terminator = ad and has_smooth_meshes(scene)
     si = scene.ray_intersect(ray, active) if si is None else si
     for depth in range(max_depth):
@@ -177,6 +190,8 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
         contrib = beta * carry * w_em * f_em * em_weight
         if ad:
             contrib *= emitter_ratio(env_motion, si, bsdf, ds_em, active_em)
+        if env_texels:  # Le/p with Le attached to the texels, p (the texels' sampling density) detached
+            contrib *= ratio(ds_em.emitter.eval_direction(si, ds_em, active_em))
         parts[depth + 1] += dr.select(active_em, contrib, 0.0)
 
         if terminator:  # the boundary of this vertex's facet plane (terminator.py)
