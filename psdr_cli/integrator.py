@@ -68,7 +68,7 @@ def integrator_class():
             size = tuple(int(s) for s in sensor.film().size())
             # params may be SceneParameters, a reduced set (params.keep) or θ itself: read the shapes
             objects = differentiable_meshes(scene, sensor) if params is not None else {}
-            sv = SceneView(scene, [sensor], size, objects, SimpleNamespace(max_depth=self.max_depth))
+            sv = SceneView(scene, [sensor], size, objects, SimpleNamespace(max_depth=self.max_depth, hide_background=False))
             return sv, BoundaryEdges.from_scene(sv)
 
         @staticmethod
