@@ -13,7 +13,7 @@ import pytest
 import trimesh
 import yaml
 
-from psdr_cli import backend
+from psdr_cli import api, backend
 from psdr_cli.dataset_scene import look_at_point, to_dataset, to_normalised
 from psdr_cli.datasets.views import View
 from psdr_cli.errors import PsdrError
@@ -83,8 +83,7 @@ def test_a_dataset_scaled_and_shifted_gives_the_same_reconstruction_scaled_and_s
     for name, scale, shift in (("a", 1.0, (0, 0, 0)), ("b", 100.0, (1000.0, 1000.0, 1000.0))):
         dataset = moved_blender_dataset(DATA / "blender", tmp_path / name / "data", scale, shift)
         config = write(tmp_path / name, experiment_data(dataset, iterations=3), "photos.yaml")
-        r = run_cli("optimize", config, timeout=400)
-        assert r.returncode == 0, r.stdout + r.stderr
+        api.optimize(load_experiment(config), warn=lambda line: None)
         finals.append(trimesh.load(tmp_path / name / "runs" / "photos_bunny_blender" / "final.ply", process=False))
     a, b = (np.asarray(m.vertices, np.float64) for m in finals)
     assert a.shape == b.shape and np.array_equal(finals[0].faces, finals[1].faces)
@@ -196,10 +195,19 @@ def test_held_out_scores():
 def test_bad_dataset_experiments_are_one_line(tmp_path, edit, message):
     data = experiment_data(DATA / "blender")
     edit(data)
+    with pytest.raises(PsdrError) as err:
+        api.optimize(load_experiment(write(tmp_path, data)))
+    assert message in str(err.value) and "\n" not in str(err.value)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_bad_dataset_experiment_is_one_line_from_the_command_line(tmp_path):
+    data = experiment_data(DATA / "blender")
+    data["scene"]["film"] = {"width": 32, "height": 32}
     r = run_cli("optimize", write(tmp_path, data), timeout=120)
     assert r.returncode == 2, r.stdout + r.stderr
     lines = [line for line in r.stderr.strip().splitlines() if line]
-    assert len(lines) == 1 and message in lines[0], r.stderr
+    assert len(lines) == 1 and "scene.film: not allowed with optimize.target.dataset" in lines[0], r.stderr
     assert not (tmp_path / "runs").exists()
 
 
