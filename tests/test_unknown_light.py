@@ -66,7 +66,7 @@ def test_envmap_and_material_gradients_agree_with_finite_differences(tmp_path):
     differences of the renderer (12 passes at 32 spp, common seeds for ±h), a z-test on the pass
     means, and enough power (the combined SE under 10 % of the derivative, 30 % for the noisier
     roughness). Measured: texels 24.93 ± 0.20 vs 25.11 ± 0.14 (z −0.72; without Le attached in
-    NEE 4.87, z −98); roughness 10.1 ± 1.8 vs 12.1 ± 1.5 (z −0.83); metallic −85.4 ± 0.7 vs
+    NEE 4.36 ± 0.10, z −120); roughness 10.1 ± 1.8 vs 12.1 ± 1.5 (z −0.83); metallic −85.4 ± 0.7 vs
     −84.0 ± 0.5 (z −1.59); specular 12.44 ± 0.10 vs 12.50 ± 0.06 (z −0.52)."""
     data = experiment_data(tmp_path, envmap={"resolution": [W, H], "init": "env.exr"},
                            material={"roughness": {}, "metallic": {}, "specular": {}})
