@@ -52,7 +52,7 @@ from psdr_cli.losses.l1 import l1_loss  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
 from psdr_cli.targets import ground_truth, initial_shape  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.gradient import Settings, ad_image  # noqa: E402
+from psdr_cli.estimate import Settings, ad_image  # noqa: E402
 from psdr_cli.remesh import remesh  # noqa: E402
 from psdr_cli.render import render_view  # noqa: E402
 from psdr_cli.scene import build_scene  # noqa: E402

@@ -5,7 +5,7 @@
 For every validation scene (``configs/validation/*.yaml``) the total gradient image dI/dθ of view 0
 is estimated by
 
-- **ours**: ``interior + primary + direct + indirect`` (``psdr_cli.gradient.forward_gradient``,
+- **ours**: ``interior + primary + direct + indirect`` (``psdr_cli.estimate.forward_gradient``,
   MIS boundary sampling, the same spp for every term);
 - **Mitsuba**: ``prb_projective`` with guiding off (``psdr_cli.reference.mitsuba_projective``);
 
@@ -69,7 +69,7 @@ from psdr_cli.compare import rel_mse  # noqa: E402
 from psdr_cli.config import TERMS  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.gradient import forward_gradient, prepare  # noqa: E402
+from psdr_cli.estimate import forward_gradient, prepare  # noqa: E402
 from psdr_cli.reference import agreement, block_sums, fd_resolution, finite_difference, mitsuba_projective  # noqa: E402
 from psdr_cli.render import render_view  # noqa: E402
 from psdr_cli.verdict import agrees, checks  # noqa: E402

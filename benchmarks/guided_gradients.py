@@ -49,7 +49,7 @@ from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path, write_json  # noqa: E402
 from psdr_cli.estimators.sample_log import SampleLog  # noqa: E402
-from psdr_cli.gradient import Settings, ad_image, make_guides, term_image  # noqa: E402
+from psdr_cli.estimate import Settings, ad_image, make_guides, term_image  # noqa: E402
 from psdr_cli.guiding.loop_fed import fitted_guides, per_pass_budget  # noqa: E402
 from psdr_cli.guiding.targets import Guides  # noqa: E402
 from psdr_cli.iteration import batch_views  # noqa: E402

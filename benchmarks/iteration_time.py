@@ -39,7 +39,7 @@ import psdr_cli  # noqa: E402
 from psdr_cli import backend, iteration  # noqa: E402
 from psdr_cli.engines import Engine  # noqa: E402
 from psdr_cli.estimators import registry  # noqa: E402
-from psdr_cli.gradient import Settings  # noqa: E402
+from psdr_cli.estimate import Settings  # noqa: E402
 from psdr_cli.guiding import auto  # noqa: E402
 from psdr_cli.iteration import GuideCache  # noqa: E402
 from psdr_cli.optimize import log_row, save_state  # noqa: E402

@@ -21,7 +21,7 @@ from . import compare as comparison
 from . import evaluate as evaluation
 from . import experiment
 from . import export as exporting
-from . import gradient
+from . import estimate, gradient
 from . import optimize as optimization
 from . import render as rendering
 from . import sweep
@@ -50,7 +50,7 @@ def render(exp: Experiment, spp: int | None = None, views=None, out: Path | None
 def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
                     scene=None, progress=None) -> dict:
     """Forward-mode gradient images dI/dθ of one view, {term: TermEstimate}; writes nothing."""
-    return gradient.gradient_images(exp, view, terms, spp, min_passes, scene, progress)
+    return estimate.gradient_images(exp, view, terms, spp, min_passes, scene, progress)
 
 
 def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,

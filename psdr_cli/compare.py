@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import backend, fileio, gradient, plots
+from . import backend, estimate, fileio, plots
 from .config import Experiment, Variant, with_estimator
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
-from .gradient import Settings, make_guides, prepare
+from .estimate import Settings, make_guides, prepare
 
 #: The variant of the reference image: unguided MIS over unsorted edges.
 REFERENCE = Variant("reference", guiding="none", sampling="mis", edge_sort=False)
@@ -82,7 +82,7 @@ class Comparison:
         total, images, seconds = None, [], 0.0
         for term in self.terms:
             st = self.pass_settings(variant, seed, term, n)
-            est = gradient.forward_gradient(self.scene, self.edges[st.edge_sort], self.parameter, self.view, term, st,
+            est = estimate.forward_gradient(self.scene, self.edges[st.edge_sort], self.parameter, self.view, term, st,
                                    n, guides=guides)
             images = est.passes if not images else [a + b for a, b in zip(images, est.passes)]
             total = est.gradient if total is None else total + est.gradient

@@ -1322,7 +1322,8 @@ ENVMAP_MEANS = ("auto", "fixed", "free")
 
 def parse_envmap_unknown(base: Path) -> Parser:
     """``optimize.envmap: {resolution: [W, H], init: VALUE | [r, g, b] | FILE.exr, learning_rate,
-    smoothness, mean}``; an init file is read here: finite, non-negative texels."""
+    smoothness, mean}``; an init file's texels are checked once the experiment is loaded
+    (:func:`psdr_cli.experiment.check_envmap_init`: OpenEXR is not imported here)."""
     def init_value(value, where):
         if isinstance(value, str):
             path = Path(value) if Path(value).is_absolute() else base / value
@@ -1330,22 +1331,6 @@ def parse_envmap_unknown(base: Path) -> Parser:
                 raise where.fail(f"expected a radiance value, [r, g, b] or an EXR file, got {_describe(value)}")
             if not path.is_file():
                 raise where.fail(f"file not found: {path}")
-            import numpy as np  # noqa: PLC0415
-            from .fileio import read_exr  # noqa: PLC0415 - OpenEXR only when a file is given
-            try:
-                channels = read_exr(path)
-            except Exception as exc:  # noqa: BLE001 - a damaged file
-                raise where.fail(f"cannot read {path.name}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
-            if not all(c in channels for c in "RGB"):
-                raise where.fail(f"{path.name} has no R, G, B channels")
-            texels = np.stack([channels[c] for c in "RGB"], -1)
-            if texels.size == 0:
-                raise where.fail(f"{path.name} is empty")
-            bad = int((~np.isfinite(texels)).sum())
-            if bad:
-                raise where.fail(f"{path.name} has {bad} NaN or infinite values")
-            if texels.min() < 0:
-                raise where.fail(f"{path.name} has negative radiance ({texels.min():g})")
             return path
         return color(value, where)
 

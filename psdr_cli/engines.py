@@ -1,6 +1,6 @@
 """The renderer behind an optimisation's AD images (``estimator.engine``).
 
-``psdr``: our estimators, I = interior + Σ boundary terms (:func:`psdr_cli.gradient.ad_image`).
+``psdr``: our estimators, I = interior + Σ boundary terms (:func:`psdr_cli.estimate.ad_image`).
 
 ``mitsuba``: Mitsuba 3's own projective-sampling integrators (Zhang et al. 2023) as Mitsuba's
 shape-optimisation tutorial configures them: ``direct_projective`` (one bounce, max_depth 2) or
@@ -18,12 +18,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import gradient
+from . import estimate
 from .config import EstimatorConfig
 from .estimators.coverage import coverage_image
 from .estimators.passes import pass_seed
 from .estimators.registry import COVERAGE_STREAMS, MITSUBA_STREAM
-from .gradient import Settings
+from .estimate import Settings
 
 
 def mitsuba_integrator_name(est: EstimatorConfig, max_depth: int) -> str:
@@ -75,7 +75,7 @@ class Engine:
             seed = pass_seed(self.settings.seed, view, iteration, MITSUBA_STREAM)
             return mitsuba_image(problem.scene, problem.params, self.integrator, view,
                                  self.settings.estimator.mitsuba_spp, seed)
-        return gradient.ad_image(problem.scene, edges, view, self.terms, self.settings, pass_index=iteration,
+        return estimate.ad_image(problem.scene, edges, view, self.terms, self.settings, pass_index=iteration,
                                  guides=guides)
 
     def coverage(self, problem, edges, view: int, iteration: int) -> mi.Float:

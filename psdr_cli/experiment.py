@@ -11,8 +11,10 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-from . import backend, config, mitsuba_scene
-from .config import Experiment, check_experiment, check_scene
+import numpy as np
+
+from . import backend, config, fileio, mitsuba_scene
+from .config import ConfigError, Experiment, check_experiment, check_scene
 from .dataset_scene import dataset_scene
 from .mitsuba_scene import warn_stderr
 from .obj_parts import expand_objects
@@ -42,4 +44,30 @@ def complete(exp: Experiment, warn=warn_stderr) -> Experiment:
     if exp.optimize and exp.optimize.target_dataset:
         exp = dataset_scene(exp)
     check_experiment(exp)
+    check_envmap_init(exp)
     return exp
+
+
+def check_envmap_init(exp: Experiment):
+    """The texels of ``optimize.envmap.init`` when it is an EXR file: readable, with R, G, B,
+    finite and non-negative."""
+    envmap = getattr(exp.optimize, "envmap", None) if exp.optimize else None
+    path = envmap.init_file if envmap is not None else None
+    if path is None:
+        return
+    where = "optimize.envmap.init"
+    try:
+        channels = fileio.read_exr(path)
+    except Exception as exc:  # noqa: BLE001 - a damaged file
+        raise ConfigError(exp.file, where, f"cannot read {path.name}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if not all(c in channels for c in "RGB"):
+        raise ConfigError(exp.file, where, f"{path.name} has no R, G, B channels")
+    texels = np.stack([channels[c] for c in "RGB"], -1)
+    if texels.size == 0:
+        raise ConfigError(exp.file, where, f"{path.name} is empty")
+    bad = int((~np.isfinite(texels)).sum())
+    if bad:
+        raise ConfigError(exp.file, where, f"{path.name} has {bad} NaN or infinite values")
+    if texels.min() < 0:
+        raise ConfigError(exp.file, where, f"{path.name} has negative radiance ({texels.min():g})")

@@ -18,7 +18,7 @@ import mitsuba as mi
 
 from .config import TERMS, EstimatorConfig
 from .estimators.boundary_sampling import BoundaryEdges
-from .gradient import Settings, ad_image, term_passes
+from .estimate import Settings, ad_image, term_passes
 from .plugin_scene import differentiable_meshes
 from .render import render_view
 
@@ -43,7 +43,7 @@ def integrator_class():
         return _CLASSES[mi.variant()]
 
     class PsdrIntegrator(mi.CppADIntegrator):
-        """Mitsuba-facing wrapper of :func:`psdr_cli.gradient.ad_image`."""
+        """Mitsuba-facing wrapper of :func:`psdr_cli.estimate.ad_image`."""
 
         def __init__(self, props=None):
             props = mi.Properties() if props is None else props

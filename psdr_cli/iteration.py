@@ -16,7 +16,7 @@ from .estimators.boundary_sampling import edge_list
 from .estimators.passes import pass_seed
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
-from .gradient import make_guides
+from .estimate import make_guides
 from .guiding import auto
 from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides

@@ -33,7 +33,7 @@ from . import backend, fileio
 from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
 from .engines import Engine
 from .errors import PsdrError
-from .gradient import Settings, guiding_line
+from .estimate import Settings, guiding_line
 from .guiding import auto
 from .iteration import GuideCache, iterate
 from .problem import Problem, remeshed_problem

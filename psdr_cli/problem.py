@@ -18,7 +18,7 @@ from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
 from .runs import State
-from .scene import build_scene
+from .scene import build_scene, exr_texels
 from .stages import stage_at, stage_experiment, stage_value
 
 
@@ -236,7 +236,6 @@ class Environment:
         scene_map = np.asarray(params[self.key], np.float64)[:, 1:-1]  # the map the scene was built with
         self.weights = solid_angle_weights(self.H, self.W)
         if cfg.init_file is not None:
-            from .scene import exr_texels  # noqa: PLC0415
             start = latlong_resample(np.asarray(exr_texels(cfg.init_file), np.float64)[..., :3], self.W, self.H)
         elif cfg.init is not None:
             start = np.broadcast_to(np.asarray(cfg.init, np.float64), (self.H, self.W, 3))

@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 import mitsuba as mi
 import numpy as np
 
-from .gradient import uses_guides
+from .estimate import uses_guides
 from .jitarray import jit_array
 
 

@@ -133,7 +133,7 @@ def test_indirect_term_carries_light_that_arrives_by_way_of_a_wall():
     indirect term alone must match finite differences. (A bug that kept detector subpaths only
     where x^D itself was camera-visible made this region ≈ 0 instead of ≈ −80.)"""
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.gradient import forward_gradient, prepare
+    from psdr_cli.estimate import forward_gradient, prepare
     from psdr_cli.reference import finite_difference, mean_and_error
     exp = load_experiment(VALIDATION / "indirect.yaml")
     scene, parameter, edges, settings = prepare(exp)

@@ -10,7 +10,7 @@ import pytest
 from psdr_cli import api
 from psdr_cli.config import with_estimator
 from psdr_cli.experiment import parse_experiment
-from psdr_cli.gradient import forward_gradient, make_guides, prepare
+from psdr_cli.estimate import forward_gradient, make_guides, prepare
 from psdr_cli.guiding import auto, build_grid, build_kdtree
 from psdr_cli.estimators.sample_log import SampleLog, thinned
 from psdr_cli.guiding.kdtree import KdTreeGuide
@@ -348,7 +348,7 @@ def test_compare_cli_equal_samples(tmp_path, write_cfg):
 def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatch):
     """n passes of a multi-term comparison ask every boundary term for n × boundary_spp samples
     (a shared Settings once compounded them: the second term got n² × boundary_spp)."""
-    from psdr_cli import gradient
+    from psdr_cli import estimate
     from psdr_cli.compare import Comparison, Variant
     data = copy.deepcopy(SHADOW)
     data["output"] = str(tmp_path / "runs")
@@ -360,9 +360,9 @@ def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatc
     def fake(scene, edges, parameter, view, term, settings, min_passes=1, progress=None, guides=None):
         asked[term] = (settings.boundary_spp, min_passes)
         zero = np.zeros((2, 2, 3))
-        return gradient.TermEstimate(term, zero, [zero] * min_passes, [1 / min_passes] * min_passes, 0.0, None)
+        return estimate.TermEstimate(term, zero, [zero] * min_passes, [1 / min_passes] * min_passes, 0.0, None)
 
-    monkeypatch.setattr(gradient, "forward_gradient", fake)
+    monkeypatch.setattr(estimate, "forward_gradient", fake)
     Comparison(exp, ("direct", "indirect")).passes(Variant("none"), 1, 8, None)
     assert asked == {"direct": (128, 8), "indirect": (128, 8)}
 

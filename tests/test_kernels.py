@@ -13,7 +13,7 @@ from psdr_cli import backend
 from psdr_cli.experiment import load_experiment
 from psdr_cli.engines import Engine
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.gradient import Settings
+from psdr_cli.estimate import Settings
 from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
 from psdr_cli.iteration import adjoint_image
 from psdr_cli.losses.l1 import l1_loss

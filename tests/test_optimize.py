@@ -134,18 +134,18 @@ def test_ctrl_c_saves_and_exits_cleanly(tmp_path):
 def test_nan_gradient_skips_the_update(tmp_path, monkeypatch):
     """A non-finite gradient leaves the mesh untouched and is logged as skipped."""
     import drjit as dr
-    from psdr_cli import api, gradient
+    from psdr_cli import api, estimate
     from psdr_cli.experiment import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=3, remesh={"method": "none"})
     exp = load_experiment(write(tmp_path, data))
-    real = gradient.ad_image
+    real = estimate.ad_image
 
     def poisoned(scene, edges, view, terms, settings, pass_index=0, scale=1.0, guides=None):
         img = real(scene, edges, view, terms, settings, pass_index, scale, guides)
         return img * (dr.nan if pass_index == 1 else 1.0)
 
-    monkeypatch.setattr(gradient, "ad_image", poisoned)
+    monkeypatch.setattr(estimate, "ad_image", poisoned)
     warnings = []
     res = api.optimize(exp, warn=warnings.append)
     rows = log_rows(exp.run_dir)

@@ -23,7 +23,7 @@ from psdr_cli import api, meshes
 from psdr_cli.estimators import interior, primary
 from psdr_cli.estimators.camera import Projection, camera_ray
 from psdr_cli.estimators.passes import make_sampler
-from psdr_cli.gradient import prepare
+from psdr_cli.estimate import prepare
 from psdr_cli.experiment import load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.intersections import intersection_segments

@@ -10,7 +10,7 @@ from psdr_cli.api import setup
 from psdr_cli.config import TERMS, EstimatorConfig
 from psdr_cli.experiment import load_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
-from psdr_cli.gradient import Settings, ad_image, forward_gradient
+from psdr_cli.estimate import Settings, ad_image, forward_gradient
 from psdr_cli.parameters import Parameter
 from psdr_cli.reference import block_sums, mean_and_error, mitsuba_projective
 from psdr_cli.scene import build_scene
@@ -105,7 +105,7 @@ def test_direct_lighting_in_the_cornell_box_matches_mitsuba_prb_projective():
     moving smooth sphere casts a shadow; primary + direct + interior terms). Tiles agree with
     Mitsuba's prb_projective (|z| < 4 on signal tiles, mean z² < 2) and so do the sums."""
     import dataclasses
-    from psdr_cli.gradient import prepare
+    from psdr_cli.estimate import prepare
     exp = load_experiment(REPO / "configs" / "validation" / "cornell.yaml")
     exp = dataclasses.replace(exp, scene=dataclasses.replace(exp.scene, max_depth=2))
     scene, parameter, edges, settings = prepare(exp)

@@ -15,7 +15,7 @@ import yaml
 from psdr_cli import backend, cli, fileio, load_experiment
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
-from psdr_cli.gradient import Settings, ad_image
+from psdr_cli.estimate import Settings, ad_image
 from psdr_cli.problem import Problem
 from psdr_cli.render import render_view
 from psdr_cli.runs import State, read_log

@@ -1,0 +1,224 @@
+"""The estimate of dI/dθ, the library behind ``psdr grad``, ``psdr compare`` and the
+optimisation loop: every term of dI/dθ = interior + primary + direct + indirect, in passes.
+
+``term_image`` computes one pass of a term by its :class:`~psdr_cli.estimators.term.Term`
+(looked up in :mod:`psdr_cli.estimators.registry`): a flat W·H·3 AD image whose primal value is
+the rendered image for the interior term and 0 for the boundary terms (they only carry
+derivatives). The same images serve forward mode (θ → gradient image, :func:`forward_gradient`)
+and reverse mode (image loss → scene parameters, :func:`ad_image` + ``dr.backward``).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import backend
+from .camera_motion import check_camera_motion, with_all_edges
+from .config import EstimatorConfig, Experiment, option_spp, parse_terms
+from .errors import PsdrError
+from .estimators import registry
+from .estimators.boundary_sampling import BoundaryEdges, edge_list
+from .estimators.passes import AD_LANES, pass_seed, passes_for
+from .guiding import auto
+from .guiding.targets import Guides, build_guides
+from .parameters import Parameter
+from .scene import build_scene
+
+
+
+@dataclass
+class Settings:
+    """What one gradient estimate uses: the experiment's validated estimator configuration
+    (sample counts, techniques, guide parameters; per-call overrides are copies of it) and the
+    scene's path depth and the seed."""
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    max_depth: int = 3
+    seed: int = 0
+
+    @staticmethod
+    def from_experiment(exp: Experiment, spp: int | None = None, seed: int | None = None) -> "Settings":
+        est = replace(exp.estimator, spp=spp) if spp else exp.estimator
+        return Settings(est, exp.scene.max_depth, exp.seed if seed is None else seed)
+
+    def with_estimator(self, **changes) -> "Settings":
+        """A copy whose estimator keys (spp, guiding, passes, ...) are replaced."""
+        return replace(self, estimator=replace(self.estimator, **changes))
+
+    @property
+    def spp(self) -> int:
+        return self.estimator.spp
+
+    @property
+    def primary_spp(self) -> int:
+        return self.estimator.primary_spp
+
+    @property
+    def boundary_spp(self) -> int:
+        return self.estimator.boundary_spp
+
+    @property
+    def passes(self) -> int:
+        return self.estimator.passes
+
+    @property
+    def sampling(self) -> str:
+        return self.estimator.sampling
+
+    @property
+    def guiding(self) -> str:
+        return self.estimator.guiding
+
+    @property
+    def edge_sort(self) -> bool:
+        return self.estimator.edge_sort
+
+    def samples(self, term: str) -> int:
+        """Samples per pixel of ``term``."""
+        return getattr(self.estimator, registry.term(term).samples_key)
+
+    def with_samples(self, term: str, spp: int) -> "Settings":
+        """A copy in which ``term`` has ``spp`` samples per pixel."""
+        return self.with_estimator(**{registry.term(term).samples_key: spp})
+
+
+@dataclass
+class GradientSetup:
+    """Everything a gradient of an experiment needs: its scene, θ, boundary edges and settings."""
+    scene: object
+    parameter: Parameter
+    edges: BoundaryEdges
+    settings: Settings
+
+    def __iter__(self):  # scene, parameter, edges, settings = prepare(exp)
+        return iter((self.scene, self.parameter, self.edges, self.settings))
+
+
+def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetup:
+    """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
+    if exp.parameter is None:
+        raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
+    settings = Settings.from_experiment(exp, spp)
+    option_spp("--spp", spp, exp.scene.width, exp.scene.height)
+    backend.activate(exp)
+    scene = scene or build_scene(exp)
+    if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
+        with_all_edges(scene)
+        check_camera_motion(scene, exp.parameter.camera)
+    edges = edge_list(scene, exp.estimator, settings.edge_sort)
+    return GradientSetup(scene, Parameter(scene, exp.parameter), edges, settings)
+
+
+def term_passes(term: str, settings: Settings, pixels: int, min_passes: int = 1) -> list[int]:
+    """Samples per pixel of each pass of ``term``: at least ``max(passes, min_passes)`` passes,
+    each of at most ``AD_LANES`` lanes."""
+    return passes_for(settings.samples(term), pixels, AD_LANES, max(settings.estimator.passes, min_passes))
+
+
+def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings, parameter=None) -> Guides:
+    """Guides of the direct and indirect terms for ``views`` (empty when no term is guided;
+    ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`). With the scalar
+    ``parameter`` θ (forward mode) the direct term's guides follow dv/dθ, velocity included."""
+    return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth,
+                        settings.estimator, settings.seed, parameter=parameter)
+
+
+def uses_guides(settings: Settings, terms, pixels: int) -> bool:
+    """Whether any of ``terms`` is guided for images of ``pixels`` pixels."""
+    kinds = auto.resolve(settings.guiding, terms, pixels, settings.boundary_spp)
+    return any(k != "none" for k in kinds.values())
+
+
+def guiding_line(exp: Experiment, terms=None, loop: bool = False) -> str:
+    """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved; ``loop``:
+    in the optimisation loop)."""
+    e = exp.estimator
+    return auto.describe(e.guiding, parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
+                         e.boundary_spp, loop)
+
+
+def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
+               settings: Settings, guides=None):
+    """One pass of ``term`` for camera ``view`` with ``spp`` samples per pixel (flat W·H·3, AD).
+
+    ``scene`` is a :class:`psdr_cli.scene.Scene`; its AD state (θ or vertex gradients) must be
+    set before the call. ``guides`` (:class:`psdr_cli.guiding.targets.Guides`) hold the guides
+    of the guided terms."""
+    guide = guides.get(term) if guides else None
+    return registry.term(term).estimate(scene, edges, view, spp, seed, settings.estimator, settings.max_depth,
+                                        guide)
+
+
+def term_seed(settings: Settings, view: int, pass_index: int, term: str) -> int:
+    """Sampler seed of pass ``pass_index`` of ``term`` for camera ``view`` (the term's own stream)."""
+    return pass_seed(settings.seed, view, pass_index, registry.term(term).stream)
+
+
+@dataclass
+class TermEstimate:
+    """Forward-mode result of one term: mean gradient image and the per-pass images."""
+    term: str
+    gradient: np.ndarray
+    passes: list = field(default_factory=list)
+    weights: list = field(default_factory=list)
+    seconds: float = 0.0
+    primal: np.ndarray | None = None
+
+
+def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Settings,
+                     min_passes: int = 1, progress=None, guides=None) -> TermEstimate:
+    """dI/dθ of one term (forward mode), as the sample-weighted mean over its passes."""
+    width, height = scene.resolution
+    counts = term_passes(term, settings, width * height, min_passes)
+    total = sum(counts)
+    images, primal = [], np.zeros((height, width, 3))
+    t0 = time.perf_counter()
+    for p, spp in enumerate(counts):
+        theta = mi.Float(0.0)
+        dr.enable_grad(theta)
+        parameter.apply(theta)
+        img = term_image(scene, edges, view, term, spp, term_seed(settings, view, p, term), settings, guides)
+        dr.forward(theta)
+        images.append(np.asarray(dr.grad(img), np.float64).reshape(height, width, 3))
+        primal += np.asarray(dr.detach(img), np.float64).reshape(height, width, 3) * spp / total
+        del img
+        parameter.reset()
+        if progress:
+            progress(spp)
+    weights = [c / total for c in counts]
+    mean = sum(w * g for w, g in zip(weights, images))
+    return TermEstimate(term, mean, images, weights, time.perf_counter() - t0,
+                        primal if term == "interior" else None)
+
+
+def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int = 0,
+             scale: float = 1.0, guides=None) -> mi.Float:
+    """Sum of the requested terms for one pass (flat W·H·3, AD), for reverse mode.
+
+    The primal value is the interior image (zero when ``interior`` is not requested)."""
+    width, height = scene.resolution
+    img = dr.zeros(mi.Float, width * height * 3)
+    for term in terms:
+        spp = term_passes(term, settings, width * height)[0]
+        img = img + term_image(scene, edges, view, term, spp, term_seed(settings, view, pass_index, term), settings,
+                               guides)
+    return img * scale
+
+
+# --------------------------------------------------------------------------------------------
+# psdr grad
+# --------------------------------------------------------------------------------------------
+def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None = None, min_passes: int = 1,
+                    scene=None, progress=None) -> dict:
+    """Forward-mode gradient images dI/dθ of one view, without writing anything.
+
+    Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
+    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
+    scene, parameter, edges, settings = prepare(exp, spp, scene)
+    terms = parse_terms(terms) or exp.estimator.terms
+    guides = make_guides(scene, edges, [view], terms, settings, parameter)
+    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress, guides)
+            for t in terms}
