@@ -17,6 +17,10 @@ coordinates) and ``dataset.json`` (what made it).
 Mitsuba renders with ``hide_emitters`` and an RGBA film: its RGB is the premultiplied colour α·C,
 so the straight colour of a Blender PNG is C = RGB / α where α > 0.
 
+With ``--mesh FILE`` (PLY or OBJ) that mesh replaces the bunny: taken as z-up, centred in x/y,
+resting on z = 0, its longest side ``--scale`` (as the bunny is placed); ``--reflectance`` sets
+its diffuse colour and ``--max-depth`` the path integrator's depth.
+
     .venv/bin/python benchmarks/photo_dataset.py --out runs/photo_dataset --views 40 --size 128
 """
 from __future__ import annotations
@@ -64,7 +68,8 @@ def mitsuba_sensor(cam_to_world: np.ndarray, fov_deg: float, size: int, spp: int
             "sampler": {"type": "independent", "sample_count": spp}}
 
 
-def render_views(V, F, poses, fov_deg: float, size: int, spp: int, envmap: Path, reflectance) -> list:
+def render_views(V, F, poses, fov_deg: float, size: int, spp: int, envmap: Path, reflectance,
+                 max_depth: int = 4) -> list:
     """(H, W, 4) premultiplied RGBA renders of every pose by Mitsuba's ``path`` integrator."""
     mesh = mi.Mesh("object", len(V), len(F))
     params = mi.traverse(mesh)
@@ -74,13 +79,21 @@ def render_views(V, F, poses, fov_deg: float, size: int, spp: int, envmap: Path,
     mesh.set_bsdf(mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}}))
     images = []
     for i, pose in enumerate(poses):
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 4, "hide_emitters": True},
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": max_depth,
+                                                                "hide_emitters": True},
                               "sensor": mitsuba_sensor(pose, fov_deg, size, spp),
                               "env": {"type": "envmap", "filename": str(envmap), "scale": 0.8,
                                       "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], 90)},
                               "object": mesh})
         images.append(np.asarray(mi.render(scene, seed=i), np.float64))
     return images
+
+
+def placed(V, size: float):
+    """``V`` centred in x/y, resting on z = 0, its longest side ``size`` (as ``meshes.bunny``)."""
+    V = np.asarray(V, np.float64)
+    lo, hi = V.min(0), V.max(0)
+    return (V - [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) * (size / (hi - lo).max())
 
 
 def srgb8(linear: np.ndarray) -> np.ndarray:
@@ -158,24 +171,32 @@ def main(argv=None):
     ap.add_argument("--offset", type=float, nargs=3, default=[4.0, -2.0, 1.0])
     ap.add_argument("--faces", type=int, default=5000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--mesh", type=Path, default=None, help="a PLY or OBJ mesh instead of the bunny")
+    ap.add_argument("--reflectance", type=float, nargs=3, default=[0.7, 0.6, 0.5])
+    ap.add_argument("--max-depth", type=int, default=4, help="the path integrator's max_depth")
     args = ap.parse_args(argv)
     mi.set_variant("llvm_ad_rgb")
-    from psdr_cli.meshes import bunny, write_ply  # the product's loader of the published mesh (not its renderer)
-    V, F = bunny(size=args.scale, faces=args.faces)
+    from psdr_cli.meshes import bunny, read_mesh_file, write_ply  # the product's mesh loaders (not its renderer)
+    if args.mesh is None:
+        V, F = bunny(size=args.scale, faces=args.faces)
+    else:
+        V, F = read_mesh_file(args.mesh)
+        V, F = placed(V, args.scale), np.asarray(F, np.int64)
     V = V + np.asarray(args.offset)
     centre = V.mean(0)
     radius = args.scale / (2 * math.tan(math.radians(args.fov) / 2)) * 1.25
     poses = camera_poses(args.views, centre, radius, args.seed)
-    images = render_views(V, F, poses, args.fov, args.size, args.spp, ROOT / "scenes" / "studio.exr", (0.7, 0.6, 0.5))
+    images = render_views(V, F, poses, args.fov, args.size, args.spp, ROOT / "scenes" / "studio.exr",
+                          tuple(args.reflectance), args.max_depth)
     args.out.mkdir(parents=True, exist_ok=True)
     write_blender(args.out / "blender", images, poses, args.fov, args.holdout)
     write_colmap(args.out / "colmap", images, poses, args.fov, args.size, (0.35, 0.4, 0.3))
     write_ply(args.out / "ground_truth.ply", V, F)
     (args.out / "dataset.json").write_text(json.dumps({**{k: (str(v) if isinstance(v, Path) else v)
                                                           for k, v in vars(args).items()},
-                                                       "renderer": "mitsuba path, max_depth 4",
-                                                       "envmap": "scenes/studio.exr, scale 0.8, rotated 90° about x",
-                                                       "reflectance": [0.7, 0.6, 0.5]}, indent=1))
+                                                       "renderer": f"mitsuba path, max_depth {args.max_depth}",
+                                                       "envmap": "scenes/studio.exr, scale 0.8, rotated 90° about x"},
+                                                      indent=1))
     print(f"wrote {args.views} views ({args.size}²) to {args.out}/blender and {args.out}/colmap")
 
 

@@ -26,7 +26,7 @@ from skimage.metrics import structural_similarity
 from . import backend, fileio, meshes
 from .dataset_scene import dataset_scene, to_normalised
 from .dataset_targets import dataset_views, target_image
-from .config import ParameterConfig
+from .config import ParameterConfig, emitter_id
 from .errors import PsdrError
 from .estimators.camera import camera_rays
 from .estimators.passes import make_sampler
@@ -102,8 +102,10 @@ def error_strip(target: np.ndarray, render: np.ndarray) -> np.ndarray:
 
 def apply_values(scene, exp, values: dict):
     """Set the unknowns a run recovered (``optimize.json`` ``values``) in ``scene``: a constant
-    albedo and the environment's rotation angle (a recovered texture needs the run's UVs, which
-    its meshes do not carry: it is not applied)."""
+    albedo, the environment's rotation angle and a recovered environment map (``envmap``, the
+    run's ``envmap.exr``: the texels of the scene's ``envmap`` emitter, whose scale and rotation
+    stay as given). A recovered texture needs the run's UVs, which its meshes do not carry: it
+    is not applied."""
     params = mi.traverse(scene.mi_scene)
     name = exp.optimize.object
     albedo = values.get("albedo")
@@ -112,10 +114,31 @@ def apply_values(scene, exp, values: dict):
                                                                                          "base_color.value"))]
         for k in keys[:1]:
             params[k] = mi.Color3f(*(float(a) for a in np.ravel(albedo)[:3]))
+    if values.get("envmap") is not None:
+        params[environment_key(exp)] = environment_texels(Path(values["envmap"]), exp)
     params.update()
     if values.get("envmap_angle") is not None:
         rotation = Parameter(scene, ParameterConfig(kind="envmap_rotate", axis=exp.optimize.envmap_axis), params)
         rotation.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
+
+
+def environment_key(exp) -> str:
+    """The Mitsuba parameter of the texels of ``exp``'s ``envmap`` emitter."""
+    index = next((i for i, e in enumerate(exp.scene.emitters) if e.type == "envmap"), None)
+    if index is None:
+        raise PsdrError(f"{exp.file}: a recovered environment map needs an envmap emitter in scene.emitters")
+    return f"{emitter_id(index)}.data"
+
+
+def environment_texels(path: Path, exp):
+    """Mitsuba's ``data`` tensor (H, W + 2, 3) of a lat-long EXR map: one halo column either side
+    (the last and the first column), as :class:`psdr_cli.problem.Environment` writes it."""
+    try:
+        texels = np.asarray(fileio.read_rgb_exr(path), np.float32)
+    except Exception as exc:  # noqa: BLE001
+        raise PsdrError(f"{exp.file}: cannot read the recovered environment map {path}: "
+                        f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    return mi.TensorXf(np.ascontiguousarray(np.concatenate([texels[:, -1:], texels, texels[:, :1]], axis=1)))
 
 
 def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values: dict | None = None) -> HeldOutResult:
