@@ -5,6 +5,8 @@
 - a dense bumpy blob (flat or smooth-shaded) over a floor, lit from the side; cut open into a
   dome, or sunk into the floor; a coarse smooth dome under the studio environment map and an
   area light;
+- a smooth lens whose rim folds its faces back by more than 90° (as Blender's Suzanne does at its
+  brows and ears), stood on edge under the same environment map and area light;
 - a head with an eye: one mesh of two intersecting shells (flat, or smooth-shaded and lit from
   the side; translated or turned about the vertical);
 - a moving camera over a box, a ball and a floor;
@@ -48,6 +50,37 @@ def open_dome(subdivisions=3):
     boundary and both of its sides in view."""
     V, F = bumpy_blob(subdivisions)
     return V, F[(V[F][:, :, 2] > -0.15).all(axis=1)]
+
+
+def folded_lens(radius=0.5, height=0.15, segments=12, rings=2):
+    """A closed lens: two caps z = ±height·(1 − (r/radius)²) of ``rings`` rings of ``segments``
+    vertices each (72 faces by default) meeting at a sharp rim, where the faces' normals are 118°
+    apart. Smooth-shaded, the rim's vertex normals point outwards in the rim's plane, 59° from
+    either face, and a ray spawned from a face within (1 + max|p|)·RayEpsilon·(−n_a·n_b) of the
+    rim starts beyond the other face's plane: the ray-spawn band of a folded edge, which the
+    procedural domes and blobs (all edges under 90°) do not have."""
+    V = [[0.0, 0.0, height], [0.0, 0.0, -height]]
+    ring = {}
+    for side in (1, -1):
+        for i in range(1, rings + 1):
+            r = radius * i / rings
+            for j in range(segments):
+                if i == rings and side == -1:  # the rim is shared by both caps
+                    ring[side, i, j] = ring[1, i, j]
+                    continue
+                phi = 2 * np.pi * (j + 0.5 * (i % 2)) / segments
+                ring[side, i, j] = len(V)
+                V.append([r * np.cos(phi), r * np.sin(phi), side * height * (1 - (r / radius) ** 2)])
+    F = []
+    for side, pole in ((1, 0), (-1, 1)):
+        tris = [[pole, ring[side, 1, j], ring[side, 1, (j + 1) % segments]] for j in range(segments)]
+        for i in range(1, rings):
+            for j in range(segments):
+                a, b = ring[side, i, j], ring[side, i, (j + 1) % segments]
+                c, d = ring[side, i + 1, j], ring[side, i + 1, (j + 1) % segments]
+                tris += [[a, c, d], [a, d, b]] if i % 2 == 0 else [[a, c, b], [b, c, d]]
+        F += tris if side == 1 else [t[::-1] for t in tris]  # outward on both caps
+    return np.array(V, float), np.array(F)
 
 
 def resting_blob():
@@ -173,6 +206,17 @@ def envmap_dome_cfg(kind: str = "translate", film: int = 24, spp=(512, 2048, 204
                     {"object": "dome", "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]},
                     spp=spp)
     cfg["scene"]["film"] = {"width": film, "height": film}
+    return cfg
+
+
+def envmap_lens_cfg(kind: str = "rotate") -> dict:
+    """:func:`envmap_dome_cfg` with its mesh (``dome``: give it :func:`folded_lens`) stood nearly on
+    edge (turned 80° about (1, 0.3, 0)), so that the rim's faces look sideways, towards the
+    environment's lamp, rather than down at the floor: light that leaks through the ray-spawn
+    band below a rim face then reaches the environment (max_depth 2: the floor would read 0)."""
+    cfg = envmap_dome_cfg(kind)
+    cfg["scene"]["objects"][0]["transform"] = {"translate": [0, 0, 0.6],
+                                               "rotate": {"axis": [1, 0.3, 0], "angle_deg": 80}}
     return cfg
 
 

@@ -101,7 +101,7 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
     holds for all but smooth silhouettes (see docs/gradients.md); ``inner`` marks edges whose two
     faces both face the camera; ``weight`` is the edge's sampling weight w_e (:func:`jump_weights`,
     all 1 with ``sampling`` = ``length``)."""
-    cols = [[] for _ in range(8)]
+    cols = [[] for _ in range(10)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
         sel = topo.creases(Vo, camera_origin)
@@ -112,12 +112,22 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
         strict = inner if smooth else np.ones(len(sel), bool)
         f1 = np.where(topo.open, topo.face0, topo.face1)
         weight = jump_weights(topo, Vo, sel, inner, smooth) if sampling == "jump" else np.ones(len(sel))
+        n0, n1 = fold_normals(topo, Vo, sel)
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
-                                 np.full(len(sel), m), strict, inner, weight)):
+                                 np.full(len(sel), m), strict, inner, weight, n0, n1)):
             c.append(arr)
     if not cols[0]:
-        return [np.zeros(0, np.int64)] * 7 + [np.zeros(0)]
-    return [np.concatenate(c).astype(np.int64) for c in cols[:7]] + [np.concatenate(cols[7])]
+        return [np.zeros(0, np.int64)] * 7 + [np.zeros(0)] + [np.zeros((0, 3))] * 2
+    return [np.concatenate(c).astype(np.int64) for c in cols[:7]] + [np.concatenate(c) for c in cols[7:]]
+
+
+def fold_normals(topo, V, rows):
+    """(n0, n1) per edge row: the row's consistently oriented face normals where they are more
+    than 90° apart (n0·n1 < 0: the faces fold back, as at a thin ear or a sharp brow), zero on
+    every other row and on open edges (:func:`fold_offsets` moves side samples only there)."""
+    n0, n1 = (x[rows] for x in topo.normals(V))
+    fold = ~topo.open[rows] & (np.einsum("ij,ij->i", n0, n1) < 0)
+    return np.where(fold[:, None], n0, 0.0), np.where(fold[:, None], n1, 0.0)
 
 
 @dataclass
@@ -137,9 +147,13 @@ class Curves:
     normal1: np.ndarray = None
     #: sampling weight w_e per curve (module docstring); 1 when not given
     weight: np.ndarray = None
+    #: unit normals (n, 3) of the two faces of mesh edges whose faces fold by more than 90°
+    #: (:func:`fold_normals`), zero elsewhere
+    fold0: np.ndarray = None
+    fold1: np.ndarray = None
 
     def __post_init__(self):
-        for name in ("normal0", "normal1"):
+        for name in ("normal0", "normal1", "fold0", "fold1"):
             if getattr(self, name) is None:
                 setattr(self, name, np.zeros((len(self.face0), 3)))
         if self.weight is None:
@@ -166,11 +180,13 @@ def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, sc
                      sampling: str = "length") -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
     V = edges.remembered("vertices", [P], lambda: np.asarray(dr.detach(P), np.float64).reshape(-1, 3))
-    v0, v1, f0, f1, m, strict, inner, weight = primary_edge_ids(edges, V, camera_origin, scattering, sampling)
+    v0, v1, f0, f1, m, strict, inner, weight, n0, n1 = primary_edge_ids(edges, V, camera_origin, scattering,
+                                                                        sampling)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
     gather = lambda i: dr.gather(mi.Point3f, P, jit_array(mi.UInt32, i))  # noqa: E731
-    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool), weight=weight)
+    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool), weight=weight,
+                  fold0=n0, fold1=n1)
 
 
 def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
@@ -244,7 +260,7 @@ def primary_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scat
     return Curves(concat_points(a.p0, b.p0), concat_points(a.p1, b.p1),
                   *(np.concatenate([getattr(a, k), getattr(b, k)])
                     for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1",
-                              "weight")))
+                              "weight", "fold0", "fold1")))
 
 
 def gather_curve_points(q: mi.Point2f, k: mi.UInt32) -> mi.Point2f:
@@ -300,6 +316,12 @@ CROSSING_MARGIN = 2.0
 #: Largest image offset of an intersection curve's side samples, as a fraction of the image's
 #: larger side (reached only where the two surfaces are nearly tangent).
 CROSSING_MAX_EPS = 1e-4
+#: Distance of a folded mesh edge's side samples from the other face's plane, in units of the
+#: largest distance at which a spawned ray starts beyond it (see :func:`fold_offsets`).
+FOLD_MARGIN = 2.0
+#: Largest image offset of a folded mesh edge's side samples, as a fraction of the image's larger
+#: side.
+FOLD_MAX_EPS = 1e-4
 
 
 def is_own_face(si, own):
@@ -357,6 +379,43 @@ def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: 
     return out
 
 
+def fold_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, offsets, active):
+    """Signed image offsets of the two side samples of mesh-edge points q whose faces fold by more
+    than 90° (``n0``, ``n1``: the faces' consistently oriented normals, :func:`fold_normals`; zero
+    elsewhere, where ``offsets`` are kept).
+
+    A ray leaving a point p of face a starts at p ± m·n_a, m = (1 + max|p|)·RayEpsilon (Mitsuba's
+    ``spawn_ray``, the sign that of n_a·ω). Within m·(−n_a·n_b) of the edge that start lies beyond
+    the plane of the other face b, so rays that face b blocks escape it (or rays it does not block
+    start behind it). For a flat face only directions below its own plane leak, and those carry no
+    reflectance; a smooth face's shading normal reflects part of them, so the side read at the
+    default offset (6·10⁻⁵ px at 32 px; the band is ≈ 10⁻⁴ px wide at a 92° fold and 10⁻² px at a
+    170° fold at 40 px) was the wrong radiance. A side that lands on one of the edge's faces at the
+    default offset moves out until its point on that face's plane lies FOLD_MARGIN·m·(−n_a·n_b)
+    from the other face's plane, at most FOLD_MAX_EPS of the image size; a side that lands
+    elsewhere (beyond a silhouette) keeps its offset."""
+    base = SIDE_EPS * max(width, height)
+    cap = FOLD_MAX_EPS * max(width, height)
+    fold = dr.squared_norm(n0) > 0
+    c = dr.maximum(-dr.dot(n0, n1), 0.0)
+    out = []
+    for sign, default in zip((-1.0, 1.0), offsets):
+        si = scene.ray_intersect(camera_ray(sensor, q + sign * base * n_s, width, height, active), active & fold)
+        sid = dr.reinterpret_array(mi.UInt32, si.shape)
+        on0 = si.is_valid() & (sid == own[0]) & (si.prim_index == own[1])
+        on1 = si.is_valid() & (sid == own[2]) & (si.prim_index == own[3])
+        n_p = dr.select(on0, n0, n1)
+        n_o = dr.select(on0, n1, n0)
+        ray = camera_ray(sensor, q + sign * cap * n_s, width, height, active)  # distances ∝ offset
+        t = dr.dot(n_p, x - ray.o) / dr.dot(n_p, ray.d)
+        p = ray.o + t * ray.d
+        dist = dr.abs(dr.dot(n_o, p - x))
+        m = (1.0 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
+        offset = dr.minimum(dr.maximum(cap * FOLD_MARGIN * m * c / dr.maximum(dist, 1e-30), base), cap)
+        out.append(dr.select(fold & (on0 | on1) & (t > 0), sign * offset, default))
+    return out
+
+
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
                      sampler: mi.Sampler, max_depth: int, sampling: str = "length", hide_background: bool = False,
                      coverage: bool = False):
@@ -402,6 +461,11 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
                                                             for i in range(3))), k) for a in ("normal0", "normal1")]
             offsets = crossing_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                                        *normals, own, width, height, ok)
+        if np.any(curves.fold0):  # mesh edges that fold back: clear the ray-spawn offset (see fold_offsets)
+            normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
+                                                            for i in range(3))), k) for a in ("fold0", "fold1")]
+            offsets = fold_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+                                   *normals, own, width, height, offsets, ok)
         rays = [camera_ray(sensor, qd + o * n_s, width, height, ok) for o in offsets]
         strict = dr.gather(mi.Bool, jit_array(mi.Bool, curves.strict), k)
         inner = dr.gather(mi.Bool, jit_array(mi.Bool, curves.inner), k)
