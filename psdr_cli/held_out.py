@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 from skimage.metrics import structural_similarity
@@ -28,8 +27,7 @@ from .dataset_scene import dataset_scene, to_normalised
 from .dataset_targets import dataset_views, target_image
 from .config import ParameterConfig, emitter_id
 from .errors import PsdrError
-from .estimators.camera import camera_rays
-from .estimators.passes import make_sampler
+from .estimators.coverage import hit_share, object_id
 from .parameters import Parameter
 from .render import render_view
 from .scene import build_scene
@@ -71,14 +69,10 @@ def ssim(render: np.ndarray, target: np.ndarray, where: np.ndarray | None = None
     return float(full.mean() if where is None else full[where].mean())
 
 
-def coverage(scene, view: int, spp: int = 16, seed: int = 0) -> np.ndarray:
-    """(H, W) share of each pixel's ``spp`` camera rays that hit any geometry."""
+def coverage(scene, name: str, view: int, spp: int = 16, seed: int = 0) -> np.ndarray:
+    """(H, W) share of each pixel's ``spp`` camera rays whose first hit is on the object ``name``."""
     width, height = scene.resolution
-    with dr.suspend_grad():
-        sampler = make_sampler(seed, width * height * spp)
-        ray, _ = camera_rays(scene.sensors[view], sampler, width, height, spp)
-        hit = dr.select(scene.mi_scene.ray_intersect(ray).is_valid(), 1.0, 0.0)
-        share = dr.block_sum(mi.Float(hit), spp, mode="evaluated") / spp
+    share = hit_share(scene, view, spp, seed, object_id(scene, name))
     return np.asarray(share, np.float64).reshape(height, width)
 
 
@@ -157,7 +151,7 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
     for v, view in enumerate(views):
         target = target_image(view, test.scene.hide_background)
         render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
-        result.views.append(score_view(view.name, render, target, view.mask, coverage(scene, v)))
+        result.views.append(score_view(view.name, render, target, view.mask, coverage(scene, test.optimize.object, v)))
         if out is not None:
             path = out / f"{Path(mesh).stem}_view_{v:03d}.png"
             fileio.write_png(path, error_strip(target, render))

@@ -9,7 +9,7 @@ import pytest
 
 from psdr_cli import backend
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.estimators.coverage import coverage_image, hit_share
+from psdr_cli.estimators.coverage import coverage_image, hit_share, object_id
 from psdr_cli.experiment import parse_experiment
 from psdr_cli.losses.silhouette import silhouette_loss
 from psdr_cli.scene import build_scene
@@ -22,6 +22,10 @@ SCENE = {
         "cameras": [{"origin": [0.3, -2.4, 0.9], "target": [0, 0, 0.3], "fov": 34, "principal_point": [0.08, -0.05]}],
         "emitters": [{"type": "constant", "radiance": 1.0}],
         "objects": [{"name": "blob", "mesh": {"shape": "bunny", "size": 0.9, "faces": 600},
+                     "bsdf": {"type": "diffuse", "reflectance": 0.5}},
+                    # a floor behind it everywhere: coverage counts the object's hits, not the floor's
+                    {"name": "floor", "mesh": {"shape": "plane", "size": 20}, "edges": False,
+                     "transform": {"translate": [0, 0, -0.6]},
                      "bsdf": {"type": "diffuse", "reflectance": 0.5}}]},
     "estimator": {"spp": 16, "primary_spp": 64},
 }
@@ -31,7 +35,7 @@ def shifted_share(scene, key, V0, shift, spp, seed):
     params = mi.traverse(scene.mi_scene)
     params[key] = mi.Float(np.ravel(V0 + shift).astype(np.float32))
     params.update()
-    return np.asarray(hit_share(scene, 0, spp, seed), np.float64)
+    return np.asarray(hit_share(scene, 0, spp, seed, object_id(scene, "blob")), np.float64)
 
 
 @pytest.mark.parametrize("axis", [(1.0, 0.0, 0.0), (0.0, 0.0, 1.0)])
@@ -56,6 +60,8 @@ def test_coverage_gradient_matches_finite_differences(tmp_path, axis):
     fd = [(shifted_share(scene, key, V0, h * axis, 4096, 7 + r) - shifted_share(scene, key, V0, -h * axis, 4096, 7 + r))
           / (2 * h) for r in range(4)]
     fd = np.array(fd)
+    share = shifted_share(scene, key, V0, 0.0 * axis, 256, 3)
+    assert 0.05 < share.mean() < 0.6  # the floor fills the rest of the film and does not count
     est, fd_mean = grads.mean(0), fd.mean(0)
     est_se, fd_se = grads.std(0, ddof=1) / np.sqrt(len(grads)), fd.std(0, ddof=1) / np.sqrt(len(fd))
     ramp = np.tile(np.linspace(-1.0, 1.0, width), height) + 0.5  # J = Σ w_p C_p: x-motion shows too
@@ -81,7 +87,7 @@ def _pixel_gradient(scene, edges, key, V0, axis, seeds):
     params[key] = dr.ravel(V)
     params.update()
     est = type("E", (), {"primary_sampling": "length"})()
-    C = coverage_image(scene, edges, 0, 4, 64, seeds, est)
+    C = coverage_image(scene, edges, "blob", 0, 4, 64, seeds, est)
     dr.forward(t)
     return dr.grad(C)
 

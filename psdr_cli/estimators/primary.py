@@ -324,6 +324,11 @@ FOLD_MARGIN = 2.0
 FOLD_MAX_EPS = 1e-4
 
 
+def hits_shape(si, sid: int):
+    """Whether hits ``si`` are valid and on the shape with registry id ``sid``."""
+    return si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == sid)
+
+
 def is_own_face(si, own):
     """Whether hits ``si`` are on face (own[0], own[1]) or (own[2], own[3]) (shape id, prim index)."""
     sid = dr.reinterpret_array(mi.UInt32, si.shape)
@@ -418,13 +423,13 @@ def fold_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int,
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
                      sampler: mi.Sampler, max_depth: int, sampling: str = "length", hide_background: bool = False,
-                     coverage: bool = False):
+                     coverage: int | None = None):
     """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` curve points
     (mesh edges and intersection curves), edges drawn ∝ w_e·ℓ_e (``sampling``: module docstring);
     ``hide_background``: the far side of a silhouette against the sky reads 0, as the interior
-    term's camera rays do (:func:`.interior.radiance`); ``coverage``: the jump of the coverage
-    indicator (whether a camera ray hits any geometry) instead of the radiance's
-    (:mod:`.coverage`)."""
+    term's camera rays do (:func:`.interior.radiance`); ``coverage``: a shape's registry id
+    (:func:`shape_id`): the jump of the indicator that a camera ray's first hit is on that shape,
+    instead of the radiance's (:mod:`.coverage`)."""
     proj = Projection(sensor)
     width, height = proj.width, proj.height
     img = dr.zeros(mi.Float, width * height * 3)
@@ -476,8 +481,8 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         # common random numbers: both sides trace the same samples, so their difference keeps
         # the jump and loses most of the noise (each side alone stays unbiased)
         twin = sampler.clone()
-        if coverage:  # the indicator of a hit: 1 on the object's side, 0 on the background's
-            sides = [mi.Color3f(dr.select(ok & si.is_valid(), 1.0, 0.0)) for si in hits]
+        if coverage is not None:  # the indicator of a first hit on the object: 1 on its side, 0 beyond it
+            sides = [mi.Color3f(dr.select(ok & hits_shape(si, coverage), 1.0, 0.0)) for si in hits]
         else:
             sides = [interior.radiance(scene, s, ray, max_depth, ok, hide_background=hide_background, si=si)
                      for s, ray, si in zip((sampler, twin), rays, hits)]
