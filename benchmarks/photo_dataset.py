@@ -11,7 +11,7 @@ published mesh (the Stanford bunny inside the pymeshlab wheel) under a known env
   backdrop (``images/``) and mask PNGs (``masks/``, named ``<image name>.png``).
 
 The object sits in an arbitrary frame (``--scale``, ``--offset``), and the held-out views are
-every ``--holdout``-th camera. Also writes ``ground_truth.ply`` (the mesh in the dataset's
+every ``--holdout``-th camera (index mod k = 0, as ``holdout_every`` splits). Also writes ``ground_truth.ply`` (the mesh in the dataset's
 coordinates) and ``dataset.json`` (what made it).
 
 Mitsuba renders with ``hide_emitters`` and an RGBA film: its RGB is the premultiplied colour α·C,
@@ -114,7 +114,7 @@ def write_blender(out: Path, images, poses, fov_deg: float, holdout: int):
     (out / "test").mkdir(parents=True, exist_ok=True)
     splits = {"train": [], "test": []}
     for i, (rgba, pose) in enumerate(zip(images, poses)):
-        split = "test" if i % holdout == holdout - 1 else "train"
+        split = "test" if i % holdout == 0 else "train"  # as holdout_every k holds views out
         colour, alpha = straight(rgba)
         pixels = np.concatenate([srgb8(colour), np.round(255 * alpha)[..., None].astype(np.uint8)], -1)
         name = f"{split}/r_{i:03d}"
@@ -166,7 +166,7 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--fov", type=float, default=35.0)
-    ap.add_argument("--holdout", type=int, default=8, help="every k-th view is a test view")
+    ap.add_argument("--holdout", type=int, default=8, help="every k-th view (index mod k = 0) is a test view")
     ap.add_argument("--scale", type=float, default=3.0, help="the object's size in the dataset's frame")
     ap.add_argument("--offset", type=float, nargs=3, default=[4.0, -2.0, 1.0])
     ap.add_argument("--faces", type=int, default=5000)

@@ -32,7 +32,8 @@ from .pinhole import pinhole_camera
 
 def look_at_point(origins: np.ndarray, axes: np.ndarray) -> np.ndarray:
     """c = argmin Σ_i ‖(I − a_i a_iᵀ)(c − o_i)‖², the point closest to every optical axis
-    (o_i, a_i); ``None`` when the axes are (nearly) parallel and no such point is defined."""
+    (o_i, a_i); ``None`` when the axes are (nearly) parallel and no such point is defined. (The
+    axes' direction does not enter: :func:`normalisation` checks the cameras face the point.)"""
     A, b = np.zeros((3, 3)), np.zeros(3)
     for o, a in zip(origins, axes):
         P = np.eye(3) - np.outer(a, a)
@@ -52,6 +53,11 @@ def normalisation(frames, where: str) -> tuple:
     if c is None:
         raise PsdrError(f"{where}: the cameras' optical axes are parallel: they have no common look-at point "
                         f"to centre the reconstruction on")
+    ahead = np.einsum("ij,ij->i", c - origins, axes) > 0
+    if ahead.mean() < 0.5:
+        raise PsdrError(f"{where}: the cameras look away from their axes' common point ({int((~ahead).sum())} of "
+                        f"{len(ahead)} have it behind them): an object-centred capture is expected (check the "
+                        f"camera convention: OpenCV for COLMAP, OpenGL for transforms.json)")
     d = float(np.median(np.linalg.norm(origins - c, axis=1)))
     tan_half = float(np.median([f.width / (2 * f.fx) for f in frames]))
     if not d > 0:
@@ -127,7 +133,7 @@ def dataset_frames(dataset: DatasetConfig, split: str = "train"):
     """The frames of ``split`` ('train' or 'test': the held-out views) of a dataset, read and
     checked (:func:`psdr_cli.datasets.views.read_frames`); every split is read so that the
     normalised frame does not depend on which is asked for."""
-    frames = read_frames(dataset, where=f"optimize.target.dataset")
+    frames = read_frames(dataset, where="optimize.target.dataset")
     train, held_out = split_views(frames, dataset.holdout_every)
     chosen = train if split == "train" else held_out
     if not chosen:
@@ -139,23 +145,48 @@ def dataset_frames(dataset: DatasetConfig, split: str = "train"):
 def dataset_scene(exp: Experiment, split: str = "train") -> Experiment:
     """``exp`` with the cameras and film of a dataset's ``split`` in the normalised frame, the
     scene's lights and objects mapped into it, the frame stored in ``optimize.target_dataset``,
-    and the background hidden when the photographs carry masks (``background: auto``)."""
+    and the background hidden when the photographs carry masks (``background: auto``). On an
+    experiment whose scene is already mapped (``target_dataset.frame`` set: another split of a
+    loaded experiment), only the cameras, film and background change."""
     dataset = exp.optimize.target_dataset
     frames, chosen = dataset_frames(dataset, split)
     frame = normalisation(frames, str(dataset.path))
     views = [processed_view(f, dataset.downsample) for f in chosen]
     width, height = views[0].width, views[0].height
     cameras = [normalised_camera(v, frame) for v in views]
-    hidden = dataset.background == "hidden" or (dataset.background == "auto" and any(has_mask(f) for f in chosen))
-    if hidden and exp.estimator.engine == "mitsuba":
-        raise PsdrError(f"{exp.file}: estimator.engine: 'mitsuba' cannot hide the background of masked photographs "
-                        f"(use the psdr engine, or optimize.target.dataset.background: visible)")
-    up = world_up(frames, dataset.up)
-    scene = replace(exp.scene, width=width, height=height, cameras=cameras, hide_background=hidden,
-                    emitters=[normalised_emitter(e, frame, up) for e in exp.scene.emitters],
-                    objects=[normalised_object(o, frame, exp.optimize.object) for o in exp.scene.objects])
+    hidden = hides_background(exp, dataset, frames)
+    scene = replace(exp.scene, width=width, height=height, cameras=cameras, hide_background=hidden)
+    if dataset.frame is None:
+        up = world_up(frames, dataset.up)
+        scene = replace(scene, emitters=[normalised_emitter(e, frame, up) for e in exp.scene.emitters],
+                        objects=[normalised_object(o, frame, exp.optimize.object) for o in exp.scene.objects])
     opt = replace(exp.optimize, target_dataset=replace(dataset, frame=frame, split=split))
     return replace(exp, scene=scene, optimize=opt)
+
+
+def hides_background(exp: Experiment, dataset: DatasetConfig, frames) -> bool:
+    """Whether camera rays that leave the scene see black: ``background: hidden``, or ``auto``
+    with masked photographs (every frame masked, or none: a mix is refused). Refused with it:
+    Mitsuba's engine (in the experiment or a variant), which draws the environment, and other
+    objects, which would show against the masks' black."""
+    masked = [has_mask(f) for f in frames]
+    if dataset.background == "auto" and any(masked) and not all(masked):
+        bad = next(f for f, m in zip(frames, masked) if not m)
+        raise PsdrError(f"{bad.image}: this photograph has no mask (no alpha, no mask file) while others have: "
+                        f"give every photograph a mask, or none (optimize.target.dataset.background: visible)")
+    hidden = dataset.background == "hidden" or (dataset.background == "auto" and all(masked))
+    if not hidden:
+        return False
+    engines = [exp.estimator.engine] + [v.engine for v in exp.optimize.variants if getattr(v, "engine", None)]
+    if "mitsuba" in engines:
+        raise PsdrError(f"{exp.file}: estimator.engine: 'mitsuba' cannot hide the background of masked photographs "
+                        f"(use the psdr engine, or optimize.target.dataset.background: visible)")
+    others = [o.name for o in exp.scene.objects if o.name != exp.optimize.object]
+    if others:
+        raise PsdrError(f"{exp.file}: scene.objects: '{others[0]}' would show against the black the masked "
+                        f"photographs are fitted on: with masks the scene holds only the reconstructed object "
+                        f"(or set optimize.target.dataset.background: visible)")
+    return True
 
 
 def processed_view(frame, k: int):

@@ -10,7 +10,7 @@ on the shape. With a visible background the photograph is compared as it is.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -26,6 +26,14 @@ def undistortion_cache(exp):
     (files named by a hash of their source and intrinsics, so any run may reuse them; the targets
     folder survives a fresh start)."""
     return exp.run_dir / "targets" / "undistorted"
+
+
+@dataclass
+class TargetMasks:
+    """The targets' (H, W) masks in [0, 1], and per view the weight of each pixel in the L1 loss
+    (None: 1 everywhere; 0 where a photograph's colour mixes object and background)."""
+    masks: list
+    weights: list | None = None
 
 
 def dataset_views(exp):
@@ -60,9 +68,34 @@ def target_image(view, hidden: bool) -> np.ndarray:
 
 
 def dataset_targets(exp):
-    """(target images, views) of the experiment's cameras."""
+    """(target images, views) of the experiment's cameras. With the background hidden, a mask that
+    covers the whole of every photograph (an opaque alpha channel) is refused: it would fit the
+    photographs' backgrounds as part of the object."""
     views = dataset_views(exp)
+    if exp.scene.hide_background and views and all(v.mask is not None and v.mask.min() >= 0.999 for v in views):
+        raise PsdrError(f"{exp.optimize.target_dataset.path}: every photograph's mask (alpha) is opaque everywhere: "
+                        f"not a mask of the object; set optimize.target.dataset.background: visible")
     return [target_image(v, exp.scene.hide_background) for v in views], views
+
+
+def l1_weight(view, mask_file: bool) -> np.ndarray:
+    """The weight of each pixel of a view in the L1 loss: with a separate mask file the colour of
+    a pixel the mask covers only partly (0 < α < 1) mixes the object with the real background,
+    which no render reproduces: weight 0 there (its silhouette is the silhouette loss's), 1
+    elsewhere. With the image's own alpha (straight colour) every pixel counts."""
+    if not mask_file or view.mask is None:
+        return np.ones(view.image.shape[:2])
+    return ((view.mask <= 0.01) | (view.mask >= 0.99)).astype(np.float64)
+
+
+def dataset_masks(exp, views):
+    """The :class:`~psdr_cli.stages.TargetMasks` of the experiment's views when every one has a
+    mask, else None."""
+    if not views or any(v.mask is None for v in views):
+        return None
+    _, frames = dataset_frames(exp.optimize.target_dataset, exp.optimize.target_dataset.split)
+    weights = [l1_weight(v, f.mask is not None) for v, f in zip(views, frames)]
+    return TargetMasks([v.mask for v in views], weights if any(f.mask is not None for f in frames) else None)
 
 
 def dataset_initial_shape(exp, views):

@@ -26,6 +26,7 @@ from . import backend, fileio, plots
 from .config import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES, option_count, read_file
 from .errors import PsdrError
 from .experiment import load_experiment
+from .dataset_scene import dataset_frames
 from .held_out import score_mesh
 from .meshes import face_areas, read_mesh_file
 from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
@@ -277,6 +278,7 @@ def evaluate_held_out(exp, reference: Path | None = None, samples: int | None = 
     ref = load(reference) if reference is not None else None
     result = HeldOutReport(exp.file)
     runs = variant_experiments(exp)
+    dataset_frames(exp.optimize.target_dataset, "test")  # no held-out views: one line before anything is written
     jobs = []
     for _, run in runs:
         if not RunFiles(run.run_dir).checkpoints.is_dir():

@@ -126,7 +126,7 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
     for v in views:
         img = engine.image(problem, edges, v, it, guides.guides)
         adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, exp.seed, it) if cfg.adjoint_spp else None
-        loss += l1_loss(img, stage.arrays[v], adjoint) / len(views)
+        loss += l1_loss(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None) / len(views)
         if stage.masks is not None and weight > 0:
             coverage = engine.coverage(problem, edges, v, it)
             loss += weight * silhouette_loss(coverage, stage.masks[v]) / len(views)

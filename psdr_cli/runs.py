@@ -612,8 +612,8 @@ def plot_loss(files: RunFiles, rows: list):
         return
     it = np.array([int(r["iteration"]) for r in rows])
     loss = np.array([float(r["loss"]) for r in rows])
-    plots.lines(files.root / "loss.png", {"L1 loss": (it, loss)}, "iteration", "image L1 loss",
-                "psdr optimize", logy=True)
+    plots.lines(files.root / "loss.png", {"loss": (it, loss)}, "iteration",
+                "loss (image L1, and any silhouette or prior terms)", "psdr optimize", logy=True)
 
 
 def cached_target(path, key: str, shape: tuple):

@@ -52,26 +52,39 @@ def stage_images(targets, k: int):
 class Stage:
     """What a remesh stage renders against: its downsampling factor, the targets at that factor
     ((H/k, W/k, 3) arrays and flat ``mi.Float`` copies), whether its film is guided, its pixels,
-    and the targets' masks at that factor (flat ``mi.Float``, or None without masks)."""
+    the targets' masks at that factor (flat W·H ``mi.Float``, or None without masks) and the L1
+    weights (flat W·H·3, or None)."""
     factor: int
     images: list
     arrays: list
     guided: bool
     pixels: int
     masks: list | None = None
+    weights: list | None = None
 
 
-def stage_of(problem, targets, settings, terms, previous: Stage | None = None, masks=None) -> Stage:
+def stage_of(problem, targets, settings, terms, previous: Stage | None = None,
+             masks=None) -> Stage:
     """The stage ``problem`` renders (``previous`` again while its downsampling is unchanged);
-    ``masks``: the targets' (H, W) masks, or None."""
+    ``masks``: the targets' :class:`~psdr_cli.dataset_targets.TargetMasks`, or None."""
     if previous is not None and previous.factor == problem.factor:
         return previous
     images, arrays = stage_images(targets, problem.factor)
     pixels = pixel_count(problem)
-    mask_arrays = None
+    stage = Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixels), pixels)
     if masks is not None:
-        mask_arrays = stage_images([m[..., None] for m in masks], problem.factor)[1]
-    return Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixels), pixels, mask_arrays)
+        stage.masks = stage_images([m[..., None] for m in masks.masks], problem.factor)[1]
+    if masks is not None and masks.weights is not None:
+        stage.weights = [jit_array(mi.Float, np.ravel(np.repeat(block_min(w, problem.factor)[..., None], 3, -1)))
+                         for w in masks.weights]
+    return stage
+
+
+def block_min(image: np.ndarray, k: int) -> np.ndarray:
+    """The least value of every k × k block of an (H, W) array: a weight of 0 anywhere in a block
+    (a pixel the loss must not see) stays 0 at the coarser stage."""
+    H, W = image.shape
+    return image.reshape(H // k, k, W // k, k).min(axis=(1, 3))
 
 
 def pixel_count(problem) -> int:

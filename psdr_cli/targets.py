@@ -13,8 +13,8 @@ from typing import NamedTuple
 import numpy as np
 
 from . import atlas, fileio, meshes
-from .dataset_scene import to_dataset
-from .dataset_targets import dataset_initial_shape, dataset_targets
+from .dataset_scene import to_dataset, to_normalised
+from .dataset_targets import TargetMasks, dataset_initial_shape, dataset_masks, dataset_targets
 from .errors import PsdrError
 from .meshes import object_mesh
 from .mitsuba_scene import scene_files
@@ -33,7 +33,7 @@ class TargetInputs(NamedTuple):
     cameras: list | None
     reference: tuple | None
     initial: tuple | None = None
-    masks: list | None = None
+    masks: TargetMasks | None = None
 
 
 def read_targets(exp, fresh: bool = False) -> TargetInputs:
@@ -45,8 +45,7 @@ def read_targets(exp, fresh: bool = False) -> TargetInputs:
     hull = None
     if cfg.target_dataset:
         images, dataset = dataset_targets(exp)
-        masks = [v.mask for v in dataset] if all(v.mask is not None for v in dataset) else None
-        inputs, views = TargetInputs(images, None, None, masks=masks), len(images)
+        inputs, views = TargetInputs(images, None, None, masks=dataset_masks(exp, dataset)), len(images)
         hull = dataset if fresh and cfg.init is None else None
     elif cfg.target_images:
         images, cameras = image_targets(exp)
@@ -116,7 +115,10 @@ def initial_shape(exp, reference):
 
 def initial_shape_uv(exp, reference):
     """(V, F, UV or None) of the initial shape (:func:`initial_shape`); with ``albedo.texture`` the
-    default sphere is a UV sphere, and a given ``init`` must have UVs."""
+    default sphere is a UV sphere, and a given ``init`` must have UVs. With a camera dataset an
+    ``init`` mesh file (and its transform) is in the dataset's coordinates, like the meshes a run
+    writes (so a run can start from another's ``final.ply``); a procedural shape is in the
+    normalised frame, where the object has about unit size (:mod:`psdr_cli.dataset_scene`)."""
     cfg = exp.optimize
     texture = cfg.albedo and cfg.albedo_texture is not None
     if cfg.init is not None:
@@ -124,7 +126,10 @@ def initial_shape_uv(exp, reference):
         if texture and uv is None:
             raise PsdrError(f"{exp.file}: optimize.init.mesh: has no UV coordinates, which optimize.albedo.texture "
                             f"needs (e.g. {{shape: sphere, resolution: 16, uv: true}}, or an OBJ with 'vt')")
-        return meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform)), F, uv
+        V = meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform))
+        if cfg.target_dataset and cfg.init.file is not None:  # a mesh file is in the dataset's coordinates
+            V = to_normalised(V, cfg.target_dataset.frame)
+        return V, F, uv
     if reference is None:
         raise PsdrError(f"{exp.file}: optimize.init: required when the targets are images "
                         f"(e.g. init: {{mesh: {{shape: sphere, radius: 0.5}}}})")

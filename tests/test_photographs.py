@@ -33,7 +33,7 @@ def experiment_data(dataset: Path, **optimize) -> dict:
     data["scene"]["emitters"][0]["file"] = str(ROOT / "scenes" / "studio.exr")
     data["optimize"]["target"]["dataset"] = {"path": str(dataset)}
     data["optimize"].update({"iterations": 4, "batch_size": 2, "checkpoint_every": 2, "preview_views": [0],
-                             "remesh": {"method": "none"}, "adjoint_spp": 0, **optimize})
+                             "remesh": {"method": "none"}, **optimize})
     return data
 
 
@@ -62,17 +62,19 @@ def test_the_example_dataset_reconstructs_and_is_scored_on_held_out_views(tmp_pa
     """`psdr optimize` then `psdr evaluate` on the shipped example: meshes in the dataset's own
     coordinates (the first one, the visual hull, already close to the ground truth), held-out
     scores for the initial and the last mesh, a strip per held-out view."""
-    config = write(tmp_path, experiment_data(DATA / "blender"))
+    config = write(tmp_path, experiment_data(DATA / "blender", iterations=12, checkpoint_every=6))
     r = run_cli("optimize", config, timeout=400)
     assert r.returncode == 0, r.stdout + r.stderr
     run = tmp_path / "runs" / "photos_bunny_blender"
     r = run_cli("evaluate", config, "--reference", DATA / "ground_truth.ply", timeout=400)
     assert r.returncode == 0, r.stdout + r.stderr
     rows = json.loads((run / "held_out" / "held_out.json").read_text())["meshes"]
-    assert [row["iteration"] for row in rows] == [0, 4]
+    assert [row["iteration"] for row in rows] == [0, 12]
     for row in rows:
         assert row["views"] == 4 and row["iou"] > 0.9 and row["psnr"] > 15, row
         assert row["chamfer_l1"] < 0.03, row  # the hull, in the dataset's frame (not the normalised one)
+    first, last = rows
+    assert last["iou"] >= first["iou"] - 0.005 and last["psnr"] > first["psnr"], rows  # no step away
     assert len(list((run / "held_out").glob("*.png"))) == 8
 
 
@@ -94,16 +96,17 @@ def test_a_dataset_scaled_and_shifted_gives_the_same_reconstruction_scaled_and_s
 def test_the_blender_and_colmap_forms_of_a_dataset_give_the_same_cameras(tmp_path):
     """The example's COLMAP text model (JPEGs over a backdrop, mask PNGs) and its Blender form
     (RGBA PNGs) describe the same cameras: the same normalised cameras, film and hidden
-    background (every 5th view held out of the COLMAP form, as the Blender form's test split)."""
+    background (every 5th view held out of the COLMAP form: the Blender form's test split)."""
     blender = load_experiment(write(tmp_path, experiment_data(DATA / "blender")))
     data = experiment_data(DATA / "colmap")
     data["optimize"]["target"]["dataset"]["holdout_every"] = 5
     colmap = parse_experiment(data, tmp_path / "colmap.yaml")
     assert (blender.scene.width, blender.scene.height) == (colmap.scene.width, colmap.scene.height) == (64, 64)
     assert blender.scene.hide_background and colmap.scene.hide_background
-    # Blender's train split: views i % 5 != 4; COLMAP's with holdout_every 5: i % 5 != 0
-    b = {i: c for i, c in zip([i for i in range(20) if i % 5 != 4], blender.scene.cameras)}
+    # the Blender form's train split and COLMAP's with holdout_every 5: the views i % 5 != 0
+    b = {i: c for i, c in zip([i for i in range(20) if i % 5 != 0], blender.scene.cameras)}
     c = {i: cam for i, cam in zip([i for i in range(20) if i % 5 != 0], colmap.scene.cameras)}
+    assert set(b) == set(c)
     fb, fc = blender.optimize.target_dataset.frame, colmap.optimize.target_dataset.frame
     for i in set(b) & set(c):
         ob = to_dataset(np.array([b[i].origin]), fb)[0]
@@ -111,6 +114,18 @@ def test_the_blender_and_colmap_forms_of_a_dataset_give_the_same_cameras(tmp_pat
         assert np.allclose(ob, oc, atol=1e-4), (i, ob, oc)
         assert b[i].fov == pytest.approx(c[i].fov, abs=1e-4)
         assert np.allclose(b[i].principal_point, c[i].principal_point, atol=1e-6)
+    # the targets agree where the L1 sees them: a JPEG over a backdrop with a mask file against an
+    # RGBA PNG, premultiplied; the COLMAP form's partly covered pixels (its colour mixes in the
+    # backdrop) are left out of its L1 (weight 0)
+    from psdr_cli.dataset_targets import dataset_masks, dataset_targets
+    tb, vb = dataset_targets(blender)
+    tc, vc = dataset_targets(colmap)
+    weights = dataset_masks(colmap, vc).weights
+    tb = dict(zip(b, tb))
+    for (i, target), w in zip(zip(c, tc), weights):
+        if i in tb:
+            assert np.abs(target - tb[i])[w > 0].mean() < 0.01, i
+            assert (w == 0).sum() > 20  # the silhouette's partly covered pixels
 
 
 def test_the_look_at_point_and_the_normalised_frame():
@@ -183,6 +198,36 @@ def test_held_out_scores():
     assert score.iou == pytest.approx(0.5)
 
 
+def test_held_out_views_keep_the_lights_mapped_once(tmp_path):
+    """The held-out split of a loaded experiment moves only its cameras: an area light given in the
+    dataset's coordinates is mapped into the normalised frame once, for training and held-out
+    views alike."""
+    from psdr_cli.dataset_scene import dataset_scene
+    data = experiment_data(DATA / "blender")
+    data["scene"]["emitters"].append({"type": "area", "center": [4.0, -2.0, 9.0], "normal": [0, 0, -1],
+                                      "size": [2.0, 2.0], "radiance": 5.0})
+    exp = load_experiment(write(tmp_path, data))
+    test = dataset_scene(exp, split="test")
+    assert test.scene.emitters == exp.scene.emitters
+    frame = exp.optimize.target_dataset.frame
+    assert np.allclose(exp.scene.emitters[1].center, to_normalised(np.array([4.0, -2.0, 9.0]), frame))
+    assert exp.scene.emitters[1].size[0] == pytest.approx(2.0 * frame[0])
+    assert len(test.scene.cameras) == 4 and len(exp.scene.cameras) == 16
+
+
+def test_an_init_mesh_file_is_read_in_the_datasets_coordinates(tmp_path):
+    """``optimize.init`` as a mesh file (e.g. another run's final.ply) is in the dataset's
+    coordinates: the ground truth given as init starts where the object is (its checkpoint 0, in
+    the dataset's coordinates, is the ground truth again)."""
+    data = experiment_data(DATA / "blender", iterations=1)
+    data["optimize"]["init"] = {"mesh": {"file": str(DATA / "ground_truth.ply")}}
+    exp = load_experiment(write(tmp_path, data))
+    api.optimize(exp, warn=lambda line: None)
+    start = trimesh.load(exp.run_dir / "checkpoints" / "iter_0000.ply", process=False)
+    truth = trimesh.load(DATA / "ground_truth.ply", process=False)
+    assert np.allclose(start.vertices, truth.vertices, atol=1e-4 * np.ptp(truth.vertices))
+
+
 @pytest.mark.parametrize("edit, message", [
     (lambda d: d["scene"].update(cameras=[{"origin": [0, -3, 0], "target": [0, 0, 0]}]),
      "scene.cameras: not allowed with optimize.target.dataset"),
@@ -191,6 +236,9 @@ def test_held_out_scores():
     (lambda d: d["estimator"].update(engine="mitsuba"), "estimator.engine: 'mitsuba' cannot hide the background"),
     (lambda d: d["optimize"]["target"]["dataset"].update(holdout_every=1), "holdout_every"),
     (lambda d: d["optimize"]["target"].update(mesh={"shape": "sphere"}), "give one of 'images', 'mesh' and 'dataset'"),
+    (lambda d: d["optimize"].update(variants=[{"label": "m", "engine": "mitsuba"}]), "'mitsuba' cannot hide"),
+    (lambda d: d["scene"]["objects"].append({"name": "stand", "mesh": {"shape": "plane"}}),
+     "'stand' would show against the black"),
 ])
 def test_bad_dataset_experiments_are_one_line(tmp_path, edit, message):
     data = experiment_data(DATA / "blender")
@@ -209,6 +257,51 @@ def test_a_bad_dataset_experiment_is_one_line_from_the_command_line(tmp_path):
     lines = [line for line in r.stderr.strip().splitlines() if line]
     assert len(lines) == 1 and "scene.film: not allowed with optimize.target.dataset" in lines[0], r.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def edited_blender(tmp_path, name, edit_frame=None, edit_image=None) -> Path:
+    """A copy of the example's Blender form with its frames and/or images edited."""
+    import cv2
+    dataset = tmp_path / name
+    shutil.copytree(DATA / "blender", dataset)
+    for f in dataset.glob("transforms_*.json"):
+        d = json.loads(f.read_text())
+        for i, frame in enumerate(d["frames"]):
+            if edit_frame:
+                edit_frame(i, frame)
+            if edit_image:
+                path = dataset / (frame["file_path"] + ".png")
+                cv2.imwrite(str(path), edit_image(i, cv2.imread(str(path), cv2.IMREAD_UNCHANGED)))
+        f.write_text(json.dumps(d))
+    return dataset
+
+
+def test_a_dataset_of_cameras_looking_outward_is_one_line(tmp_path):
+    """Every camera turned 180° about its up axis (its axis through the same common point, but
+    facing away): refused, not a silent sphere behind every camera."""
+    def turn(i, frame):
+        M = np.array(frame["transform_matrix"])
+        M[:3, 0], M[:3, 2] = -M[:3, 0], -M[:3, 2]
+        frame["transform_matrix"] = M.tolist()
+    with pytest.raises(PsdrError, match="look away from"):
+        parse_experiment(experiment_data(edited_blender(tmp_path, "outward", turn)), tmp_path / "x.yaml")
+
+
+def test_masks_on_some_photographs_only_are_one_line(tmp_path):
+    import cv2
+    dataset = edited_blender(tmp_path, "mixed", edit_image=lambda i, im: cv2.cvtColor(im, cv2.COLOR_BGRA2BGR)
+                             if i == 2 else im)
+    with pytest.raises(PsdrError, match="has no mask"):
+        parse_experiment(experiment_data(dataset), tmp_path / "x.yaml")
+
+
+def test_an_opaque_alpha_everywhere_is_not_a_mask(tmp_path):
+    def opaque(i, im):
+        im[..., 3] = 255
+        return im
+    exp = parse_experiment(experiment_data(edited_blender(tmp_path, "opaque", edit_image=opaque)), tmp_path / "x.yaml")
+    with pytest.raises(PsdrError, match="opaque everywhere"):
+        api.optimize(exp)
 
 
 def test_a_dataset_whose_cameras_share_no_look_at_point_is_one_line(tmp_path):
@@ -275,7 +368,7 @@ def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path):
     V, F = read_mesh_file(DATA / "ground_truth.ply")
     scene = build_scene(exp, objects={"object": (to_normalised(V, exp.optimize.target_dataset.frame), F)})
     for v, view in enumerate(views):
-        rendered, mask = coverage(scene, v, 16) >= 0.5, view.mask >= 0.5
+        rendered, mask = coverage(scene, "object", v, 16) >= 0.5, view.mask >= 0.5
         assert (rendered & mask).sum() / (rendered | mask).sum() >= 0.97, v
 
 

@@ -176,14 +176,17 @@ def read_frames(spec, *, base=None, where: str = "dataset") -> list[Frame]:
     if model is None:
         raise DatasetError(folder, "", "no COLMAP model (expected cameras and images files in the folder, "
                                        "sparse/0, sparse or colmap/sparse/0)")
-    return read_colmap(model, spec.get("images") or colmap_images(folder), spec.get("masks") or colmap_masks(folder))
+    images = spec.get("images") or colmap_images(folder)
+    return read_colmap(model, images, spec.get("masks") or colmap_masks(folder, images))
 
 
-def colmap_masks(folder: Path) -> Path | None:
-    """The ``masks`` folder beside a COLMAP dataset's images (``folder/masks``), if there is one:
-    masks are used whenever they are there."""
-    candidate = Path(folder) / "masks"
-    return candidate if candidate.is_dir() else None
+def colmap_masks(folder: Path, images: Path) -> Path | None:
+    """The ``masks`` folder of a COLMAP dataset, if there is one (masks are used whenever they are
+    there): ``folder/masks``, else beside the image folder (``images/../masks``)."""
+    for candidate in (Path(folder) / "masks", Path(images).parent / "masks"):
+        if candidate.is_dir():
+            return candidate
+    return None
 
 
 def check_image_size(array: np.ndarray, frame: Frame, path: Path, what: str):

@@ -5,8 +5,10 @@ import drjit as dr
 import mitsuba as mi
 
 
-def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) -> mi.Float:
-    """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I.
+def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None,
+            weight: mi.Float | None = None) -> mi.Float:
+    """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I (with ``weight`` w:
+    mean w·|I − T|, pixels of weight 0 left out).
 
     With ``adjoint`` P (an independent primal render of the same view) the value is mean |P − T|
     and the derivative mean sign(P − T)·∂I. Taking the sign from the AD image I itself (n
@@ -16,7 +18,8 @@ def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None) 
     P of more samples, independent of those of ∂I, brings the estimate close to the gradient of
     the noise-free image's L1 loss at the cost of a forward render (docs/optimize.md, "Gradient
     quality per second")."""
+    w = 1.0 if weight is None else weight
     if adjoint is None:
-        return dr.mean(dr.abs(image - target))
+        return dr.mean(w * dr.abs(image - target))
     sign = dr.sign(adjoint - target)
-    return dr.mean(dr.abs(adjoint - target)) + dr.mean(sign * (image - dr.detach(image)))
+    return dr.mean(w * dr.abs(adjoint - target)) + dr.mean(w * sign * (image - dr.detach(image)))
