@@ -34,6 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import drjit as dr  # noqa: E402
+from machine import reference_loop_seconds as reference_loop  # noqa: E402
 
 import psdr_cli  # noqa: E402
 from psdr_cli import backend, iteration  # noqa: E402
@@ -50,15 +51,6 @@ from psdr_cli.targets import initial_state, load_targets, read_targets  # noqa: 
 
 CONFIG = REPO / "configs" / "reconstruct_bunny.yaml"
 FIELDS = ("wall", "execution", "codegen", "backend", "python", "kernels", "jit", "memset", "compiled")
-
-
-def reference_loop() -> float:
-    """Seconds of a fixed 10⁷-step Python loop (the machine's speed at this moment)."""
-    t = time.perf_counter()
-    s = 0
-    for i in range(10_000_000):
-        s += i
-    return time.perf_counter() - t
 
 
 class Phases:

@@ -32,18 +32,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from machine import reference_loop_seconds  # noqa: E402
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def reference_loop_seconds() -> float:
-    """Seconds of a fixed 10⁷-step Python loop: this machine's speed, next to absolute times."""
-    t = time.perf_counter()
-    s = 0
-    for i in range(10_000_000):
-        s += i
-    return time.perf_counter() - t
 
 
 def dataset_config(dataset: Path, out: Path, iterations: int, name: str, downsample: int, **dataset_keys) -> Path:

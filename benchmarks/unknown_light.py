@@ -44,6 +44,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from machine import reference_loop_seconds  # noqa: E402
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,15 +54,6 @@ CUP_ALBEDO = (0.8, 0.7, 0.6)
 #: The cup's profile (r, z), closed on the axis: outer wall flaring from r 0.75 to 1 over height
 #: 1.2, wall 0.12 at the rim, bottom 0.14 thick.
 CUP_PROFILE = [(0.0, 0.0), (0.75, 0.0), (1.0, 1.2), (0.88, 1.2), (0.66, 0.14), (0.0, 0.14)]
-
-
-def reference_loop_seconds() -> float:
-    """Seconds of a fixed 10⁷-step Python loop: this machine's speed, next to absolute times."""
-    t = time.perf_counter()
-    s = 0
-    for i in range(10_000_000):
-        s += i
-    return time.perf_counter() - t
 
 
 def solid_angle_mean(image: np.ndarray) -> np.ndarray:
