@@ -148,7 +148,7 @@ def write_report(args, results: dict, reference_s: float):
                                                            "results": results}, indent=1))
     own = results.get("own", {}).get("chamfer", [[0, None, None]])[-1][1]
     blender = results.get("blender", {}).get("chamfer", [[0, None, None]])[-1][1]
-    lines = [f"# Reconstruction from photographs (benchmarks/photographs.py)", "",
+    lines = ["# Reconstruction from photographs (benchmarks/photographs.py)", "",
              f"{args.views} views of {args.size}² rendered by Mitsuba's `path` integrator (max_depth 4), "
              f"downsampled {args.downsample}×, every {args.holdout}th view held out; {args.iterations} iterations "
              f"per route; reference 10⁷-step Python loop: {reference_s:.2f} s.", "",

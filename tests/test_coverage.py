@@ -62,8 +62,6 @@ def test_coverage_gradient_matches_finite_differences(tmp_path, axis):
     fd = np.array(fd)
     share = shifted_share(scene, key, V0, 0.0 * axis, 256, 3)
     assert 0.05 < share.mean() < 0.6  # the floor fills the rest of the film and does not count
-    est, fd_mean = grads.mean(0), fd.mean(0)
-    est_se, fd_se = grads.std(0, ddof=1) / np.sqrt(len(grads)), fd.std(0, ddof=1) / np.sqrt(len(fd))
     ramp = np.tile(np.linspace(-1.0, 1.0, width), height) + 0.5  # J = Σ w_p C_p: x-motion shows too
     total, total_fd = grads @ ramp, fd @ ramp
     se = np.hypot(total.std(ddof=1) / np.sqrt(len(total)), total_fd.std(ddof=1) / np.sqrt(len(total_fd)))
