@@ -556,6 +556,7 @@ class OptimizeConfig:
     envmap: EnvmapUnknown | None = None    # the environment map itself as an unknown
     material: tuple = ()                   # of MaterialUnknown: roughness, metallic, specular
     seconds: float | None = None           # wall-clock budget of the optimisation (equal-time runs)
+    outlier_clip: str | float = "auto"     # each gradient scaled to at most c times its running norm (outlier_clip.py)
     variants: tuple = ()                   # of Variant: one run folder each, <output>/<name>/<label>
     target_seed: int | None = None         # not a YAML key: a variant's targets use its base experiment's seed
 
@@ -1248,6 +1249,15 @@ def _texture_size(value, where):
     return tuple(integer(1, MAX_FILM)(v, where.child(i)) for i, v in enumerate(value))
 
 
+def _outlier_clip(value, where):
+    """``auto``, ``off`` or a factor c ≥ 1 (gradient entries beyond c·√v̂ of Adam are clipped)."""
+    if value in ("auto", "off"):
+        return value
+    if isinstance(value, str):
+        raise where.fail(f"expected auto, off or a number >= 1, got '{value}'")
+    return number(minimum=1)(value, where)
+
+
 def parse_optimize(base: Path) -> Parser:
     def parse(value, where) -> OptimizeConfig:
         sec = Section(value, where)
@@ -1309,6 +1319,7 @@ def parse_optimize(base: Path) -> Parser:
         o.envmap = sec.get("envmap", parse_envmap_unknown(base), None)
         o.material = sec.get("material", parse_material, ())
         o.seconds = sec.get("seconds", number(positive=True), None)
+        o.outlier_clip = sec.get("outlier_clip", _outlier_clip, o.outlier_clip)
         if sec.has("variants"):
             o.variants = tuple(sec.get("variants", list_of(run_variant_parser(stages), min_len=1)))
             unique_labels(o.variants, where)

@@ -23,6 +23,7 @@ from .guiding.targets import Guides
 from .jitarray import jit_array
 from .losses.l1 import l1_loss
 from .losses.silhouette import silhouette_loss
+from .outlier_clip import clip_factor, clip_outliers
 from .render import render_view
 
 
@@ -146,6 +147,7 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
     else:
         if cfg.learning_rate_final is not None:
             problem.opt.set_learning_rate(learning_rate_at(cfg, it, total))
+        clip_outliers(problem.opt, clip_factor(cfg.outlier_clip, exp.scene.max_depth))
         problem.opt.step()
         problem.after_step()  # ranges and the environment's mean (problem.py)
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
