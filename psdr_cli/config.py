@@ -516,6 +516,23 @@ MATERIAL_UNKNOWNS = {
     "specular": ((0.0, 1.0), {"principled": "specular"}),
 }
 
+# Mitsuba's defaults of those parameters (a texture starts from them when neither optimize.material.NAME.init
+# nor the BSDF gives a value)
+MATERIAL_DEFAULTS = {"roughness": 0.5, "alpha": 0.1, "metallic": 0.0, "specular": 0.5}
+
+
+def needs_uv(opt) -> bool:
+    """Whether the shape being optimised needs texture coordinates: a texture is recovered
+    (``optimize.albedo.texture`` or ``optimize.material.NAME.texture``)."""
+    return bool((opt.albedo and opt.albedo_texture is not None) or any(m.texture is not None for m in opt.material))
+
+
+def unwrap_size(opt) -> tuple:
+    """(W, H) a UV atlas is laid out for: the largest texture being recovered (:func:`needs_uv`)."""
+    sizes = ([opt.albedo_texture] if opt.albedo and opt.albedo_texture is not None else []) + \
+        [m.texture for m in opt.material if m.texture is not None]
+    return max(sizes, key=lambda s: s[0] * s[1])
+
 
 @dataclass
 class MaterialUnknown:
@@ -523,6 +540,7 @@ class MaterialUnknown:
     name: str
     init: float | None = None              # default: the object's BSDF value
     learning_rate: float = 0.02
+    texture: tuple | None = None           # (W, H): a one-channel bitmap instead of one value
 
 
 @dataclass
@@ -1373,7 +1391,7 @@ def _envmap_size(value, where):
 
 
 def parse_material(value, where) -> tuple:
-    """``optimize.material: {roughness: {init, learning_rate}, metallic: ..., specular: ...}``."""
+    """``optimize.material: {roughness: {init, learning_rate, texture}, metallic: ..., specular: ...}``."""
     sec = Section(value, where)
     out = []
     for name, ((lo, hi), _) in MATERIAL_UNKNOWNS.items():
@@ -1383,7 +1401,8 @@ def parse_material(value, where) -> tuple:
         w = where.child(name)
         m = Section(sec.get(name, lambda v, _: v), w)
         u = MaterialUnknown(name, init=m.get("init", number(minimum=lo, maximum=hi), None),
-                            learning_rate=m.get("learning_rate", number(positive=True), 0.02))
+                            learning_rate=m.get("learning_rate", number(positive=True), 0.02),
+                            texture=m.get("texture", _texture_size, None))
         m.done()
         out.append(u)
     sec.done()

@@ -11,10 +11,13 @@ angle (``environment.exr``: used in place of the emitter's file, with the same `
 recovered map exp(x) is that file. From a mesh file (PLY/OBJ): the
 mesh, grey, or with ``--texture`` an image looked up at the mesh's UVs.
 
-Materials are diffuse: MTL ``Kd`` (linear) or ``map_Kd``; glTF metallic-roughness with
-``baseColorTexture`` (sRGB PNG) or ``baseColorFactor`` (linear), metallic 0, roughness 1, or the
-recovered ``optimize.material`` values (roughnessFactor: a principled roughness as it is, a rough
-conductor's or dielectric's α as √α; the specular level only in ``export.json``).
+Materials: MTL ``Kd`` (linear) or ``map_Kd``; glTF metallic-roughness with ``baseColorTexture``
+(sRGB PNG) or ``baseColorFactor`` (linear), metallic 0, roughness 1, or the recovered
+``optimize.material`` values (a principled roughness as it is, a rough conductor's or
+dielectric's α as √α; the specular level only in ``export.json``). Recovered as textures
+(``optimize.material.NAME.texture``), roughness and metallic become the glTF
+``metallicRoughnessTexture`` (linear PNG: G roughness, B metallic, factors 1) and the MTL's PBR
+maps ``map_Pr`` / ``map_Pm`` (linear grey PNGs); as values, the factors and ``Pr`` / ``Pm``.
 UVs are Mitsuba's (v down the image) in the glTF file, as glTF has them, and flipped (v up) in
 the OBJ, as OBJ has them.
 
@@ -45,6 +48,8 @@ from .scene import environment_to_world, exr_texels, read_bitmap
 
 #: Files of an export (export.json lists the ones written).
 OBJ, MTL, PNG, GLB, ENV, RECORD = "mesh.obj", "mesh.mtl", "albedo.png", "mesh.glb", "environment.exr", "export.json"
+MR_PNG = "metallic_roughness.png"  # glTF: G roughness, B metallic (linear)
+PBR_PNG = {"roughness": "roughness.png", "metallic": "metallic.png"}  # MTL map_Pr, map_Pm (linear grey)
 GREY = (0.5, 0.5, 0.5)
 
 
@@ -67,6 +72,7 @@ class Asset:
     environment: np.ndarray | None = None
     metallic: float = 0.0
     roughness: float = 1.0
+    maps: dict = field(default_factory=dict)  # "roughness"/"metallic" → (H, W) glTF-convention texels
     notes: list = field(default_factory=list)
     record: dict = field(default_factory=dict)
 
@@ -118,6 +124,10 @@ def run_asset(folder: Path, warn) -> Asset:
         asset.color = tuple(float(c) for c in np.broadcast_to(np.clip(np.ravel(albedo), 0, 1), 3))
     else:
         asset.color = object_color(exp, asset.notes)
+    if any(np.ndim(state.values.get(k)) == 3 for k in PBR_PNG) and asset.uv is None:
+        if state.uv is None:
+            raise PsdrError(f"{files.state}: the run recovered a material texture but its state has no UV coordinates")
+        asset.uv = np.asarray(state.uv, np.float64)
     angle = state.values.get("envmap_angle")
     if angle is not None:
         asset.record["envmap_angle_deg"] = float(np.degrees(np.ravel(angle)[0]))
@@ -133,13 +143,20 @@ def recovered_material(asset: Asset, exp, values: dict):
     """glTF metallic and roughness factors of the recovered ``optimize.material`` values (the
     defaults, 0 and 1, for those not recovered); every recovered value in ``export.json``."""
     obj = run_object(exp)
-    if values.get("metallic") is not None:
-        asset.metallic = float(np.clip(np.ravel(values["metallic"])[0], 0, 1))
-    if values.get("roughness") is not None:
-        r = float(np.clip(np.ravel(values["roughness"])[0], 0, 1))
-        asset.roughness = r if obj is None or obj.bsdf.type == "principled" else float(np.sqrt(r))
-    asset.record.update({k: float(np.ravel(values[k])[0]) for k in ("roughness", "metallic", "specular")
-                         if values.get(k) is not None})
+    principled = obj is None or obj.bsdf.type == "principled"
+    for name in ("roughness", "metallic"):
+        if values.get(name) is None:
+            continue
+        v = np.clip(np.asarray(values[name], np.float64), 0, 1)
+        v = v if name == "metallic" or principled else np.sqrt(v)  # glTF roughness of an α
+        if v.ndim == 3:
+            asset.maps[name] = v[..., 0]
+            asset.record[name] = PBR_PNG[name]
+        else:
+            setattr(asset, name, float(v.ravel()[0]))
+            asset.record[name] = float(np.ravel(values[name])[0])
+    if values.get("specular") is not None:
+        asset.record["specular"] = float(np.ravel(values["specular"])[0])
 
 
 def run_experiment(files: RunFiles, notes: list, warn):
@@ -313,8 +330,16 @@ def write_files(folder: Path, asset: Asset) -> list:
         png = np.round(fileio.srgb(asset.texture) * 255).astype(np.uint8)
         fileio.write_png(folder / PNG, png)
         names.insert(2, PNG)
+    for name, texels in asset.maps.items():
+        grey = np.round(texels * 255).astype(np.uint8)
+        fileio.write_png(folder / PBR_PNG[name], np.repeat(grey[..., None], 3, axis=-1))
+        names.insert(-1, PBR_PNG[name])
+    mr = metallic_roughness(asset)
+    if mr is not None:
+        fileio.write_png(folder / MR_PNG, mr)
+        names.insert(-1, MR_PNG)
     write_obj(folder / OBJ, folder / MTL, asset)
-    write_glb(folder / GLB, asset, png)
+    write_glb(folder / GLB, asset, png, mr)
     if asset.environment is not None:
         fileio.write_rgb_exr(folder / ENV, asset.environment)
         names.append(ENV)
@@ -326,9 +351,9 @@ def write_files(folder: Path, asset: Asset) -> list:
 
 def write_obj(path: Path, mtl: Path, asset: Asset):
     """OBJ (one vertex per position/UV pair, ``vt`` with v up the image) and its MTL."""
-    lines = [f"# psdr export", f"mtllib {mtl.name}", "usemtl material"]
+    lines = ["# psdr export", f"mtllib {mtl.name}", "usemtl material"]
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in asset.V]
-    if asset.texture is not None:
+    if asset.uv is not None:
         lines += [f"vt {u:.9g} {1 - v:.9g}" for u, v in asset.uv]
         lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in asset.F]
     else:
@@ -337,23 +362,47 @@ def write_obj(path: Path, mtl: Path, asset: Asset):
     material = ["newmtl material", "Ka 0 0 0", "Kd {:.6g} {:.6g} {:.6g}".format(*kd), "Ks 0 0 0", "Ns 1", "illum 1"]
     if asset.texture is not None:
         material.append(f"map_Kd {PNG}")
+    for name, key in (("roughness", "Pr"), ("metallic", "Pm")):  # the MTL's PBR extension
+        material.append(f"map_{key} {PBR_PNG[name]}" if name in asset.maps else f"{key} {getattr(asset, name):.6g}")
     with fileio.atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     with fileio.atomic_path(mtl) as tmp:
         tmp.write_text("\n".join(material) + "\n")
 
 
-def write_glb(path: Path, asset: Asset, png):
+def metallic_roughness(asset: Asset):
+    """The glTF metallic-roughness texture (H, W, 3) uint8 when roughness or metallic is a texture:
+    G roughness, B metallic (a value recovered as a number fills its channel; the smaller texture
+    is resampled bilinearly to the larger one's size), R unused (0); else None."""
+    if not asset.maps:
+        return None
+    H, W = max((m.shape for m in asset.maps.values()), key=lambda s: s[0] * s[1])
+    def channel(name):
+        m = asset.maps.get(name)
+        if m is None:
+            return np.full((H, W), getattr(asset, name))
+        return m if m.shape == (H, W) else np.asarray(Image.fromarray(m.astype(np.float32)).resize((W, H), Image.BILINEAR))
+    out = np.stack([np.zeros((H, W)), channel("roughness"), channel("metallic")], -1)
+    return np.round(np.clip(out, 0, 1) * 255).astype(np.uint8)
+
+
+def write_glb(path: Path, asset: Asset, png, mr=None):
     """Binary glTF 2.0 through trimesh: a metallic-roughness material (metallic 0, roughness 1 unless
-    recovered)."""
+    recovered; with ``mr``, the metallic-roughness texture and factors 1)."""
+    textures = {}
     if png is not None:
-        material = trimesh.visual.material.PBRMaterial(name="material", baseColorTexture=Image.fromarray(png),
-                                                       metallicFactor=asset.metallic, roughnessFactor=asset.roughness)
+        textures["baseColorTexture"] = Image.fromarray(png)
+    else:
+        textures["baseColorFactor"] = [*asset.color, 1.0]
+    if mr is not None:
+        textures["metallicRoughnessTexture"] = Image.fromarray(mr)
+    material = trimesh.visual.material.PBRMaterial(
+        name="material", metallicFactor=1.0 if mr is not None else asset.metallic,
+        roughnessFactor=1.0 if mr is not None else asset.roughness, **textures)
+    if asset.uv is not None:
         uv = np.column_stack([asset.uv[:, 0], 1.0 - asset.uv[:, 1]])  # trimesh's (OBJ) convention; flipped back in glTF
         visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
     else:
-        material = trimesh.visual.material.PBRMaterial(name="material", baseColorFactor=[*asset.color, 1.0],
-                                                       metallicFactor=asset.metallic, roughnessFactor=asset.roughness)
         visual = trimesh.visual.TextureVisuals(material=material)
     mesh = trimesh.Trimesh(asset.V, asset.F, visual=visual, process=False)
     data = trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=False)

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
+import numpy as np
 
 from . import backend, fileio
 from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
@@ -167,6 +168,10 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
         previews = {v: (targets[v], render_view(problem.scene, v, 16, seed=exp.seed))
                     for v in exp.optimize.preview_views}
     texture = problem.texture_image() if problem.texture else None
+    for name in problem.material_textures:  # optimize.material.NAME.texture, grey
+        grey = np.repeat(problem.material_image(name), 3, axis=-1)
+        fileio.write_rgb_exr(files.material(name), grey, {"psdr.iteration": str(iteration)})
+        fileio.write_preview(files.material(name).with_suffix(".png"), grey)
     if problem.environment:  # optimize.envmap: the map as the emitter uses it (before its scale)
         fileio.write_rgb_exr(files.envmap, problem.environment.radiance(problem.opt["envmap"]),
                              {"psdr.iteration": str(iteration)})
@@ -200,6 +205,8 @@ def summary_values(problem, files: RunFiles) -> dict:
     for k, v in problem.values().items():
         if k == "envmap_log":
             out["envmap"] = str(files.envmap)
+        elif k in problem.material_textures:
+            out[k] = str(files.material(k))
         else:
             out[k] = str(files.albedo) if k == "albedo" and problem.texture else v.tolist()
     return out

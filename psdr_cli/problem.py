@@ -11,9 +11,11 @@ import mitsuba as mi
 import numpy as np
 
 from . import atlas
-from .config import MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig, ParameterConfig, emitter_id
+from .config import (MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig, ParameterConfig, emitter_id,
+                     needs_uv, unwrap_size)
 from .errors import PsdrError
 from .jitarray import jit_array
+from .material_params import bsdf_parameter, material_key, material_texture_experiment
 from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
@@ -31,10 +33,16 @@ class Problem:
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if uv is None else np.asarray(uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
+        self.material_textures = {m.name: m.texture for m in self.cfg.material if m.texture is not None}
         built = stage_experiment(exp, stage)
+        if needs_uv(self.cfg) and self.uv is None:
+            what = "albedo.texture" if self.texture else f"material.{next(iter(self.material_textures))}.texture"
+            raise PsdrError(f"{exp.file}: optimize.{what}: the shape being optimised has no UV coordinates")
+        for m in self.cfg.material:
+            if m.texture is not None:
+                built = material_texture_experiment(built, m.name, initial_texels(exp, m, state_values.get(m.name)),
+                                                    texture_lookup(exp))
         if self.texture:
-            if self.uv is None:
-                raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
             init = state_values.get("albedo")
             W, H = self.cfg.albedo_texture
             if init is not None:
@@ -85,12 +93,15 @@ class Problem:
             self.opt.set_learning_rate({"envmap": self.cfg.envmap.learning_rate})
         self.materials = {}  # name -> (scene key, (lo, hi))
         for m in self.cfg.material:
-            self.materials[m.name] = material_key(exp, self.params, m.name)
-            init = state_values.get(m.name)
-            init = float(np.ravel(init)[0]) if init is not None else \
-                (m.init if m.init is not None else float(np.ravel(self.params[self.materials[m.name][0]])[0]))
+            self.materials[m.name] = material_key(exp, self.params, m.name, texture=m.texture is not None)
             lo, hi = self.materials[m.name][1]
-            self.opt[m.name] = mi.Float(min(max(init, lo), hi))
+            if m.texture is not None:  # the scene holds the initial texels already
+                self.opt[m.name] = dr.clip(mi.TensorXf(self.params[self.materials[m.name][0]]), lo, hi)
+            else:
+                init = state_values.get(m.name)
+                init = float(np.ravel(init)[0]) if init is not None else \
+                    (m.init if m.init is not None else float(np.ravel(self.params[self.materials[m.name][0]])[0]))
+                self.opt[m.name] = mi.Float(min(max(init, lo), hi))
             self.opt.set_learning_rate({m.name: m.learning_rate})
 
     @classmethod
@@ -150,7 +161,10 @@ class Problem:
         if self.environment and "envmap_log" in values:
             self.params[self.environment.key] = self.environment.texels(jit_array(mi.TensorXf, values["envmap_log"]))
         for name, (key, _) in self.materials.items():
-            if name in values:
+            if name in values and name in self.material_textures:
+                W, H = self.material_textures[name]
+                self.params[key] = jit_array(mi.TensorXf, np.asarray(values[name], np.float64).reshape(H, W, 1))
+            elif name in values:
                 self.params[key] = mi.Float(float(np.ravel(values[name])[0]))
 
     def release(self):
@@ -199,27 +213,18 @@ class Problem:
         if self.environment:
             out["envmap_log"] = np.asarray(self.opt["envmap"], np.float64)
         for name in self.materials:
-            out[name] = np.asarray(self.opt[name], np.float64).ravel()
+            v = np.asarray(self.opt[name], np.float64)
+            out[name] = v.reshape(self.opt[name].shape) if name in self.material_textures else v.ravel()
         return out
+
+    def material_image(self, name: str) -> np.ndarray:
+        """The texture of ``optimize.material.NAME`` as the scene uses it: (H, W, 1) in its range."""
+        return np.asarray(dr.detach(self.params[self.materials[name][0]]), np.float64)
 
     def export(self, iteration: int, seconds: float) -> State:
         adam = {k: adam_export(self.opt, k) for k in self.opt.keys()}
         return State(iteration, self.vertices(), self.F, adam, self.values(), seconds,
                      np.asarray(self.opt["u"], np.float32), self.basis, uv=self.uv)
-
-
-def material_key(exp, params, name: str) -> tuple:
-    """(scene key, clamp range) of the object's BSDF parameter behind ``optimize.material.NAME``:
-    a constant ``roughness``/``alpha``, ``metallic`` or ``specular``."""
-    (lo, hi), names = MATERIAL_UNKNOWNS[name]
-    prefix = f"{exp.optimize.object}.bsdf."
-    keys = [k for k in params.keys() if k.startswith(prefix) and
-            any(k.endswith(f".{p}.value") or k.endswith(f".{p}") for p in set(names.values()))]
-    if not keys:
-        raise PsdrError(f"{exp.file}: optimize.material.{name}: the object's BSDF has no constant "
-                        f"{'/'.join(sorted(set(names.values())))} to optimise (a texture, an anisotropic "
-                        f"alpha_u/alpha_v, or a BSDF without it)")
-    return keys[0], (lo, hi)
 
 
 class Environment:
@@ -358,7 +363,7 @@ def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
     V2, F2 = remesh(V, F, cfg.remesh.vertices[k], cfg.remesh.method if cfg.remesh.method != "none" else "isotropic",
                     warn=say)
     values, uv2 = problem.values(), None
-    if problem.texture:
+    if problem.uv is not None:
         V2, F2, uv2, values = retextured(problem, V2, F2, say)
     problem.release()
     return Problem(exp, V2, F2, cameras, values, uv=uv2, stage=stage_at(cfg, it))
@@ -366,18 +371,34 @@ def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
 
 def retextured(problem: Problem, V, F, warn):
     """(V', F', UV, values) of a remeshed shape (V, F) of a textured problem: an xatlas atlas of
-    the new mesh and the texture transferred onto it from the current one (:mod:`psdr_cli.atlas`),
-    the other unknowns as they are. Adam's moments of the texture restart (a new :class:`Problem`),
-    as the shape's do. Should the unwrap or the transfer fail, the current mesh, UVs and texture
-    are kept (with a warning): a remesh never ends a run."""
-    W, H = problem.cfg.albedo_texture
+    the new mesh and every texture (the albedo's, the materials') transferred onto it from the
+    current one (:mod:`psdr_cli.atlas`), the other unknowns as they are. Adam's moments of the
+    textures restart (a new :class:`Problem`), as the shape's do. Should the unwrap or a transfer
+    fail, the current mesh, UVs and textures are kept (with a warning): a remesh never ends a run."""
     lookup = texture_lookup(problem.exp)
     old = (problem.vertices(), problem.F, problem.uv)
+    images = {n: problem.material_image(n) for n in problem.material_textures}
+    if problem.texture:
+        images["albedo"] = problem.texture_image()
     try:
-        V2, F2, uv2 = atlas.unwrap(V, F, (W, H))
-        texture = atlas.transfer(old, V2, F2, uv2, problem.texture_image(), lookup.filter_type, lookup.wrap_mode)
+        V2, F2, uv2 = atlas.unwrap(V, F, unwrap_size(problem.cfg))
+        moved = {k: atlas.transfer(old, V2, F2, uv2, image, lookup.filter_type, lookup.wrap_mode)
+                 for k, image in images.items()}
     except Exception as exc:  # noqa: BLE001 - xatlas or a degenerate atlas: keep the textured mesh
         warn(f"texture transfer after the remesh failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
              f"keeping the current mesh")
         return (*old, problem.values())
-    return V2, F2, uv2, {**problem.values(), "albedo": texture}
+    return V2, F2, uv2, {**problem.values(), **moved}
+
+
+def initial_texels(exp, m, saved) -> np.ndarray:
+    """(H, W, 1) starting texels of the texture of ``optimize.material.NAME`` (``m``): the saved
+    ones, else ``init``, the BSDF's own constant or Mitsuba's default, clamped to its range."""
+    W, H = m.texture
+    (lo, hi), _ = MATERIAL_UNKNOWNS[m.name]
+    if saved is not None:
+        return np.clip(np.asarray(saved, np.float64).reshape(H, W, 1), lo, hi)
+    parameter = bsdf_parameter(exp, m.name)
+    given = next(o for o in exp.scene.objects if o.name == exp.optimize.object).bsdf.params.get(parameter)
+    value = m.init if m.init is not None else given if isinstance(given, (int, float)) else MATERIAL_DEFAULTS[parameter]
+    return np.full((H, W, 1), min(max(float(value), lo), hi))

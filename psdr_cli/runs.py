@@ -69,6 +69,10 @@ class RunFiles:
     def checkpoint(self, iteration: int) -> Path:
         return self.checkpoints / f"iter_{iteration:04d}.ply"
 
+    def material(self, name: str) -> Path:
+        """The recovered texture of ``optimize.material.NAME`` (grey linear EXR)."""
+        return self.root / f"{name}.exr"
+
     def check_files(self):
         """Refuse a run folder whose state, log, summary, meshes or plots are not regular files
         (a folder, a device, a FIFO: :func:`psdr_cli.fileio.check_output_file`), before any of

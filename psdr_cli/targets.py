@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import atlas, fileio, meshes
+from .config import needs_uv, unwrap_size
 from .dataset_scene import to_dataset, to_normalised
 from .dataset_targets import TargetMasks, dataset_initial_shape, dataset_masks, dataset_targets
 from .errors import PsdrError
@@ -80,11 +81,11 @@ def initial_state(exp, files: RunFiles, shape, warn) -> State:
             V, F = meshes.weld_vertices(V, F)
         V, F = remesh(V, F, cfg.remesh.initial, cfg.remesh.method, warn=warn)
         uv = None
-        if cfg.albedo and cfg.albedo_texture is not None:  # the texture starts uniform: new UVs suffice
+        if needs_uv(cfg):  # the textures start uniform: new UVs suffice
             try:
-                V, F, uv = atlas.unwrap(V, F, cfg.albedo_texture)
+                V, F, uv = atlas.unwrap(V, F, unwrap_size(cfg))
             except Exception as exc:  # noqa: BLE001 - xatlas failed on the remeshed initial shape
-                raise PsdrError(f"{exp.file}: optimize.albedo.texture: no UV atlas for the remeshed initial shape "
+                raise PsdrError(f"{exp.file}: optimize: no UV atlas for the textures on the remeshed initial shape "
                                 f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     write_mesh(files.checkpoint(0), dataset_coordinates(exp, V), F)
     return State(0, V, F, uv=uv)
@@ -114,17 +115,17 @@ def initial_shape(exp, reference):
 
 
 def initial_shape_uv(exp, reference):
-    """(V, F, UV or None) of the initial shape (:func:`initial_shape`); with ``albedo.texture`` the
+    """(V, F, UV or None) of the initial shape (:func:`initial_shape`); with a recovered texture the
     default sphere is a UV sphere, and a given ``init`` must have UVs. With a camera dataset an
     ``init`` mesh file (and its transform) is in the dataset's coordinates, like the meshes a run
     writes (so a run can start from another's ``final.ply``); a procedural shape is in the
     normalised frame, where the object has about unit size (:mod:`psdr_cli.dataset_scene`)."""
     cfg = exp.optimize
-    texture = cfg.albedo and cfg.albedo_texture is not None
+    texture = needs_uv(cfg)
     if cfg.init is not None:
         V, F, uv = meshes.load_mesh_uv(cfg.init, str(exp.file), keep_uv=texture)
         if texture and uv is None:
-            raise PsdrError(f"{exp.file}: optimize.init.mesh: has no UV coordinates, which optimize.albedo.texture "
+            raise PsdrError(f"{exp.file}: optimize.init.mesh: has no UV coordinates, which a recovered texture "
                             f"needs (e.g. {{shape: sphere, resolution: 16, uv: true}}, or an OBJ with 'vt')")
         V = meshes.apply_transform(V, meshes.transform_matrix(cfg.init_transform))
         if cfg.target_dataset and cfg.init.file is not None:  # a mesh file is in the dataset's coordinates

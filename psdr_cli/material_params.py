@@ -1,0 +1,59 @@
+"""The BSDF parameters behind ``optimize.material`` (roughness, metallic, specular): which
+parameter of the object's BSDF each names, its Mitsuba key, and the scene with a one-channel
+bitmap in its place when it is recovered as a texture (``texture: [W, H]``)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .config import MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig
+from .errors import PsdrError
+
+
+def object_bsdf(exp):
+    """The BSDF configuration of the object being optimised (None for a Mitsuba XML object)."""
+    obj = next((o for o in exp.scene.objects if o.name == exp.optimize.object), None)
+    return None if obj is None else obj.bsdf
+
+
+def bsdf_parameter(exp, name: str) -> str:
+    """The name of the object's BSDF parameter behind ``optimize.material.NAME`` (``alpha`` of a
+    rough conductor or dielectric, ``roughness`` of the principled BSDF, …)."""
+    _, names = MATERIAL_UNKNOWNS[name]
+    bsdf = object_bsdf(exp)
+    if bsdf is None or bsdf.type not in names:
+        kinds = ", ".join(sorted(names))
+        raise PsdrError(f"{exp.file}: optimize.material.{name}.texture: the object's BSDF "
+                        f"'{bsdf.type if bsdf else 'from the XML scene'}' has no {name} texture (use {kinds})")
+    return names[bsdf.type]
+
+
+def material_key(exp, params, name: str, texture: bool = False) -> tuple:
+    """(Mitsuba key, clamp range) of the object's BSDF parameter behind ``optimize.material.NAME``:
+    a constant ``roughness``/``alpha``, ``metallic`` or ``specular`` (``….value`` or the parameter
+    itself), or with ``texture`` the texels of the bitmap put there (``….data``)."""
+    (lo, hi), names = MATERIAL_UNKNOWNS[name]
+    prefix = f"{exp.optimize.object}.bsdf."
+    ends = [f".{p}.data" for p in set(names.values())] if texture else \
+        [e for p in set(names.values()) for e in (f".{p}.value", f".{p}")]
+    keys = [k for k in params.keys() if k.startswith(prefix) and k.endswith(tuple(ends))]
+    if not keys:
+        raise PsdrError(f"{exp.file}: optimize.material.{name}: the object's BSDF has no constant "
+                        f"{'/'.join(sorted(set(names.values())))} to optimise (a texture, an anisotropic "
+                        f"alpha_u/alpha_v, or a BSDF without it)")
+    return keys[0], (lo, hi)
+
+
+def material_texture_experiment(exp, name: str, texels, lookup: BitmapConfig):
+    """``exp`` with the object's BSDF parameter behind ``optimize.material.NAME`` replaced by an
+    in-memory one-channel bitmap of ``texels`` (H, W, 1), read raw (linear values), looked up like
+    the albedo texture (``lookup``: filter and wrap mode)."""
+    if exp.scene.mitsuba is not None:
+        raise PsdrError(f"{exp.file}: optimize.material.{name}.texture: not available for objects of a Mitsuba XML scene")
+    parameter = bsdf_parameter(exp, name)
+    bitmap = replace(lookup, data=np.asarray(texels, np.float32).reshape(*np.shape(texels)[:2], 1), raw=True)
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, parameter: bitmap})
+    objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
+    return replace(exp, scene=replace(exp.scene, objects=objects))
