@@ -25,8 +25,9 @@ from skimage.metrics import structural_similarity
 from . import backend, fileio, meshes
 from .dataset_scene import dataset_scene, to_normalised
 from .dataset_targets import dataset_views, target_image
-from .config import ParameterConfig, emitter_id
+from .config import MATERIAL_UNKNOWNS, ParameterConfig, emitter_id
 from .errors import PsdrError
+from .material_params import material_key
 from .estimators.coverage import hit_share, object_id
 from .parameters import Parameter
 from .render import render_view
@@ -96,12 +97,16 @@ def error_strip(target: np.ndarray, render: np.ndarray) -> np.ndarray:
 
 def apply_values(scene, exp, values: dict):
     """Set the unknowns a run recovered (``optimize.json`` ``values``) in ``scene``: a constant
-    albedo, the environment's rotation angle and a recovered environment map (``envmap``, the
-    run's ``envmap.exr``: the texels of the scene's ``envmap`` emitter, whose scale and rotation
-    stay as given). A recovered texture needs the run's UVs, which its meshes do not carry: it
-    is not applied."""
+    albedo, constant materials (roughness, metallic, specular), the environment's rotation angle
+    and a recovered environment map (``envmap``, the run's ``envmap.exr``: the texels of the
+    scene's ``envmap`` emitter, whose scale and rotation stay as given). A recovered texture needs
+    the run's UVs, which its meshes do not carry: it is not applied."""
     params = mi.traverse(scene.mi_scene)
     name = exp.optimize.object
+    for material in MATERIAL_UNKNOWNS:
+        value = values.get(material)
+        if value is not None and not isinstance(value, str):
+            params[material_key(exp, params, material)[0]] = mi.Float(float(np.ravel(value)[0]))
     albedo = values.get("albedo")
     if albedo is not None and not isinstance(albedo, str):
         keys = [k for k in params.keys() if k.startswith(f"{name}.bsdf.") and k.endswith(("reflectance.value",
