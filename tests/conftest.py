@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import OpenEXR
 import pytest
 import yaml
 
@@ -91,3 +93,10 @@ def pytest_collection_modifyitems(config, items):
         return not (item.get_closest_marker("slow") or slow_groups.intersection(marks))
 
     items.sort(key=starts_late)
+
+
+def write_raw_exr(path, rgb):
+    """An RGB EXR of ``rgb`` (H, W, 3) written as given, NaN included (psdr's own writers refuse
+    non-finite images). OpenEXR, not ``mi.Bitmap.write``: that waits on Dr.Jit's thread pool and
+    hangs when the process has one CPU (one Dr.Jit thread)."""
+    OpenEXR.File({}, {"RGB": np.ascontiguousarray(rgb, np.float32)}).write(str(path))

@@ -10,7 +10,7 @@ import yaml
 
 import mitsuba as mi
 
-from conftest import experiment
+from conftest import experiment, write_raw_exr
 from psdr_cli import api, cli, meshes
 from psdr_cli.config import parse
 from psdr_cli.experiment import load_experiment
@@ -37,7 +37,7 @@ def ply_ascii(path, V, F):
 def nan_exr(path):
     texels = np.full((8, 16, 3), 0.5, np.float32)
     texels[0, 0, 0] = np.nan
-    mi.Bitmap(texels).write(str(path))
+    write_raw_exr(path, texels)
 
 
 def write_yaml(tmp, data, name="exp.yaml"):

@@ -11,6 +11,7 @@ import pytest
 import yaml
 from PIL import Image
 
+from conftest import write_raw_exr
 from psdr_cli import atlas, backend, cli, fileio, load_experiment, meshes
 from psdr_cli.config import OptimizeConfig
 from psdr_cli.problem import texture_experiment
@@ -206,7 +207,7 @@ def test_export_of_a_mesh_and_bad_inputs(tmp_path, capsys):
                              + [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in F]) + "\n")
     meshes.write_ply(tmp_path / "plain.ply", *meshes.weld_vertices(V, F))
     fileio.write_rgb_exr(tmp_path / "tex.exr", TEXTURE)
-    mi.Bitmap(np.where(TEXTURE > 0.85, np.nan, TEXTURE).astype(np.float32)).write(str(tmp_path / "nan.exr"))
+    write_raw_exr(tmp_path / "nan.exr", np.where(TEXTURE > 0.85, np.nan, TEXTURE))
     assert psdr(capsys, "export", tmp_path / "plain.ply")[0] == 0
     doc, attributes, indices, image = read_glb(tmp_path / "plain_export" / "mesh.glb")
     pbr = doc["materials"][0]["pbrMetallicRoughness"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import write_raw_exr
 from psdr_cli import backend, cli, fileio, load_experiment, meshes
 from psdr_cli.render import render_view
 from psdr_cli.runs import read_log
@@ -135,7 +136,7 @@ def test_bad_bitmaps_give_one_line(tmp_path, capsys, reflectance, mesh, expected
     (tmp_path / "checker.bmp").write_bytes(b"BM")
     (tmp_path / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\nnot a png")
     fileio.write_rgb_exr(tmp_path / "bright.exr", CHECKER * 2)
-    mi.Bitmap(np.where(CHECKER > 0.8, np.nan, CHECKER).astype(np.float32)).write(str(tmp_path / "nan.exr"))
+    write_raw_exr(tmp_path / "nan.exr", np.where(CHECKER > 0.8, np.nan, CHECKER))
     mesh = mesh or {"shape": "sphere", "radius": 0.5, "resolution": 6, "uv": True}
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(scene_cfg(tmp_path, mesh, reflectance, size=8)))

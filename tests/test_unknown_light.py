@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import write_raw_exr
 from psdr_cli import backend, cli, fileio, load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
@@ -182,7 +183,7 @@ def test_bad_unknown_keys_are_one_line(tmp_path, capsys):
     a scene without an envmap emitter, envmap with envmap_rotation, a material the BSDF does not
     have, a roughness out of range: one line each, exit 2."""
     backend.activate(load_experiment(write(tmp_path, run_data(tmp_path, iterations=1))))
-    mi.Bitmap(np.full((4, 8, 3), np.nan, np.float32)).write(str(tmp_path / "nan.exr"))
+    write_raw_exr(tmp_path / "nan.exr", np.full((4, 8, 3), np.nan, np.float32))
     fileio.write_rgb_exr(tmp_path / "neg.exr", np.full((4, 8, 3), -1.0, np.float32))
     base = run_data(tmp_path, iterations=1)
     sky = [{"type": "sky", "sun_direction": [0, 0, 1]}]
