@@ -45,7 +45,8 @@ from psdr_cli.guiding import auto  # noqa: E402
 from psdr_cli.iteration import GuideCache  # noqa: E402
 from psdr_cli.optimize import log_row, save_state  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
-from psdr_cli.runs import RunFiles, append_log  # noqa: E402
+from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
+from psdr_cli.run_folder.log import append_log  # noqa: E402
 from psdr_cli.stages import stage_of  # noqa: E402
 from psdr_cli.targets import initial_state, load_targets, read_targets  # noqa: E402
 

@@ -84,7 +84,7 @@ def shape_errors(run_dir: Path, ground_truth: Path, frame=None) -> list:
     own route's meshes are in the normalised frame and are mapped back with ``frame``."""
     from psdr_cli import evaluate as ev
     from psdr_cli.dataset_scene import to_dataset
-    from psdr_cli.runs import run_checkpoints
+    from psdr_cli.run_folder.checkpoints import run_checkpoints
     reference = ev.load(ground_truth)
     rows = []
     for iteration, path in run_checkpoints(run_dir):

@@ -74,7 +74,8 @@ from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.optimize import optimize  # noqa: E402
 from psdr_cli.plots import plt, save  # noqa: E402
-from psdr_cli.runs import RunFiles, read_log  # noqa: E402
+from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
+from psdr_cli.run_folder.log import read_log  # noqa: E402
 
 SCENES = {"bunny": "configs/reconstruct_bunny.yaml", "ears": "configs/reconstruct_ears.yaml",
           "groove": "configs/reconstruct_groove.yaml", "shadow": "configs/paper/cpu/fig10_shadow.yaml",

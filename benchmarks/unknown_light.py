@@ -106,7 +106,8 @@ def run(data: dict, work: Path, reuse: bool = False) -> dict:
     from psdr_cli import api
     from psdr_cli.evaluate import run_values
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.runs import RunFiles, run_checkpoints
+    from psdr_cli.run_folder.checkpoints import run_checkpoints
+    from psdr_cli.run_folder.layout import RunFiles
     exp = load_experiment(write_config(data, work))
     walls_file = work / "wall_seconds.json"
     walls = json.loads(walls_file.read_text()) if walls_file.exists() else {}

@@ -17,7 +17,7 @@ from .jitarray import jit_array
 from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
-from .runs import State
+from .run_folder.state import State
 from .scene import build_scene, exr_texels
 from .stages import stage_at, stage_experiment, stage_value
 

@@ -20,7 +20,11 @@ from .meshes import object_mesh
 from .mitsuba_scene import scene_files
 from .remesh import remesh
 from .render import camera_header, header_camera, render_view
-from .runs import RunFiles, State, cached_target, scene_identity, write_mesh
+from .run_folder.checkpoints import write_mesh
+from .run_folder.fingerprint import scene_identity
+from .run_folder.layout import RunFiles
+from .run_folder.state import State
+from .run_folder.target_cache import cached_target
 from .scene import build_scene
 
 
@@ -201,7 +205,7 @@ def target_key(exp, reference, spp: int) -> str:
 def render_targets(exp, files: RunFiles, reference, progress=None):
     """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
     in ``targets/`` (reused while the scene, the ground truth and spp are unchanged, and only if
-    every cached file can be read back whole: see :func:`psdr_cli.runs.cached_target`)."""
+    every cached file can be read back whole: see :func:`psdr_cli.run_folder.target_cache.cached_target`)."""
     cfg = exp.optimize
     seed = target_seed(exp) + 7919
     key = target_key(exp, reference, cfg.target_spp)

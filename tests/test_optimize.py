@@ -290,7 +290,7 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
     from psdr_cli import api
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.runs import State
+    from psdr_cli.run_folder.state import State
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0]["bsdf"] = {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}
     data["optimize"].update(iterations=2, remesh={"method": "none"}, albedo={"init": 0.3})
@@ -421,7 +421,7 @@ def test_reports_refuse_unfinished_runs(tmp_path):
 def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
     from psdr_cli.experiment import parse_experiment
-    from psdr_cli.runs import variant_experiments
+    from psdr_cli.run_folder.variants import variant_experiments
     from psdr_cli.targets import target_key
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
