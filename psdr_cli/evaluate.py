@@ -23,7 +23,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import backend, fileio, plots
-from .config import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES, option_count, read_file
+from .config.experiment_file import read_file
+from .config.limits import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES
+from .config.options import option_count
 from .errors import PsdrError
 from .experiment import load_experiment
 from .dataset_scene import dataset_frames

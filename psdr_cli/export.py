@@ -37,7 +37,7 @@ import trimesh
 from PIL import Image
 
 from . import backend, fileio, meshes
-from .config import BitmapConfig
+from .config.objects import BitmapConfig
 from .errors import ConfigError, PsdrError
 from .experiment import load_experiment
 from .run_folder.layout import RunFiles

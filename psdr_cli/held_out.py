@@ -25,7 +25,8 @@ from skimage.metrics import structural_similarity
 from . import backend, fileio, meshes
 from .dataset_scene import dataset_scene, to_normalised
 from .dataset_targets import dataset_views, target_image
-from .config import ParameterConfig, emitter_id
+from .config.parameter import ParameterConfig
+from .config.scene_ids import emitter_id
 from .errors import PsdrError
 from .estimators.coverage import hit_share, object_id
 from .parameters import Parameter

@@ -30,7 +30,9 @@ from pathlib import Path
 import drjit as dr
 
 from . import backend, fileio
-from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
+from .config.experiment_file import Experiment, check_stages
+from .config.limits import MAX_ITERATIONS
+from .config.options import option_count
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line

@@ -11,7 +11,10 @@ import mitsuba as mi
 import numpy as np
 
 from . import atlas
-from .config import MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig, ParameterConfig, emitter_id
+from .config.objects import BitmapConfig, BsdfConfig
+from .config.parameter import ParameterConfig
+from .config.scene_ids import emitter_id
+from .config.unknowns import MATERIAL_UNKNOWNS
 from .errors import PsdrError
 from .jitarray import jit_array
 from .meshes import weld_vertices

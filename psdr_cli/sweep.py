@@ -50,7 +50,7 @@ from pathlib import Path
 
 from . import compare as comparison
 from . import backend, fileio
-from .config import Experiment
+from .config.experiment_file import Experiment
 from .errors import PsdrError
 from .optimize import loop_guiding_line, optimize
 from .run_folder.layout import RunFiles, clear_run, keep_previous_run, lock_run

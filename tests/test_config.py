@@ -3,7 +3,8 @@ import math
 
 import pytest
 
-from psdr_cli.config import TERMS, orbit_cameras
+from psdr_cli.config.cameras import orbit_cameras
+from psdr_cli.config.vocabularies import TERMS
 from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.errors import ConfigError
 

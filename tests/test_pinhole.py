@@ -15,7 +15,7 @@ import yaml
 
 from conftest import experiment, run_cli
 from psdr_cli import backend
-from psdr_cli.config import CameraConfig
+from psdr_cli.config.cameras import CameraConfig
 from psdr_cli.errors import ConfigError
 from psdr_cli.estimators.camera import Projection, camera_connection
 from psdr_cli.experiment import parse_experiment

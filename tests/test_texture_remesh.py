@@ -12,7 +12,7 @@ import yaml
 from PIL import Image
 
 from psdr_cli import atlas, backend, cli, fileio, load_experiment, meshes
-from psdr_cli.config import OptimizeConfig
+from psdr_cli.config.optimize import OptimizeConfig
 from psdr_cli.problem import texture_experiment
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.log import read_log

@@ -10,7 +10,8 @@ import mitsuba as mi
 import numpy as np
 
 from .. import backend, fileio, plots
-from ..config import Experiment, parse_views
+from ..config.experiment_file import Experiment
+from ..config.options import parse_views
 from ..errors import PsdrError
 from ..estimators.boundary_sampling import edge_distribution, edge_list, sample_edge_point
 from ..estimators.direct import direct_boundary

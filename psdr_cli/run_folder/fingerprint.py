@@ -6,7 +6,7 @@ import hashlib
 import json
 from dataclasses import MISSING, fields, is_dataclass
 
-from ..config import Experiment
+from ..config.experiment_file import Experiment
 
 
 #: Version of :func:`run_fingerprint`, recorded in run.json next to the fingerprint.

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import fields, is_dataclass, replace
 
-from ..config import Experiment
+from ..config.experiment_file import Experiment
 from .fingerprint import digest, is_default, scene_identity
 
 

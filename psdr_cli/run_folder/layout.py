@@ -10,7 +10,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .. import fileio
-from ..config import COMMAND_FOLDERS
+from ..config.vocabularies import COMMAND_FOLDERS
 from ..errors import PsdrError
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from ..config import Experiment
+from ..config.experiment_file import Experiment
 from .fingerprint import FINGERPRINT_VERSION, run_fingerprint
 from .fingerprint_v1 import fingerprint_v1
 from .layout import RunFiles

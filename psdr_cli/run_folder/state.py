@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import fileio
-from ..config import Experiment
+from ..config.experiment_file import Experiment
 from ..errors import PsdrError
 from .layout import RunFiles
 from .record import same_experiment

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..config import Experiment, with_estimator
+from ..config.experiment_file import Experiment
+from ..config.options import with_estimator
 from ..errors import PsdrError
 
 
