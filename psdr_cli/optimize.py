@@ -38,6 +38,7 @@ from .errors import PsdrError
 from .estimate import Settings, guiding_line
 from .guiding import auto
 from .iteration import GuideCache, iterate
+from .losses.registry import PLOT_LABEL
 from .problem import Problem, remeshed_problem
 from .render import render_view
 from .run_folder.checkpoints import write_checkpoint, write_mesh
@@ -191,7 +192,7 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, it
              f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")
     write_mesh(files.final, dataset_coordinates(exp, problem.vertices()), problem.F)
     result.final = files.final
-    plot_loss(files, read_log(files.log, total))
+    plot_loss(files, read_log(files.log, total), PLOT_LABEL)
     fileio.write_json(files.summary, {
         "experiment": str(exp.file), "iterations": total, "resumed_from": result.resumed_from, "views": n_views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),

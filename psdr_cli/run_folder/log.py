@@ -114,10 +114,11 @@ def run_summary(folder: Path) -> dict:
 
 
 
-def plot_loss(files: RunFiles, rows: list):
+def plot_loss(files: RunFiles, rows: list, label: str):
+    """loss.png: the logged loss per iteration (log scale), its axis labelled ``label`` (what the
+    loss sums: :data:`psdr_cli.losses.registry.PLOT_LABEL`)."""
     if not rows:
         return
     it = np.array([int(r["iteration"]) for r in rows])
     loss = np.array([float(r["loss"]) for r in rows])
-    plots.lines(files.root / "loss.png", {"loss": (it, loss)}, "iteration",
-                "loss (image L1, and any silhouette or prior terms)", "psdr optimize", logy=True)
+    plots.lines(files.root / "loss.png", {"loss": (it, loss)}, "iteration", label, "psdr optimize", logy=True)
