@@ -19,6 +19,7 @@ from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
 from .guiding import auto
+from .guiding.kinds import LOOP_FED
 from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
 from .jitarray import jit_array
@@ -96,9 +97,9 @@ class GuideCache:
 
 def split_terms(settings, terms, stage) -> tuple:
     """(whether the direct term's guides are fed by the loop, the guided terms whose guides are
-    built): the direct term is loop-fed when its guide is a Kd-tree."""
+    built): the direct term is loop-fed when its guide kind is (a Kd-tree: guiding/kinds.py)."""
     kinds = auto.resolve(settings.guiding, terms, stage.pixels, settings.boundary_spp)
-    fed = kinds.get("direct") == "kdtree"
+    fed = kinds.get("direct") in LOOP_FED
     return fed, [t for t, kind in kinds.items() if kind != "none" and not (fed and t == "direct")]
 
 

@@ -6,8 +6,12 @@ from __future__ import annotations
 #: Terms of dI/dθ = interior + primary + direct + indirect (in this order).
 TERMS = ("interior", "primary", "direct", "indirect")
 
-#: Boundary guides over the primary samples u.
-GUIDINGS = ("auto", "none", "grid", "kdtree")
+#: Guide kinds: each names the module of psdr_cli/guiding that declares its ``KIND``
+#: (:mod:`psdr_cli.guiding.kinds`).
+GUIDE_KINDS = ("grid", "kdtree")
+
+#: Boundary guides over the primary samples u (``auto``: chosen per term; ``none``: unguided).
+GUIDINGS = ("auto", "none", *GUIDE_KINDS)
 
 #: Direction techniques of the boundary terms (``mis``: both, balance heuristic).
 SAMPLINGS = ("dir", "light", "mis")

@@ -18,7 +18,8 @@ from ..estimators.direct import direct_boundary
 from ..estimators.indirect import indirect_boundary
 from ..estimators.passes import make_sampler
 from ..scene import build_scene
-from .targets import build_guide, target_function
+from .kinds import NAMES as GUIDE_KINDS, guide_kind
+from .targets import target_function
 
 
 def chain_stats(edges) -> dict:
@@ -82,7 +83,7 @@ def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimat
             f = target_function(scene, edges, views, term, "dir" if term == "indirect" else t,
                                 term == "direct" and estimator.sampling == "mis", max_depth, seed)
             f(np.random.default_rng(0).random((1024, 3)))  # warm-up: compile the target's kernels
-            g = build_guide(kind, f, breaks, estimator, seed + i, pixels)
+            g = guide_kind(kind).build(f, breaks, estimator, seed + i, pixels)
             label = f"{kind}/{t}"
             s = g.stats
             stats[label] = {"guide": kind, "technique": t, "leaves": s.leaves, "max_depth": s.max_depth,
@@ -105,17 +106,17 @@ class GuideStatsResult:
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None) -> GuideStatsResult:
     """Build the boundary guides of an experiment with and without edge sorting and report them.
 
-    ``kinds``: guides to build (default: ``estimator.guiding``, or both grid and kdtree when it is
-    ``none``). Writes ``guide_stats.json``, ``target_u1.png`` per technique (x^B and the target
+    ``kinds``: guides to build (default: ``estimator.guiding``, or every guide kind when it is
+    ``none`` or ``auto``). Writes ``guide_stats.json``, ``target_u1.png`` per technique (x^B and the target
     along u1, unsorted vs sorted: the paper's Fig. 5) and ``leaves_<kind>_<technique>.png``
     (leaf boundaries in the plane u2.y = ½) to ``<output>/<name>/guide_stats/``."""
     variant = backend.activate(exp)
-    kinds = kinds or ([exp.estimator.guiding] if exp.estimator.guiding in ("grid", "kdtree") else ["grid", "kdtree"])
+    kinds = kinds or ([exp.estimator.guiding] if exp.estimator.guiding in GUIDE_KINDS else list(GUIDE_KINDS))
     if isinstance(kinds, str):
         kinds = [k.strip() for k in kinds.split(",") if k.strip()]
-    bad = [k for k in kinds if k not in ("grid", "kdtree")]
+    bad = [k for k in kinds if k not in GUIDE_KINDS]
     if bad:
-        raise PsdrError(f"--guides: unknown guide '{bad[0]}' (expected grid and/or kdtree)")
+        raise PsdrError(f"--guides: unknown guide '{bad[0]}' (expected {' and/or '.join(GUIDE_KINDS)})")
     scene = build_scene(exp)
     views = parse_views(views, len(exp.scene.cameras))
     terms = exp.estimator.terms

@@ -16,14 +16,11 @@ from ..estimators.direct import direct_motion_target, direct_target
 from ..estimators.indirect import indirect_target
 from ..estimators.passes import make_sampler
 from . import auto
-from .grid import build_grid
-from .kdtree import build_kdtree, share_profiles
+from .kdtree import share_profiles
+from .kinds import guide_kind
 
 #: lanes per batched target evaluation
 CHUNK = 1 << 19
-#: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
-AUTO_SHARE = 2
-AUTO_RANGE = (131072, 262144)
 
 
 def motion_target(scene, sensors, edges, theta, technique: str, mis: bool, u) -> mi.Float:
@@ -86,25 +83,6 @@ class Guides(dict):
         return out
 
 
-def initial_samples(estimator, pixels: int) -> int:
-    """The Kd-tree's first batch: ``kdtree.initial_samples``, or when it is 0 (auto)
-    pixels · boundary_spp / AUTO_SHARE clamped to AUTO_RANGE, so that both batches together
-    ((1 + refine_ratio) × this) cost a fixed share of one boundary pass."""
-    n = estimator.kdtree.initial_samples
-    return n if n > 0 else int(np.clip(pixels * estimator.boundary_spp // AUTO_SHARE, *AUTO_RANGE))
-
-
-def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int):
-    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings."""
-    if kind == "grid":
-        g = estimator.grid
-        return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
-    k = estimator.kdtree
-    return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
-                        k.refine_ratio)
-
-
 def applied_theta(parameter):
     """θ = 0 with AD enabled, applied to the scene (None without a parameter); the caller resets."""
     if parameter is None:
@@ -133,12 +111,12 @@ def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int
         try:
             for i, t in enumerate(("light", "dir") if mis else (sampling,)):
                 f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, theta)
-                direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels)
+                direct[t] = guide_kind(kinds["direct"]).build(f, breaks, estimator, seed + i, pixels)
         finally:
             if parameter is not None:
                 parameter.reset()
         guides["direct"] = share_profiles(direct, breaks, estimator.kdtree.technique_share)
     if kinds.get("indirect", "none") != "none" and max_depth >= 3:
         f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
-        guides["indirect"] = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels)
+        guides["indirect"] = guide_kind(kinds["indirect"]).build(f, breaks, estimator, seed + 2, pixels)
     return guides
