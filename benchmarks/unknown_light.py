@@ -148,7 +148,7 @@ def relight(exp, meshes: dict, rotate_deg: float, spp: int, seed: int = 0) -> di
     from ``exp``'s held-out cameras; also ``"mask"``: the held-out photographs' alpha ≥ ½."""
     from psdr_cli import backend
     from psdr_cli.dataset_scene import dataset_scene, to_normalised
-    from psdr_cli.dataset_targets import dataset_views
+    from psdr_cli.target_sources.camera_dataset import dataset_views
     from psdr_cli.held_out import apply_values
     from psdr_cli.render import render_view
     from psdr_cli.scene import build_scene

@@ -23,7 +23,8 @@ import pytest
 import yaml
 
 from conftest import experiment
-from psdr_cli import api, cli, fileio, meshes, targets
+from psdr_cli import api, cli, fileio, meshes
+from psdr_cli.target_sources import rendered_mesh as targets
 from psdr_cli.errors import PsdrError
 from psdr_cli.run_folder.checkpoints import run_checkpoints
 from psdr_cli.run_folder.layout import RunFiles

@@ -422,7 +422,7 @@ def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
     from psdr_cli.experiment import parse_experiment
     from psdr_cli.run_folder.variants import variant_experiments
-    from psdr_cli.targets import target_key
+    from psdr_cli.target_sources.rendered_mesh import target_key
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
     exp = parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)

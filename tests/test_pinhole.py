@@ -23,7 +23,7 @@ from psdr_cli.pinhole import pinhole_camera
 from psdr_cli.run_folder.fingerprint import run_fingerprint
 from psdr_cli.run_folder.fingerprint_v1 import fingerprint_v1
 from psdr_cli.scene import sensor_dict
-from psdr_cli.targets import target_key
+from psdr_cli.target_sources.rendered_mesh import target_key
 from psdr_cli.verdict import agrees, describe
 
 

@@ -113,7 +113,7 @@ def clear_run(files: RunFiles):
 
 def keep_previous_run(files: RunFiles, warn) -> None:
     """Before a fresh start: a run found in the folder is moved aside (:func:`move_aside`), never
-    deleted. Its targets are copied back (a cache keyed by content, :func:`psdr_cli.targets.target_key`)
+    deleted. Its targets are copied back (a cache keyed by content, :func:`psdr_cli.target_sources.rendered_mesh.target_key`)
     and the other commands' output folders are moved back (they are not the run's)."""
     if not has_results(files):
         return

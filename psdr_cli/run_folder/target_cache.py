@@ -12,7 +12,7 @@ from .. import fileio
 def cached_target(path, key: str, shape: tuple):
     """The cached target image at ``path`` (in ``targets/``) if it can be trusted: it exists,
     reads back whole (not emptied or cut short by a full disk or a copy), was rendered for ``key``
-    (:func:`psdr_cli.targets.target_key`), has the film's (height, width) and finite values; else
+    (:func:`psdr_cli.target_sources.rendered_mesh.target_key`), has the film's (height, width) and finite values; else
     None (the targets are rendered again). A missing file is not read (the EXR library would print
     its own error)."""
     if not Path(path).is_file():
