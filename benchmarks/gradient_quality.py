@@ -50,7 +50,8 @@ from psdr_cli.estimators.passes import pass_seed  # noqa: E402
 from psdr_cli.iteration import adjoint_image  # noqa: E402
 from psdr_cli.losses.l1 import l1_loss  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
-from psdr_cli.targets import ground_truth, initial_shape  # noqa: E402
+from psdr_cli.target_sources.rendered_mesh import ground_truth  # noqa: E402
+from psdr_cli.targets import initial_shape  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.estimate import Settings, ad_image  # noqa: E402
 from psdr_cli.remesh import remesh  # noqa: E402

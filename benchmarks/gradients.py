@@ -66,7 +66,7 @@ import mitsuba as mi  # noqa: E402
 import standins  # noqa: E402
 from psdr_cli import api  # noqa: E402
 from psdr_cli.compare import rel_mse  # noqa: E402
-from psdr_cli.config import TERMS  # noqa: E402
+from psdr_cli.config.vocabularies import TERMS  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.estimate import forward_gradient, prepare  # noqa: E402

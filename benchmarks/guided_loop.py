@@ -49,7 +49,8 @@ import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is im
 from psdr_cli import evaluate as ev  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.plots import plt, save  # noqa: E402
-from psdr_cli.runs import RunFiles, read_log  # noqa: E402
+from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
+from psdr_cli.run_folder.log import read_log  # noqa: E402
 
 BASES = {"shadow": REPO / "configs" / "paper" / "cpu" / "fig10_shadow.yaml",
          "glass": REPO / "configs" / "paper" / "cpu" / "fig10_glass.yaml"}

@@ -49,7 +49,8 @@ import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is importe
 import matplotlib.pyplot as plt  # noqa: E402
 from psdr_cli import fileio, plots  # noqa: E402
 from psdr_cli.compare import Comparison, rel_mse  # noqa: E402
-from psdr_cli.config import SAMPLINGS, Variant  # noqa: E402
+from psdr_cli.config.variants import Variant  # noqa: E402
+from psdr_cli.config.vocabularies import SAMPLINGS  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 
 SCENES = ("glossy_bunny_sky", "soft_shadow", "cornell_glass")

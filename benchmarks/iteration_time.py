@@ -43,9 +43,11 @@ from psdr_cli.estimators import registry  # noqa: E402
 from psdr_cli.estimate import Settings  # noqa: E402
 from psdr_cli.guiding import auto  # noqa: E402
 from psdr_cli.iteration import GuideCache  # noqa: E402
+from psdr_cli.losses import registry as loss_registry  # noqa: E402
 from psdr_cli.optimize import log_row, save_state  # noqa: E402
 from psdr_cli.problem import Problem  # noqa: E402
-from psdr_cli.runs import RunFiles, append_log  # noqa: E402
+from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
+from psdr_cli.run_folder.log import append_log  # noqa: E402
 from psdr_cli.stages import stage_of  # noqa: E402
 from psdr_cli.targets import initial_state, load_targets, read_targets  # noqa: E402
 
@@ -127,7 +129,7 @@ def instrument(phases: Phases):
         registry._BY_NAME[name] = replace(term, estimate=phases.wrap(name, term.estimate))
     iteration.edge_list = phases.wrap("edges", iteration.edge_list)
     iteration.adjoint_image = phases.wrap("adjoint", iteration.adjoint_image)
-    iteration.l1_loss = phases.wrap("loss", iteration.l1_loss)
+    loss_registry.LOSSES = tuple(replace(x, value=phases.wrap("loss", x.value)) for x in loss_registry.LOSSES)
     iteration.dr = DrProxy(phases)
 
 

@@ -55,7 +55,7 @@ def dataset_config(dataset: Path, out: Path, iterations: int, name: str, downsam
 def own_route(exp, ground_truth: Path, folder: Path):
     """The dataset experiment with psdr's own targets: rendered from the ground truth (mapped into
     the normalised frame) with the same cameras, film and hidden background; a sphere to start."""
-    from psdr_cli.config import MeshSpec, TransformConfig
+    from psdr_cli.config.objects import MeshSpec, TransformConfig
     from psdr_cli.dataset_scene import to_normalised
     from psdr_cli.meshes import read_mesh_file, write_ply
     V, F = read_mesh_file(ground_truth)
@@ -72,7 +72,7 @@ def own_route(exp, ground_truth: Path, folder: Path):
 
 def sphere_start(exp):
     """The dataset experiment from the sphere ``own_route`` starts from (no visual hull)."""
-    from psdr_cli.config import MeshSpec, TransformConfig
+    from psdr_cli.config.objects import MeshSpec, TransformConfig
     opt = replace(exp.optimize, init=MeshSpec(key="optimize.init.mesh", shape="sphere",
                                               params={"radius": 0.5, "subdivisions": 3}),
                   init_transform=TransformConfig())
@@ -84,7 +84,7 @@ def shape_errors(run_dir: Path, ground_truth: Path, frame=None) -> list:
     own route's meshes are in the normalised frame and are mapped back with ``frame``."""
     from psdr_cli import evaluate as ev
     from psdr_cli.dataset_scene import to_dataset
-    from psdr_cli.runs import run_checkpoints
+    from psdr_cli.run_folder.checkpoints import run_checkpoints
     reference = ev.load(ground_truth)
     rows = []
     for iteration, path in run_checkpoints(run_dir):

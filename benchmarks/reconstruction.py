@@ -69,12 +69,14 @@ sys.path.insert(0, str(REPO))
 
 import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
 from psdr_cli import evaluate as ev  # noqa: E402
-from psdr_cli.config import RemeshConfig, with_estimator  # noqa: E402
+from psdr_cli.config.optimize import RemeshConfig  # noqa: E402
+from psdr_cli.config.options import with_estimator  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.optimize import optimize  # noqa: E402
 from psdr_cli.plots import plt, save  # noqa: E402
-from psdr_cli.runs import RunFiles, read_log  # noqa: E402
+from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
+from psdr_cli.run_folder.log import read_log  # noqa: E402
 
 SCENES = {"bunny": "configs/reconstruct_bunny.yaml", "ears": "configs/reconstruct_ears.yaml",
           "groove": "configs/reconstruct_groove.yaml", "shadow": "configs/paper/cpu/fig10_shadow.yaml",

@@ -111,7 +111,8 @@ def run(data: dict, work: Path, reuse: bool = False) -> dict:
     from psdr_cli import api
     from psdr_cli.evaluate import run_values
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.runs import RunFiles, run_checkpoints
+    from psdr_cli.run_folder.checkpoints import run_checkpoints
+    from psdr_cli.run_folder.layout import RunFiles
     exp = load_experiment(write_config(data, work))
     walls_file = work / "wall_seconds.json"
     walls = json.loads(walls_file.read_text()) if walls_file.exists() else {}
@@ -152,7 +153,7 @@ def relight(exp, meshes: dict, rotate_deg: float, spp: int, seed: int = 0) -> di
     from ``exp``'s held-out cameras; also ``"mask"``: the held-out photographs' alpha ≥ ½."""
     from psdr_cli import backend
     from psdr_cli.dataset_scene import dataset_scene, to_normalised
-    from psdr_cli.dataset_targets import dataset_views
+    from psdr_cli.target_sources.camera_dataset import dataset_views
     from psdr_cli.held_out import apply_values
     from psdr_cli.render import render_view
     from psdr_cli.scene import build_scene

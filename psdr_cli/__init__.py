@@ -16,7 +16,7 @@ configure_environment()  # must run before drjit is first imported (by the impor
 
 from . import api  # noqa: E402
 from .api import grad, gradient_images, guide_stats, load_experiment, render, setup  # noqa: E402
-from .config import Experiment  # noqa: E402
+from .config.experiment_file import Experiment  # noqa: E402
 from .errors import ConfigError, PsdrError  # noqa: E402
 from .scene import build_scene  # noqa: E402
 

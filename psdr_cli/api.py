@@ -25,7 +25,9 @@ from . import estimate, gradient
 from . import optimize as optimization
 from . import render as rendering
 from . import sweep
-from .config import MAX_ITERATIONS, Experiment, option_count
+from .config.experiment_file import Experiment
+from .config.limits import MAX_ITERATIONS
+from .config.options import option_count
 from .guiding import stats
 from .mitsuba_scene import warn_stderr
 

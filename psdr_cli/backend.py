@@ -13,7 +13,7 @@ import re
 import subprocess
 from contextlib import contextmanager
 
-from .config import VARIANTS
+from .config.vocabularies import VARIANTS
 from .errors import PsdrError
 
 #: Oldest LLVM major version Dr.Jit's LLVM backend works with.

@@ -22,7 +22,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from . import __version__, api
-from .config import with_estimator
+from .config.options import with_estimator
 from .errors import PsdrError, PsdrWarning
 from .sweep import RayOptions
 from .verdict import describe

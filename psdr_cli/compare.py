@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from . import backend, estimate, fileio, plots
-from .config import Experiment, Variant, with_estimator
+from .config.experiment_file import Experiment
+from .config.options import with_estimator
+from .config.variants import Variant
 from .errors import PsdrError
 from .estimators.boundary_sampling import edge_list
 from .estimate import Settings, make_guides, prepare

@@ -23,7 +23,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from .config import DatasetConfig, EmitterConfig, Experiment, ObjectConfig, TransformConfig
+from .config.dataset import DatasetConfig
+from .config.emitters import EmitterConfig
+from .config.experiment_file import Experiment
+from .config.objects import ObjectConfig, TransformConfig
 from .datasets.images import has_alpha
 from .datasets.views import read_frames, split_views, view_intrinsics
 from .errors import PsdrError

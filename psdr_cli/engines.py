@@ -19,7 +19,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import estimate
-from .config import EstimatorConfig
+from .config.estimator import EstimatorConfig
 from .estimators.coverage import coverage_image
 from .estimators.passes import pass_seed
 from .estimators.registry import COVERAGE_STREAMS, MITSUBA_STREAM

@@ -18,7 +18,9 @@ import numpy as np
 
 from . import backend
 from .camera_motion import check_camera_motion, with_all_edges
-from .config import EstimatorConfig, Experiment, option_spp, parse_terms
+from .config.estimator import EstimatorConfig
+from .config.experiment_file import Experiment
+from .config.options import option_spp, parse_terms
 from .errors import PsdrError
 from .estimators import registry
 from .estimators.boundary_sampling import BoundaryEdges, edge_list

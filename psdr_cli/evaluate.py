@@ -23,13 +23,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import backend, fileio, plots
-from .config import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES, option_count, read_file
+from .config.experiment_file import read_file
+from .config.limits import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES
+from .config.options import option_count
 from .errors import PsdrError
 from .experiment import load_experiment
 from .dataset_scene import dataset_frames
 from .held_out import score_mesh
 from .meshes import face_areas, read_mesh_file
-from .runs import RunFiles, existing_runs, run_checkpoints, run_seconds, run_summary, variant_experiments
+from .run_folder.checkpoints import run_checkpoints
+from .run_folder.layout import RunFiles
+from .run_folder.log import run_seconds, run_summary
+from .run_folder.variants import existing_runs, variant_experiments
 from .scene import look_at, mitsuba_mesh
 
 

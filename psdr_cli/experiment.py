@@ -13,22 +13,24 @@ from pathlib import Path
 
 import numpy as np
 
-from . import backend, config, fileio, mitsuba_scene
-from .config import ConfigError, Experiment, check_experiment, check_scene
+from . import backend, fileio, mitsuba_scene
+from .config.experiment_file import Experiment, check_experiment, parse, read_file
+from .config.scene import check_scene
 from .dataset_scene import dataset_scene
+from .errors import ConfigError
 from .mitsuba_scene import warn_stderr
 from .obj_parts import expand_objects
 
 
 def load_experiment(path, warn=warn_stderr) -> Experiment:
     """Read, validate and complete an experiment file (see the module docstring)."""
-    return complete(config.read_file(path), warn)
+    return complete(read_file(path), warn)
 
 
 def parse_experiment(data, file: Path, cwd: Path | None = None, warn=warn_stderr) -> Experiment:
     """An already-loaded YAML document as a complete experiment; ``file`` names the source in
     messages and anchors relative paths."""
-    return complete(config.parse(data, file, cwd), warn)
+    return complete(parse(data, file, cwd), warn)
 
 
 def complete(exp: Experiment, warn=warn_stderr) -> Experiment:

@@ -40,10 +40,11 @@ import trimesh
 from PIL import Image
 
 from . import backend, fileio, meshes
-from .config import BitmapConfig
+from .config.objects import BitmapConfig
 from .errors import ConfigError, PsdrError
 from .experiment import load_experiment
-from .runs import RunFiles, State
+from .run_folder.layout import RunFiles
+from .run_folder.state import State
 from .scene import environment_to_world, exr_texels, read_bitmap
 
 #: Files of an export (export.json lists the ones written).

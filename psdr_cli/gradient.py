@@ -12,7 +12,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import fileio
-from .config import Experiment, option_number, option_spp, parse_terms, parse_views
+from .config.experiment_file import Experiment
+from .config.options import option_number, option_spp, parse_terms, parse_views
 from .errors import PsdrError
 from .estimate import forward_gradient, guiding_line, make_guides, prepare
 from .parameters import Parameter

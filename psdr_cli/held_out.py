@@ -3,7 +3,7 @@ cameras against the photographs (``psdr evaluate`` on an experiment with
 ``optimize.target.dataset``).
 
 Per held-out view, with the render R and the target T (the premultiplied composite α·C when the
-background is hidden, :mod:`psdr_cli.dataset_targets`), both linear and clipped to [0, 1]:
+background is hidden, :mod:`psdr_cli.target_sources.camera_dataset`), both linear and clipped to [0, 1]:
 
     PSNR = 10 log10(1 / MSE(R, T))    over the whole image, and over the mask's pixels (α ≥ ½);
     SSIM = scikit-image's structural similarity (Gaussian window, σ = 1.5), its mean over the
@@ -24,8 +24,10 @@ from skimage.metrics import structural_similarity
 
 from . import backend, fileio, meshes
 from .dataset_scene import dataset_scene, to_normalised
-from .dataset_targets import dataset_views, target_image
-from .config import MATERIAL_UNKNOWNS, ParameterConfig, emitter_id
+from .target_sources.camera_dataset import dataset_views, target_image
+from .config.parameter import ParameterConfig
+from .config.scene_ids import emitter_id
+from .config.unknowns import MATERIAL_UNKNOWNS
 from .errors import PsdrError
 from .material_params import material_key
 from .estimators.coverage import hit_share, object_id

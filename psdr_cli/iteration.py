@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import drjit as dr
 import mitsuba as mi
@@ -18,11 +19,12 @@ from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
 from .guiding import auto
+from .guiding.kinds import LOOP_FED
 from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
 from .jitarray import jit_array
-from .losses.l1 import l1_loss
-from .losses.silhouette import silhouette_loss
+from .losses.loss import ViewImages
+from .losses.registry import view_losses
 from .outlier_clip import clip_factor, clip_outliers
 from .render import render_view
 
@@ -96,9 +98,9 @@ class GuideCache:
 
 def split_terms(settings, terms, stage) -> tuple:
     """(whether the direct term's guides are fed by the loop, the guided terms whose guides are
-    built): the direct term is loop-fed when its guide is a Kd-tree."""
+    built): the direct term is loop-fed when its guide kind is (a Kd-tree: guiding/kinds.py)."""
     kinds = auto.resolve(settings.guiding, terms, stage.pixels, settings.boundary_spp)
-    fed = kinds.get("direct") == "kdtree"
+    fed = kinds.get("direct") in LOOP_FED
     return fed, [t for t, kind in kinds.items() if kind != "none" and not (fed and t == "direct")]
 
 
@@ -122,15 +124,15 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
         guides.refresh(problem, edges, n_views, terms, settings, stage, cfg)
     t_render = time.perf_counter()
     views = batch_views(exp.seed, it, n_views, cfg.batch_size)
-    weight = cfg.target_dataset.silhouette if cfg.target_dataset else 0.0
     loss = mi.Float(0.0)
     for v in views:
         img = engine.image(problem, edges, v, it, guides.guides)
         adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, exp.seed, it) if cfg.adjoint_spp else None
-        loss += l1_loss(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None) / len(views)
-        if stage.masks is not None and weight > 0:
-            coverage = engine.coverage(problem, edges, v, it)
-            loss += weight * silhouette_loss(coverage, stage.masks[v]) / len(views)
+        view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
+                          stage.masks[v] if stage.masks is not None else None,
+                          partial(engine.coverage, problem, edges, v, it))
+        for value in view_losses(view, cfg):  # losses/registry.py
+            loss += value / len(views)
     prior = problem.prior()  # the unknowns' priors (optimize.envmap.smoothness)
     if prior is not None:
         loss += prior
@@ -194,6 +196,6 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
 
 def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.Float:
     """Primal render P of ``view`` (flat W·H·3, no AD) from samples of its own random stream, for
-    the derivative of :func:`l1_loss`."""
+    the derivative of :func:`psdr_cli.losses.l1.l1_loss`."""
     image = render_view(scene, view, spp, seed=pass_seed(seed, view, iteration, ADJOINT_STREAM))
     return jit_array(mi.Float, np.ravel(image))

@@ -7,7 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from .config import MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig
+from .config.objects import BitmapConfig, BsdfConfig
+from .config.unknowns import MATERIAL_UNKNOWNS
 from .errors import PsdrError
 
 

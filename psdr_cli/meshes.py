@@ -15,7 +15,10 @@ import pymeshlab
 import trimesh
 
 from . import obj_parts
-from .config import MAX_COORD, BitmapConfig, Experiment, MeshSpec, ObjectConfig, TransformConfig, Where
+from .config.experiment_file import Experiment
+from .config.limits import MAX_COORD
+from .config.objects import BitmapConfig, MeshSpec, ObjectConfig, TransformConfig
+from .config.values import Where
 from .errors import ConfigError, PsdrError
 
 

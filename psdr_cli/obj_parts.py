@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import BsdfConfig, SceneConfig, Where
+from .config.objects import BsdfConfig
+from .config.scene import SceneConfig
+from .config.values import Where
 from .errors import ConfigError
 
 

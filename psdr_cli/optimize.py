@@ -19,7 +19,7 @@ atomically after every iteration, checkpoints and previews at ``checkpoint_every
 An optional wall-clock budget (``optimize.seconds``, optimisation time only) ends a run early,
 for equal-time comparisons; ``optimize.variants`` turns one experiment into an ablation whose
 runs (estimator overrides) live in ``<output>/<name>/<label>/``
-(:func:`psdr_cli.runs.variant_experiments`; the run-folder layout is :mod:`psdr_cli.runs`).
+(:func:`psdr_cli.run_folder.variants.variant_experiments`; the run-folder layout is :mod:`psdr_cli.run_folder`).
 """
 from __future__ import annotations
 
@@ -31,16 +31,23 @@ import drjit as dr
 import numpy as np
 
 from . import backend, fileio
-from .config import MAX_ITERATIONS, Experiment, check_stages, option_count
+from .config.experiment_file import Experiment, check_stages
+from .config.limits import MAX_ITERATIONS
+from .config.options import option_count
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
 from .guiding import auto
 from .iteration import GuideCache, iterate
+from .losses.registry import PLOT_LABEL
 from .problem import Problem, remeshed_problem
 from .render import render_view
-from .runs import (RunFiles, append_log, keep_previous_run, lock_run, plot_loss, read_log,
-                   resumable_state, run_record, variant_experiments, write_checkpoint, write_log, write_mesh)
+from .run_folder.checkpoints import write_checkpoint, write_mesh
+from .run_folder.layout import RunFiles, keep_previous_run, lock_run
+from .run_folder.log import append_log, plot_loss, read_log, write_log
+from .run_folder.record import run_record
+from .run_folder.state import resumable_state
+from .run_folder.variants import variant_experiments
 from .stages import stage_of
 from .targets import dataset_coordinates, initial_state, load_targets, read_targets
 
@@ -144,7 +151,7 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
 
 
 def log_row(it: int, step, t_start: float, seconds: float, problem, guides: GuideCache) -> dict:
-    """The log.csv row of iteration ``it`` (:data:`psdr_cli.runs.LOG_FIELDS`)."""
+    """The log.csv row of iteration ``it`` (:data:`psdr_cli.run_folder.log.LOG_FIELDS`)."""
     return {"iteration": it, "loss": f"{step.loss:.6g}", "vertices": len(problem.vertices()),
             "seconds_guiding": f"{step.t_render - step.t_guide:.4f}",
             "seconds_rendering": f"{step.t_post - step.t_render:.4f}",
@@ -190,7 +197,7 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, it
              f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")
     write_mesh(files.final, dataset_coordinates(exp, problem.vertices()), problem.F)
     result.final = files.final
-    plot_loss(files, read_log(files.log, total))
+    plot_loss(files, read_log(files.log, total), PLOT_LABEL)
     fileio.write_json(files.summary, {
         "experiment": str(exp.file), "iterations": total, "resumed_from": result.resumed_from, "views": n_views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),

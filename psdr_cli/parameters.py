@@ -19,7 +19,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .config import INTERNAL_PREFIX, ParameterConfig, sensor_id
+from .config.parameter import ParameterConfig
+from .config.scene_ids import INTERNAL_PREFIX, sensor_id
 from .errors import PsdrError
 
 

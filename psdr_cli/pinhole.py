@@ -15,7 +15,8 @@ import math
 
 import numpy as np
 
-from .config import MAX_PRINCIPAL_OFFSET, CameraConfig
+from .config.cameras import CameraConfig
+from .config.limits import MAX_PRINCIPAL_OFFSET
 
 #: Largest |fx/fy − 1| accepted: psdr's film has square pixels (fy = fx); images with other
 #: pixels are to be resampled first.

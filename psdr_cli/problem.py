@@ -11,15 +11,18 @@ import mitsuba as mi
 import numpy as np
 
 from . import atlas
-from .config import (MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS, BitmapConfig, BsdfConfig, ParameterConfig, emitter_id,
-                     needs_uv, unwrap_size)
+from .config.objects import BitmapConfig, BsdfConfig
+from .config.optimize import needs_uv, unwrap_size
+from .config.parameter import ParameterConfig
+from .config.scene_ids import emitter_id
+from .config.unknowns import MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS
 from .errors import PsdrError
 from .jitarray import jit_array
 from .material_params import bsdf_parameter, material_key, material_texture_experiment
 from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
-from .runs import State
+from .run_folder.state import State
 from .scene import build_scene, exr_texels
 from .stages import stage_at, stage_experiment, stage_value
 

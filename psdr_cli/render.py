@@ -15,7 +15,9 @@ import drjit as dr
 import numpy as np
 
 from . import backend, fileio
-from .config import CameraConfig, Experiment, option_spp, parse_views
+from .config.cameras import CameraConfig
+from .config.experiment_file import Experiment
+from .config.options import option_spp, parse_views
 from .estimators.interior import render_pass
 from .estimators.passes import pass_seed, passes_for
 from .estimators.registry import RENDER_STREAM

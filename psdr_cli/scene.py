@@ -12,8 +12,12 @@ import mitsuba as mi
 import numpy as np
 
 from . import fileio, mitsuba_scene
-from .config import (BSDF_RANGES, INTEGRATOR_ID, MAX_TEXELS, BitmapConfig, EmitterConfig, Experiment, ObjectConfig,
-                     SceneConfig, emitter_id, sensor_id)
+from .config.emitters import EmitterConfig
+from .config.experiment_file import Experiment
+from .config.limits import MAX_TEXELS
+from .config.objects import BSDF_RANGES, BitmapConfig, ObjectConfig
+from .config.scene import SceneConfig
+from .config.scene_ids import INTEGRATOR_ID, emitter_id, sensor_id
 from .errors import ConfigError
 from .meshes import ObjectMesh, build_objects, has_bitmap
 

@@ -66,7 +66,7 @@ class Stage:
 def stage_of(problem, targets, settings, terms, previous: Stage | None = None,
              masks=None) -> Stage:
     """The stage ``problem`` renders (``previous`` again while its downsampling is unchanged);
-    ``masks``: the targets' :class:`~psdr_cli.dataset_targets.TargetMasks`, or None."""
+    ``masks``: the targets' :class:`~psdr_cli.target_sources.source.TargetMasks`, or None."""
     if previous is not None and previous.factor == problem.factor:
         return previous
     images, arrays = stage_images(targets, problem.factor)

@@ -1,6 +1,6 @@
 """Ray sweeps (``--ray``): every run of an ablation, or every variant of a comparison, as one Ray task.
 
-``psdr optimize cfg.yaml --ray [ADDRESS]`` runs each run of :func:`psdr_cli.runs.variant_experiments`
+``psdr optimize cfg.yaml --ray [ADDRESS]`` runs each run of :func:`psdr_cli.run_folder.variants.variant_experiments`
 (each variant × seed of ``optimize.variants``) as one Ray task calling the same
 :func:`psdr_cli.optimize.optimize` as the sequential path; ``psdr compare cfg.yaml --ray`` renders
 the reference as one task and measures each variant as one task
@@ -23,7 +23,7 @@ Files reach the run folders in one of two ways (``RayOptions.files``):
             ``sync_seconds`` and at the end,
             through a small actor (:class:`Hub`), and all of them with its result; the driver,
             the only writer of the run folders, writes them atomically (``state.npz`` last, so a saved state never runs
-            ahead of its log); a fresh start moves a run it finds aside (:func:`psdr_cli.runs.keep_previous_run`).
+            ahead of its log); a fresh start moves a run it finds aside (:func:`psdr_cli.run_folder.layout.keep_previous_run`).
 
 ``auto`` is ``shared`` for a local instance and ``copy`` when joining a cluster.
 
@@ -50,10 +50,11 @@ from pathlib import Path
 
 from . import compare as comparison
 from . import backend, fileio
-from .config import Experiment
+from .config.experiment_file import Experiment
 from .errors import PsdrError
 from .optimize import loop_guiding_line, optimize
-from .runs import RunFiles, clear_run, keep_previous_run, lock_run, variant_experiments
+from .run_folder.layout import RunFiles, clear_run, keep_previous_run, lock_run
+from .run_folder.variants import variant_experiments
 
 INSTALL = "pip install 'psdr[ray]'"
 #: Files a copy-mode task needs to continue a run (everything else in a run folder is output only).

@@ -1,74 +1,41 @@
-"""What an optimisation fits and where it starts: the ground-truth shape, the target images
-(rendered once from it and cached in the run folder, EXR files from ``psdr render``, or the
-photographs of a camera dataset: :mod:`psdr_cli.dataset_targets`) and the initial shape."""
+"""What an optimisation fits and where it starts: the target images from their source
+(:mod:`psdr_cli.target_sources`: rendered from a ground-truth mesh and cached in the run folder,
+EXR files from ``psdr render``, or the photographs of a camera dataset) and the initial shape."""
 from __future__ import annotations
 
-import glob
-import hashlib
-import json
-from dataclasses import asdict
-from pathlib import Path
-from typing import NamedTuple
-
-import numpy as np
-
-from . import atlas, fileio, meshes
-from .config import needs_uv, unwrap_size
+from . import atlas, meshes
+from .config.optimize import needs_uv, unwrap_size
 from .dataset_scene import to_dataset, to_normalised
-from .dataset_targets import TargetMasks, dataset_initial_shape, dataset_masks, dataset_targets
 from .errors import PsdrError
-from .meshes import object_mesh
-from .mitsuba_scene import scene_files
 from .remesh import remesh
-from .render import camera_header, header_camera, render_view
-from .runs import RunFiles, State, cached_target, scene_identity, write_mesh
-from .scene import build_scene
-
-
-class TargetInputs(NamedTuple):
-    """What a run's targets come from: the ``target.images`` (with their cameras), or the ground
-    truth (V, F) the targets are rendered from; for a fresh run, its initial shape (V, F, UV or
-    None: :func:`initial_shape_uv`); and the targets' (H, W) masks when every photograph of a
-    dataset has one (else None)."""
-    images: list | None
-    cameras: list | None
-    reference: tuple | None
-    initial: tuple | None = None
-    masks: TargetMasks | None = None
+from .run_folder.checkpoints import write_mesh
+from .run_folder.layout import RunFiles
+from .run_folder.state import State
+from .target_sources.registry import target_source
+from .target_sources.source import TargetInputs
 
 
 def read_targets(exp, fresh: bool = False) -> TargetInputs:
-    """:class:`TargetInputs` of a run, read and checked (``preview_views`` included) without
-    writing anything: a bad input fails before the run folder is touched. ``fresh``: also the
-    initial shape (a resumed run starts from its saved state)."""
-    cfg = exp.optimize
-    views = len(exp.scene.cameras)
-    hull = None
-    if cfg.target_dataset:
-        images, dataset = dataset_targets(exp)
-        inputs, views = TargetInputs(images, None, None, masks=dataset_masks(exp, dataset)), len(images)
-        hull = dataset if fresh and cfg.init is None else None
-    elif cfg.target_images:
-        images, cameras = image_targets(exp)
-        inputs, views = TargetInputs(images, cameras, None), len(images)
-    else:
-        inputs = TargetInputs(None, None, ground_truth(exp))
-    bad = [v for v in cfg.preview_views if v >= views]
+    """:class:`TargetInputs` of a run from its source (:mod:`psdr_cli.target_sources`), read and
+    checked (``preview_views`` included) without writing anything: a bad input fails before the
+    run folder is touched. ``fresh``: also the initial shape (a resumed run starts from its saved
+    state): the source's own, else ``init`` or a sphere around the ground truth."""
+    source = target_source(exp.optimize)
+    inputs = source.read(exp)
+    views = len(inputs.images) if inputs.images is not None else len(exp.scene.cameras)
+    bad = [v for v in exp.optimize.preview_views if v >= views]
     if bad:
         raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{views - 1})")
-    if hull is not None:
-        return inputs._replace(initial=(*dataset_initial_shape(exp, hull), None))
-    return inputs._replace(initial=initial_shape_uv(exp, inputs.reference)) if fresh else inputs
+    if not fresh:
+        return inputs
+    initial = source.initial(exp, inputs)
+    return inputs._replace(initial=initial if initial is not None else initial_shape_uv(exp, inputs.reference))
 
 
 def load_targets(exp, files: RunFiles, inputs: TargetInputs):
-    """(target images, cameras or None, ground truth (V, F) or None) of a run: the given images,
-    or renders of the ground truth (cached in ``targets/``; the ground truth is written to the
-    run folder as ``reference.ply``)."""
-    if inputs.images is not None:
-        return inputs.images, inputs.cameras, None
-    write_mesh(files.reference, *inputs.reference)  # the shape this run's targets come from
-    return render_targets(exp, files, inputs.reference), None, inputs.reference
+    """(target images, cameras or None, ground truth (V, F) or None) of a run, from its source
+    (rendered targets are cached in ``targets/``, the ground truth written as ``reference.ply``)."""
+    return target_source(exp.optimize).load(exp, files, inputs), inputs.cameras, inputs.reference
 
 
 def initial_state(exp, files: RunFiles, shape, warn) -> State:
@@ -96,17 +63,6 @@ def dataset_coordinates(exp, V):
     frame: :mod:`psdr_cli.dataset_scene`), else the scene's (unchanged)."""
     dataset = exp.optimize.target_dataset
     return to_dataset(V, dataset.frame if dataset else None)
-
-
-def ground_truth(exp):
-    """World-space (V, F) of the target shape: ``target.mesh`` (placed with the object's
-    transform) or the object's own mesh in the scene."""
-    cfg = exp.optimize
-    obj = next(o for o in exp.scene.objects if o.name == cfg.object)
-    if cfg.target_mesh is None:
-        return object_mesh(obj, str(exp.file))
-    V, F = meshes.load_mesh(cfg.target_mesh, str(exp.file))
-    return meshes.apply_transform(V, meshes.transform_matrix(obj.transform)), F
 
 
 def initial_shape(exp, reference):
@@ -141,111 +97,3 @@ def initial_shape_uv(exp, reference):
     return Vs + (lo + hi) / 2, Fs, uv
 
 
-def target_seed(exp) -> int:
-    """Seed of the target renders: the experiment's (for a variant, the base experiment's, so
-    that every run of an ablation fits the same images)."""
-    return exp.seed if exp.optimize.target_seed is None else exp.optimize.target_seed
-
-
-def input_files(exp) -> list:
-    """Every file the experiment's scene reads: those it names (mesh files, textures, environment
-    maps, the XML scene) and, for an XML scene, the files the XML names (its includes, meshes,
-    textures, environment maps: :func:`psdr_cli.mitsuba_scene.scene_files`)."""
-    found = set()
-
-    def walk(value):
-        if isinstance(value, Path):
-            found.add(value)
-        elif isinstance(value, dict):
-            for v in value.values():
-                walk(v)
-        elif isinstance(value, (list, tuple)):
-            for v in value:
-                walk(v)
-
-    walk(asdict(exp.scene))
-    if exp.scene.mitsuba is not None:
-        found.update(scene_files(exp.scene.mitsuba))
-    return sorted(p for p in found if p.is_file())
-
-
-def _scene_dict(scene) -> dict:
-    """``asdict`` of the scene without the camera keys added since target keys were introduced
-    when they hold their default (``principal_point``, ``hide_background``, an emitter's ``up``), so that cached targets stay valid."""
-    d = asdict(scene)
-    if not d["hide_background"]:
-        del d["hide_background"]
-    for em in d["emitters"] or []:
-        if tuple(em["up"]) == (0.0, 0.0, 1.0):
-            del em["up"]
-    for cam in d["cameras"] or []:
-        if not any(cam["principal_point"]):
-            del cam["principal_point"]
-    return d
-
-
-def target_key(exp, reference, spp: int) -> str:
-    """Hash of everything a cached target image depends on: the scene, the ground truth, spp and
-    seed, and the contents of every file the scene reads (:func:`input_files`), so that an edited
-    mesh file, texture, environment map or included XML file makes new targets."""
-    seed, paths = target_seed(exp), input_files(exp)
-    h = hashlib.sha256()
-    h.update(json.dumps(scene_identity(_scene_dict(exp.scene)), default=str, sort_keys=True).encode())
-    h.update(np.ascontiguousarray(reference[0], np.float64).tobytes())
-    h.update(np.ascontiguousarray(reference[1], np.int64).tobytes())
-    h.update(f"{spp}:{seed}".encode())
-    for path in paths:
-        h.update(path.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def render_targets(exp, files: RunFiles, reference, progress=None):
-    """Target images of every view, rendered from the ground truth at ``target.spp`` and cached
-    in ``targets/`` (reused while the scene, the ground truth and spp are unchanged, and only if
-    every cached file can be read back whole: see :func:`psdr_cli.runs.cached_target`)."""
-    cfg = exp.optimize
-    seed = target_seed(exp) + 7919
-    key = target_key(exp, reference, cfg.target_spp)
-    paths = [files.targets / f"view_{v:03d}.exr" for v in range(len(exp.scene.cameras))]
-    cached = [cached_target(p, key, (exp.scene.height, exp.scene.width)) for p in paths]
-    if all(image is not None for image in cached):
-        return cached
-    scene = build_scene(exp, objects={cfg.object: reference})
-    images = []
-    for v, p in enumerate(paths):
-        image = render_view(scene, v, cfg.target_spp, seed=seed)
-        cam = exp.scene.cameras[v]
-        fileio.write_rgb_exr(p, image, {"psdr.target_key": key, "psdr.view": str(v), "psdr.spp": str(cfg.target_spp),
-                                    "psdr.camera": camera_header(cam)})
-        fileio.write_preview(p.with_suffix(".png"), image)
-        images.append(image)
-        if progress:
-            progress(v)
-    return images
-
-
-def image_targets(exp):
-    """(images, cameras) from ``target.images`` (EXR files written by ``psdr render``)."""
-    pattern = exp.optimize.target_images
-    paths = sorted(glob.glob(pattern))
-    if not paths:
-        raise PsdrError(f"{exp.file}: optimize.target.images: no file matches '{pattern}'")
-    images, cameras = [], []
-    for p in paths:
-        try:
-            exr = fileio.read_exr(p)
-            cam = json.loads(exr["__header__"]["psdr.camera"])
-        except KeyError:
-            raise PsdrError(f"{p}: no 'psdr.camera' header (target images must come from `psdr render`)") from None
-        except Exception as exc:  # noqa: BLE001 - unreadable EXR
-            raise PsdrError(f"{p}: cannot read the EXR target ({str(exc).splitlines()[0] if str(exc) else exc})") from None
-        image = np.stack([exr["R"], exr["G"], exr["B"]], -1).astype(np.float64)
-        if image.shape[:2] != (exp.scene.height, exp.scene.width):
-            raise PsdrError(f"{p}: image is {image.shape[1]}×{image.shape[0]}, but scene.film is "
-                            f"{exp.scene.width}×{exp.scene.height}")
-        images.append(image)
-        try:
-            cameras.append(header_camera(cam))
-        except (KeyError, TypeError, ValueError):
-            raise PsdrError(f"{p}: its 'psdr.camera' header is not a camera written by `psdr render`") from None
-    return images, cameras

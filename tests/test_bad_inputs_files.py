@@ -23,9 +23,11 @@ import pytest
 import yaml
 
 from conftest import experiment
-from psdr_cli import api, cli, fileio, meshes, targets
+from psdr_cli import api, cli, fileio, meshes
+from psdr_cli.target_sources import rendered_mesh as targets
 from psdr_cli.errors import PsdrError
-from psdr_cli.runs import RunFiles, run_checkpoints
+from psdr_cli.run_folder.checkpoints import run_checkpoints
+from psdr_cli.run_folder.layout import RunFiles
 from test_faults import SMALL, assert_one_line_error, write_small
 from test_faults import psdr as psdr_with_bars
 from test_mitsuba_scene import write_twins

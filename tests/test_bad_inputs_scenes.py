@@ -12,7 +12,7 @@ import mitsuba as mi
 
 from conftest import experiment, write_raw_exr
 from psdr_cli import api, cli, meshes
-from psdr_cli.config import parse
+from psdr_cli.config.experiment_file import parse
 from psdr_cli.experiment import load_experiment
 from psdr_cli.render import render_view
 from psdr_cli.scene import build_scene

@@ -21,7 +21,8 @@ import yaml
 from conftest import experiment
 from psdr_cli import cli, fileio
 from psdr_cli.errors import PsdrError
-from psdr_cli.runs import RunFiles, lock_run, read_log
+from psdr_cli.run_folder.layout import RunFiles, lock_run
+from psdr_cli.run_folder.log import read_log
 
 
 def psdr(capsys, *args):
@@ -245,7 +246,7 @@ def test_non_finite_image_is_not_written(tmp_path):
 
 
 def test_non_finite_mesh_is_not_written(tmp_path):
-    from psdr_cli.runs import write_mesh
+    from psdr_cli.run_folder.checkpoints import write_mesh
     V = np.array(TETRA_V, float)
     V[1, 1] = np.nan
     with pytest.raises(PsdrError, match="final.ply: not written: the mesh has 1 NaN or infinite values"):

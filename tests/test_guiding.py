@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from psdr_cli import api
-from psdr_cli.config import with_estimator
+from psdr_cli.config.options import with_estimator
 from psdr_cli.experiment import parse_experiment
 from psdr_cli.estimate import forward_gradient, make_guides, prepare
 from psdr_cli.guiding import auto, build_grid, build_kdtree

@@ -18,7 +18,8 @@ from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
 from psdr_cli.iteration import adjoint_image
 from psdr_cli.losses.l1 import l1_loss
 from psdr_cli.problem import Problem
-from psdr_cli.targets import ground_truth, initial_shape
+from psdr_cli.target_sources.rendered_mesh import ground_truth
+from psdr_cli.targets import initial_shape
 from test_optimize import TINY, write
 
 

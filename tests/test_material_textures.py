@@ -16,7 +16,7 @@ from psdr_cli.estimators.passes import pass_seed
 from psdr_cli.estimate import Settings, ad_image
 from psdr_cli.problem import Problem
 from psdr_cli.render import render_view
-from psdr_cli.runs import State
+from psdr_cli.run_folder.state import State
 from test_unknown_light import experiment_data, write
 
 

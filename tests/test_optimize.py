@@ -290,7 +290,7 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
     from psdr_cli import api
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.runs import State
+    from psdr_cli.run_folder.state import State
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0]["bsdf"] = {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}
     data["optimize"].update(iterations=2, remesh={"method": "none"}, albedo={"init": 0.3})
@@ -421,8 +421,8 @@ def test_reports_refuse_unfinished_runs(tmp_path):
 def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
     from psdr_cli.experiment import parse_experiment
-    from psdr_cli.runs import variant_experiments
-    from psdr_cli.targets import target_key
+    from psdr_cli.run_folder.variants import variant_experiments
+    from psdr_cli.target_sources.rendered_mesh import target_key
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
     exp = parse_experiment(data, tmp_path / "tiny.yaml", cwd=tmp_path)
@@ -568,7 +568,7 @@ def test_adjoint_spp_optimisation_runs_and_is_checked(tmp_path):
 def test_learning_rate_final_decays_geometrically_after_the_last_remesh():
     """lr is constant up to the last remesh before the end, then decays geometrically to
     learning_rate_final at the last iteration; unset, it stays constant."""
-    from psdr_cli.config import OptimizeConfig, RemeshConfig
+    from psdr_cli.config.optimize import OptimizeConfig, RemeshConfig
     from psdr_cli.iteration import learning_rate_at
     cfg = OptimizeConfig(object="x", learning_rate=0.1, learning_rate_final=0.01,
                          remesh=RemeshConfig("instant", 800, (100, 200, 400), (1500, 2500, 4000)))
@@ -655,7 +655,7 @@ def test_stage_lists_are_checked_again_when_code_changes_the_experiment(tmp_path
     film) is checked again by optimize: one-line errors, not a traceback or a silent mismatch."""
     from dataclasses import replace
     from psdr_cli import api
-    from psdr_cli.config import RemeshConfig
+    from psdr_cli.config.optimize import RemeshConfig
     from psdr_cli.experiment import load_experiment
     from psdr_cli.errors import PsdrError
     data = copy.deepcopy(TINY)
@@ -673,7 +673,7 @@ def test_the_loop_guiding_line_names_no_psdr_guide_under_the_mitsuba_engine(tmp_
     """The line `psdr optimize` prints per run says what the loop guides with: under
     ``estimator.engine: mitsuba`` no psdr guide is built (Mitsuba samples its own boundaries),
     whatever ``estimator.guiding`` says."""
-    from psdr_cli.config import with_estimator
+    from psdr_cli.config.options import with_estimator
     from psdr_cli.experiment import load_experiment
     from psdr_cli.optimize import loop_guiding_line
     data = copy.deepcopy(TINY)

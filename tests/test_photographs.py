@@ -117,7 +117,7 @@ def test_the_blender_and_colmap_forms_of_a_dataset_give_the_same_cameras(tmp_pat
     # the targets agree where the L1 sees them: a JPEG over a backdrop with a mask file against an
     # RGBA PNG, premultiplied; the COLMAP form's partly covered pixels (its colour mixes in the
     # backdrop) are left out of its L1 (weight 0)
-    from psdr_cli.dataset_targets import dataset_masks, dataset_targets
+    from psdr_cli.target_sources.camera_dataset import dataset_masks, dataset_targets
     tb, vb = dataset_targets(blender)
     tc, vc = dataset_targets(colmap)
     weights = dataset_masks(colmap, vc).weights
@@ -347,7 +347,7 @@ def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path):
     masks agree with psdr's render of the ground truth through the new pinhole cameras (mask IoU
     ≥ 0.97 per view; the distorted masks through the original pinhole cameras reach only ~0.94)."""
     from psdr_cli.dataset_scene import to_normalised
-    from psdr_cli.dataset_targets import dataset_targets
+    from psdr_cli.target_sources.camera_dataset import dataset_targets
     from psdr_cli.held_out import coverage
     from psdr_cli.meshes import read_mesh_file
     from psdr_cli.scene import build_scene

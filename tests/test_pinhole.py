@@ -15,14 +15,15 @@ import yaml
 
 from conftest import experiment, run_cli
 from psdr_cli import backend
-from psdr_cli.config import CameraConfig
+from psdr_cli.config.cameras import CameraConfig
 from psdr_cli.errors import ConfigError
 from psdr_cli.estimators.camera import Projection, camera_connection
 from psdr_cli.experiment import parse_experiment
 from psdr_cli.pinhole import pinhole_camera
-from psdr_cli.runs import fingerprint_v1, run_fingerprint
+from psdr_cli.run_folder.fingerprint import run_fingerprint
+from psdr_cli.run_folder.fingerprint_v1 import fingerprint_v1
 from psdr_cli.scene import sensor_dict
-from psdr_cli.targets import target_key
+from psdr_cli.target_sources.rendered_mesh import target_key
 from psdr_cli.verdict import agrees, describe
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from psdr_cli import api
-from psdr_cli.config import with_estimator
+from psdr_cli.config.options import with_estimator
 from psdr_cli.estimators.primary import JUMP_ANGLE, JUMP_MIN_WEIGHT, jump_weights
 from psdr_cli.reference import block_sums, mean_and_error
 from standins import blob_cfg, bumpy_blob, load

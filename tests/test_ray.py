@@ -108,7 +108,7 @@ def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, sequential_sw
         np.testing.assert_allclose(results[label].losses, seq[label].losses, rtol=1e-4)
         assert (label, "start", 4, 0) in events and sum(e[1] == "advance" and e[0] == label for e in events) == 4
     assert_same_runs(seq_exp.run_dir, exp.run_dir, ["grid", "plain"])
-    # no temporary files left (each run's .<label>.lock file stays by design: runs.lock_run)
+    # no temporary files left (each run's .<label>.lock file stays by design: run_folder.layout.lock_run)
     assert not [p for p in exp.run_dir.rglob(".*") if p.suffix != ".lock"]
     if files == "shared":
         return  # the workers run optimize() itself there (test_optimize checks a fresh start keeps a run)

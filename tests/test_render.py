@@ -5,7 +5,7 @@ import pytest
 
 from psdr_cli import fileio as io
 from psdr_cli.api import setup
-from psdr_cli.config import parse_views
+from psdr_cli.config.options import parse_views
 from psdr_cli.errors import PsdrError
 from psdr_cli.experiment import parse_experiment
 from psdr_cli.render import passes_for, render_view

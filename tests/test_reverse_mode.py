@@ -7,7 +7,8 @@ import pytest
 
 from conftest import REPO
 from psdr_cli.api import setup
-from psdr_cli.config import TERMS, EstimatorConfig
+from psdr_cli.config.estimator import EstimatorConfig
+from psdr_cli.config.vocabularies import TERMS
 from psdr_cli.experiment import load_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
 from psdr_cli.estimate import Settings, ad_image, forward_gradient

@@ -13,7 +13,9 @@ from conftest import REPO, run_cli
 from psdr_cli.errors import ConfigError
 from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.optimize import optimize
-from psdr_cli.runs import fingerprint_v1, run_fingerprint, variant_experiments
+from psdr_cli.run_folder.fingerprint import run_fingerprint
+from psdr_cli.run_folder.fingerprint_v1 import fingerprint_v1
+from psdr_cli.run_folder.variants import variant_experiments
 from test_optimize import TINY, write
 
 #: A run written by psdr with version-1 fingerprints: tiny.yaml, 2 iterations (run.json, state, log, targets).

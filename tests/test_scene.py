@@ -145,6 +145,6 @@ def test_uv_sphere_resolution_and_seam_welding(tmp_path):
     # a cube whose faces each have their own vertices (as OBJ seams) is welded back to 8 vertices
     Vc, Fc = meshes.cube((1, 1, 1))
     meshes.write_ply(tmp_path / "split.ply", Vc[Fc.reshape(-1)], np.arange(36).reshape(-1, 3))
-    from psdr_cli.config import MeshSpec
+    from psdr_cli.config.objects import MeshSpec
     V2, F2 = meshes.load_mesh(MeshSpec("m", file=tmp_path / "split.ply"), "x.yaml")
     assert len(V2) == 8 and len(F2) == 12

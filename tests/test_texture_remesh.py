@@ -13,10 +13,10 @@ from PIL import Image
 
 from conftest import write_raw_exr
 from psdr_cli import atlas, backend, cli, fileio, load_experiment, meshes
-from psdr_cli.config import OptimizeConfig
+from psdr_cli.config.optimize import OptimizeConfig
 from psdr_cli.problem import texture_experiment
 from psdr_cli.render import render_view
-from psdr_cli.runs import read_log
+from psdr_cli.run_folder.log import read_log
 from psdr_cli.scene import build_scene
 
 # a 64 × 32 texture: 8 × 4 coloured cells (bilinear lookups blur only the cells' borders)
@@ -143,7 +143,7 @@ def test_export_of_a_textured_run_round_trips_and_renders_alike(tmp_path, full_r
     integrator rendering the OBJ with its PNG agrees with psdr's render of the run's state."""
     import trimesh
     from psdr_cli.problem import Problem
-    from psdr_cli.runs import State
+    from psdr_cli.run_folder.state import State
     from psdr_cli.scene import emitter_dict, sensor_dict
     path, run = full_run
     out = tmp_path / "asset"

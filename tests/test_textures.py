@@ -12,7 +12,7 @@ import yaml
 from conftest import write_raw_exr
 from psdr_cli import backend, cli, fileio, load_experiment, meshes
 from psdr_cli.render import render_view
-from psdr_cli.runs import read_log
+from psdr_cli.run_folder.log import read_log
 from psdr_cli.scene import build_scene, emitter_dict, sensor_dict
 
 CHECKER = np.where((np.add.outer(np.arange(8), np.arange(16)) % 2)[..., None] == 1,

@@ -21,7 +21,8 @@ from psdr_cli.estimate import Settings, ad_image
 from psdr_cli.held_out import apply_values
 from psdr_cli.problem import Problem
 from psdr_cli.render import render_view
-from psdr_cli.runs import State, read_log
+from psdr_cli.run_folder.log import read_log
+from psdr_cli.run_folder.state import State
 from psdr_cli.scene import build_scene
 
 H, W = 8, 16

@@ -47,7 +47,7 @@ from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in
 from .camera import camera_ray, connect_camera
 from .interior import environment_motion, turn
 from .sample_log import SampleLog
-from .term import Term, boundary_pass
+from .term import GuideTarget, Term, boundary_pass
 
 
 
@@ -226,4 +226,16 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
     return direct_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, estimator.sampling, guide)
 
 
-TERM = Term("direct", samples_key="boundary_spp", stream=3, guided=True, estimate=estimate)
+def guide_techniques(sampling: str) -> tuple:
+    """The techniques with a guide each: light and dir under MIS, else the one sampled."""
+    return ("light", "dir") if sampling == "mis" else (sampling,)
+
+
+def guide_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u, sampler,
+                 max_depth: int) -> mi.Float:
+    """:func:`direct_target` as a :class:`~.term.GuideTarget` evaluates it (no sampler, any depth)."""
+    return direct_target(scene, sensors, edges, P, technique, mis, u)
+
+
+TERM = Term("direct", samples_key="boundary_spp", stream=3, estimate=estimate,
+            guide=GuideTarget(guide_techniques, guide_target, motion=direct_motion_target, loop_fed=True))

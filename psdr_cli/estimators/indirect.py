@@ -46,7 +46,7 @@ from .interior import environment_motion, turn
 from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
                                 ray_origin, sample_edge_point, sample_wedge)
 from .camera import camera_ray, connect_camera
-from .term import Term, boundary_pass
+from .term import GuideTarget, Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
 
@@ -191,4 +191,19 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
     return indirect_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth, guide)
 
 
-TERM = Term("indirect", samples_key="boundary_spp", stream=4, guided=True, estimate=estimate)
+def guide_techniques(sampling: str) -> tuple:
+    """One guide, of the direction technique ``dir`` (the term samples the segment's direction at the
+    edge point: no light sampling, no MIS)."""
+    return ("dir",)
+
+
+def guide_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u, sampler,
+                 max_depth: int) -> mi.Float:
+    """:func:`indirect_target` as a :class:`~.term.GuideTarget` evaluates it (one random subpath
+    pair per sample; the technique and MIS do not apply)."""
+    return indirect_target(scene, sensors, edges, P, sampler, max_depth, u)
+
+
+TERM = Term("indirect", samples_key="boundary_spp", stream=4, estimate=estimate,
+            guide=GuideTarget(guide_techniques, guide_target, seed_offset=2, min_depth=3, random=True,
+                              per_technique=False))

@@ -245,4 +245,4 @@ def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth:
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") / spp for c in range(3)]))
 
 
-TERM = Term("interior", samples_key="spp", stream=1, guided=False, estimate=estimate)
+TERM = Term("interior", samples_key="spp", stream=1, estimate=estimate)

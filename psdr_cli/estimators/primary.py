@@ -508,4 +508,4 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
                             estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
-TERM = Term("primary", samples_key="primary_spp", stream=2, guided=False, estimate=estimate)
+TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from importlib import import_module
 
-from ..config import TERMS as NAMES
+from ..config.vocabularies import TERMS as NAMES
 from .term import Term
 
 #: Random-number stream of primal renders (:func:`psdr_cli.render.render_view`).

@@ -27,13 +27,44 @@ from .passes import make_sampler
 
 
 @dataclass(frozen=True)
+class GuideTarget:
+    """What the guides of a boundary term need from it (:mod:`psdr_cli.guiding.targets`,
+    ``psdr guide-stats``):
+
+        techniques(sampling) -> the techniques that get a guide each, in the order of their seeds
+        evaluate(scene, sensors, edges, P, technique, mis, u, sampler, max_depth) -> F̃(u)
+        motion(scene, sensors, edges, P, technique, mis, u) -> [v per view]   (optional)
+
+    ``evaluate`` is the guide's target at primary samples u (mi.Point3f) summed over the views'
+    ``sensors`` (``sampler``: a fresh one per batch when ``random``, else None); ``motion``, when
+    given, is the integrand with θ's velocity (forward mode: the target becomes Σ max |dv/dθ|).
+    The guide of technique i is built with seed + ``seed_offset`` + i; scenes whose ``max_depth``
+    is below ``min_depth`` have no such paths (unguided). The term reads {technique: guide} when
+    ``per_technique``, else its one guide; ``loop_fed``: the optimisation loop fits its guides to
+    the samples of its own passes when the guide kind is loop-fed (:mod:`psdr_cli.guiding.kinds`)."""
+    techniques: Callable[[str], tuple]
+    evaluate: Callable[..., mi.Float]
+    motion: Callable[..., list] | None = None
+    seed_offset: int = 0
+    min_depth: int = 1
+    random: bool = False
+    per_technique: bool = True
+    loop_fed: bool = False
+
+
+@dataclass(frozen=True)
 class Term:
     """One term of dI/dθ (module docstring)."""
     name: str
     samples_key: str      # EstimatorConfig field with its samples per pixel (spp, primary_spp, boundary_spp)
     stream: int           # random-number stream of its passes (estimators.passes.pass_seed)
-    guided: bool          # whether a boundary guide can serve it (guiding/targets.py)
     estimate: Callable[..., mi.Float]
+    guide: GuideTarget | None = None   # how a boundary guide serves it (None: no guide can)
+
+    @property
+    def guided(self) -> bool:
+        """Whether a boundary guide can serve the term."""
+        return self.guide is not None
 
 
 def boundary_pass(scene, edges, spp: int, seed: int):

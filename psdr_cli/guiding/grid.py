@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .guide import Guide, GuideStats
+from .guide import Guide, GuideKind, GuideStats
 
 
 class GridGuide(Guide):
@@ -74,3 +74,13 @@ def build_grid(target, resolution=(64, 8, 8), samples_per_cell: int = 16, epsilo
     stats.memory_bytes = guide.memory_bytes()
     stats.build_seconds = time.perf_counter() - t0
     return guide
+
+
+def build_grid_guide(target, breaks, estimator, seed: int, pixels: int) -> GridGuide:
+    """A grid guide of ``estimator.grid``'s resolution and samples per cell (:class:`~.guide.GuideKind`;
+    the breakpoints and the film's size are not used)."""
+    g = estimator.grid
+    return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
+
+
+KIND = GuideKind("grid", build_grid_guide)

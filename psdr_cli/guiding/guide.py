@@ -20,6 +20,7 @@ lookups of g at arbitrary u (tests, plots).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
@@ -145,3 +146,20 @@ class Guide:
         xi = mi.Point3f(*(mi.Float(rng.random(n).astype(np.float32)) for _ in range(3)))
         s, p = self.sample(u, xi)
         return np.stack([np.asarray(s[i]) for i in range(3)], 1), np.asarray(p)
+
+
+@dataclass(frozen=True)
+class GuideKind:
+    """A kind of guide (a word of ``estimator.guiding``): its name, how one is built, and whether
+    the optimisation loop fits it to the samples its own passes kept (:mod:`.loop_fed`) instead of
+    building it from target evaluations. Each guide module declares its ``KIND``
+    (:mod:`.kinds` lists them):
+
+        build(target, breaks, estimator, seed, pixels) -> Guide
+
+    ``target`` maps numpy u (N, 3) to F̃ (N,), ``breaks`` are the u1 breakpoints of the edges,
+    ``estimator`` the experiment's :class:`~psdr_cli.config.estimator.EstimatorConfig` (the
+    kind's own keys), ``seed`` the build's seed and ``pixels`` the film's W·H."""
+    name: str
+    build: Callable[..., Guide]
+    loop_fed: bool = False

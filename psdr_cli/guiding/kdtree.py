@@ -20,7 +20,7 @@ Used when ``estimator.guiding`` is ``kdtree``, or ``auto`` picks it (:mod:`.auto
 
 ``estimator.kdtree.initial_samples`` (int in [0, 2²²], default 0)
     Target evaluations of the uniform batch; 0: half the lanes of one boundary pass,
-    W·H·``boundary_spp``/2, clamped to [2¹⁷, 2¹⁸] (:func:`.targets.initial_samples`).
+    W·H·``boundary_spp``/2, clamped to [2¹⁷, 2¹⁸] (:func:`initial_samples`).
 ``estimator.kdtree.refine_ratio`` (float in [0, 16], default 0)
     Second batch of ``refine_ratio`` × ``initial_samples`` points drawn from a first tree;
     0: one batch.
@@ -50,7 +50,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .guide import CORNERS, Guide, GuideStats
+from .guide import CORNERS, Guide, GuideKind, GuideStats
 
 #: relative ridge keeping the small least-squares systems well posed
 RIDGE = 1e-6
@@ -435,3 +435,27 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
     stats.memory_bytes = guide.memory_bytes()
     stats.build_seconds = time.perf_counter() - t0
     return guide
+
+
+#: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
+AUTO_SHARE = 2
+AUTO_RANGE = (131072, 262144)
+
+
+def initial_samples(estimator, pixels: int) -> int:
+    """The Kd-tree's first batch: ``kdtree.initial_samples``, or when it is 0 (auto)
+    pixels · boundary_spp / AUTO_SHARE clamped to AUTO_RANGE, so that both batches together
+    ((1 + refine_ratio) × this) cost a fixed share of one boundary pass."""
+    n = estimator.kdtree.initial_samples
+    return n if n > 0 else int(np.clip(pixels * estimator.boundary_spp // AUTO_SHARE, *AUTO_RANGE))
+
+
+def build_kdtree_guide(target, breaks, estimator, seed: int, pixels: int) -> KdTreeGuide:
+    """A Kd-tree guide of ``estimator.kdtree``'s settings (:class:`~.guide.GuideKind`)."""
+    k = estimator.kdtree
+    return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
+                        estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
+                        k.refine_ratio)
+
+
+KIND = GuideKind("kdtree", build_kdtree_guide, loop_fed=True)

@@ -2,8 +2,9 @@
 
 The target of a guide is the boundary term's integrand in primary-sample space without the
 velocity factor, F̃(u) = Σ_views max_RGB |F(u)| (docs/theory.md §5), evaluated by the estimator's own
-code path (:func:`direct.direct_target`, :func:`indirect.indirect_target`) for the views the
-guide serves. For the indirect term F̃ contains one random source and detector subpath per
+code path (each guided term's :class:`~psdr_cli.estimators.term.GuideTarget`: for instance
+:func:`~psdr_cli.estimators.direct.direct_target`, :func:`~psdr_cli.estimators.indirect.indirect_target`)
+for the views the guide serves. For the indirect term F̃ contains one random source and detector subpath per
 evaluation, a noisy but unbiased stand-in for the photon-map estimate of the paper's Eq. 11.
 """
 from __future__ import annotations
@@ -12,26 +13,22 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..estimators.direct import direct_motion_target, direct_target
-from ..estimators.indirect import indirect_target
+from ..estimators import registry
 from ..estimators.passes import make_sampler
 from . import auto
-from .grid import build_grid
-from .kdtree import build_kdtree, share_profiles
+from .kdtree import share_profiles
+from .kinds import guide_kind
 
 #: lanes per batched target evaluation
 CHUNK = 1 << 19
-#: automatic first Kd-tree batch: lanes of one boundary pass / AUTO_SHARE, within AUTO_RANGE
-AUTO_SHARE = 2
-AUTO_RANGE = (131072, 262144)
 
 
-def motion_target(scene, sensors, edges, theta, technique: str, mis: bool, u) -> mi.Float:
-    """F̃(u) = Σ_views max_RGB |dv/dθ| of the direct term's samples (forward mode from ``theta``,
-    already applied to the scene with AD): the integrand itself, velocity included. The AD
-    graph from θ is kept, so one application of θ serves every target of a build."""
+def motion_target(scene, sensors, edges, theta, motion, technique: str, mis: bool, u) -> mi.Float:
+    """F̃(u) = Σ_views max_RGB |dv/dθ| of a term's samples (its ``motion``: forward mode from
+    ``theta``, already applied to the scene with AD): the integrand itself, velocity included. The
+    AD graph from θ is kept, so one application of θ serves every target of a build."""
     P = edges.positions(mi.traverse(scene.mi_scene))
-    vs = direct_motion_target(scene.mi_scene, sensors, edges, P, technique, mis, u)
+    vs = motion(scene.mi_scene, sensors, edges, P, technique, mis, u)
     dr.forward(theta, dr.ADFlag.ClearInput | dr.ADFlag.ClearInterior)
     total = mi.Float(0.0)
     for v in vs:
@@ -42,10 +39,12 @@ def motion_target(scene, sensors, edges, theta, technique: str, mis: bool, u) ->
 
 def target_function(scene, edges, views: list, term: str, technique: str, mis: bool,
                     max_depth: int, seed: int, theta=None):
-    """numpy u (N,3) → F̃ (N,) for ``term`` (direct/indirect) and ``technique``. With ``theta``
-    (the scalar parameter, applied with AD: forward mode) the direct term's target includes the
-    velocity, F̃ = max_RGB |dv/dθ| (:func:`motion_target`); without it (optimisation: many
-    parameters) F̃ = max_RGB |F| without the velocity factor."""
+    """numpy u (N,3) → F̃ (N,) for the guided ``term`` and ``technique`` (its
+    :class:`~psdr_cli.estimators.term.GuideTarget`). With ``theta`` (the scalar parameter, applied
+    with AD: forward mode) a term with a ``motion`` includes the velocity, F̃ = max_RGB |dv/dθ|
+    (:func:`motion_target`); without it (optimisation: many parameters) F̃ = max_RGB |F| without
+    the velocity factor. A term whose target is ``random`` gets a fresh sampler per batch."""
+    target = registry.term(term).guide
     sensors = [scene.sensors[v] for v in views]
     mi_scene = scene.mi_scene
     calls = [0]
@@ -56,14 +55,14 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
         for a in range(0, len(u), CHUNK):
             chunk = u[a:a + CHUNK].astype(np.float32)
             pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(chunk[:, i])) for i in range(3)))
-            if term == "direct" and theta is not None:
-                val = motion_target(scene, sensors, edges, theta, technique, mis, pt)
-            elif term == "direct":
-                val = direct_target(mi_scene, sensors, edges, P, technique, mis, pt)
+            if theta is not None and target.motion is not None:
+                val = motion_target(scene, sensors, edges, theta, target.motion, technique, mis, pt)
             else:
-                calls[0] += 1
-                sampler = make_sampler(seed * 7919 + calls[0], len(chunk))
-                val = indirect_target(mi_scene, sensors, edges, P, sampler, max_depth, pt)
+                sampler = None
+                if target.random:
+                    calls[0] += 1
+                    sampler = make_sampler(seed * 7919 + calls[0], len(chunk))
+                val = target.evaluate(mi_scene, sensors, edges, P, technique, mis, pt, sampler, max_depth)
             out[a:a + len(chunk)] = np.asarray(val, np.float64)
         return np.where(np.isfinite(out), out, 0.0)
 
@@ -86,25 +85,6 @@ class Guides(dict):
         return out
 
 
-def initial_samples(estimator, pixels: int) -> int:
-    """The Kd-tree's first batch: ``kdtree.initial_samples``, or when it is 0 (auto)
-    pixels · boundary_spp / AUTO_SHARE clamped to AUTO_RANGE, so that both batches together
-    ((1 + refine_ratio) × this) cost a fixed share of one boundary pass."""
-    n = estimator.kdtree.initial_samples
-    return n if n > 0 else int(np.clip(pixels * estimator.boundary_spp // AUTO_SHARE, *AUTO_RANGE))
-
-
-def build_guide(kind: str, target, breaks, estimator, seed: int, pixels: int):
-    """One guide of ``kind`` (grid or kdtree) from the experiment's ``estimator`` settings."""
-    if kind == "grid":
-        g = estimator.grid
-        return build_grid(target, g.resolution, g.samples_per_cell, estimator.guide_epsilon, seed)
-    k = estimator.kdtree
-    return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
-                        k.refine_ratio)
-
-
 def applied_theta(parameter):
     """θ = 0 with AD enabled, applied to the scene (None without a parameter); the caller resets."""
     if parameter is None:
@@ -117,28 +97,28 @@ def applied_theta(parameter):
 
 def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
                  seed: int = 0, parameter=None) -> Guides:
-    """Guides for the direct and indirect terms among ``terms``, each of the kind
-    :func:`auto.resolve` gives for ``estimator.guiding``; ``parameter`` (the scalar θ of a
-    forward-mode gradient) puts the velocity into the direct term's target."""
+    """Guides for the guided terms among ``terms``, each of the kind :func:`auto.resolve` gives
+    for ``estimator.guiding``; ``parameter`` (the scalar θ of a forward-mode gradient) puts the
+    velocity into the targets of the terms that have a ``motion``."""
     guides = Guides()
     pixels = int(np.prod(scene.resolution))
     kinds = auto.resolve(estimator.guiding, terms, pixels, estimator.boundary_spp)
     if edges.count == 0 or all(k == "none" for k in kinds.values()):
         return guides
-    direct = {}
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))
-    mis = sampling == "mis"
-    if kinds.get("direct", "none") != "none":
-        theta = applied_theta(parameter)
+    for term, kind in kinds.items():
+        target = registry.term(term).guide
+        if kind == "none" or max_depth < target.min_depth:
+            continue
+        theta = applied_theta(parameter) if target.motion is not None else None
         try:
-            for i, t in enumerate(("light", "dir") if mis else (sampling,)):
-                f = target_function(scene, edges, views, "direct", t, mis, max_depth, seed, theta)
-                direct[t] = build_guide(kinds["direct"], f, breaks, estimator, seed + i, pixels)
+            built = {}
+            for i, t in enumerate(target.techniques(sampling)):
+                f = target_function(scene, edges, views, term, t, sampling == "mis", max_depth, seed, theta)
+                built[t] = guide_kind(kind).build(f, breaks, estimator, seed + target.seed_offset + i, pixels)
         finally:
-            if parameter is not None:
+            if theta is not None:
                 parameter.reset()
-        guides["direct"] = share_profiles(direct, breaks, estimator.kdtree.technique_share)
-    if kinds.get("indirect", "none") != "none" and max_depth >= 3:
-        f = target_function(scene, edges, views, "indirect", "dir", False, max_depth, seed)
-        guides["indirect"] = build_guide(kinds["indirect"], f, breaks, estimator, seed + 2, pixels)
+        guides[term] = (share_profiles(built, breaks, estimator.kdtree.technique_share) if target.per_technique
+                        else next(iter(built.values())))
     return guides

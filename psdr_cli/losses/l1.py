@@ -4,6 +4,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .loss import Loss, ViewImages
+
 
 def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None,
             weight: mi.Float | None = None) -> mi.Float:
@@ -23,3 +25,11 @@ def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None,
         return dr.mean(w * dr.abs(image - target))
     sign = dr.sign(adjoint - target)
     return dr.mean(w * dr.abs(adjoint - target)) + dr.mean(w * sign * (image - dr.detach(image)))
+
+
+def view_l1(view: ViewImages, optimize) -> mi.Float:
+    """:func:`l1_loss` of a view of the mini-batch (its adjoint render and weights, if any)."""
+    return l1_loss(view.image, view.target, view.adjoint, view.weight)
+
+
+LOSS = Loss("l1", "image L1", view_l1)

@@ -13,7 +13,21 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .loss import Loss, ViewImages
+
 
 def silhouette_loss(coverage: mi.Float, mask: mi.Float) -> mi.Float:
     """L_s = mean |C − M| (module docstring), flat W·H arrays."""
     return dr.mean(dr.abs(coverage - mask))
+
+
+def view_silhouette(view: ViewImages, optimize) -> mi.Float | None:
+    """w · L_s of a masked view, w = ``optimize.target.dataset.silhouette`` (None without a mask
+    or with w = 0)."""
+    weight = optimize.target_dataset.silhouette if optimize.target_dataset else 0.0
+    if view.mask is None or not weight > 0:
+        return None
+    return weight * silhouette_loss(view.coverage(), view.mask)
+
+
+LOSS = Loss("silhouette", "silhouette", view_silhouette)

@@ -1,4 +1,4 @@
-"""Target images from a camera dataset (``optimize.target.dataset``): the photographs of the
+"""The target source ``dataset`` (``optimize.target.dataset``): the photographs of the
 views the experiment's cameras are (:mod:`psdr_cli.dataset_scene`), decoded to linear RGB at the
 film's size, and the initial shape: the masks' visual hull, or a sphere without masks.
 
@@ -10,15 +10,16 @@ on the shape. With a visible background the photograph is compared as it is.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from . import meshes
-from .dataset_scene import dataset_frames, to_normalised
-from .datasets.views import load_views
-from .errors import PsdrError
-from .visual_hull import visual_hull
+from .. import meshes
+from ..dataset_scene import dataset_frames, to_normalised
+from ..datasets.views import load_views
+from ..errors import PsdrError
+from ..visual_hull import visual_hull
+from .source import TargetInputs, TargetMasks, TargetSource
 
 
 def undistortion_cache(exp):
@@ -26,14 +27,6 @@ def undistortion_cache(exp):
     (files named by a hash of their source and intrinsics, so any run may reuse them; the targets
     folder survives a fresh start)."""
     return exp.run_dir / "targets" / "undistorted"
-
-
-@dataclass
-class TargetMasks:
-    """The targets' (H, W) masks in [0, 1], and per view the weight of each pixel in the L1 loss
-    (None: 1 everywhere; 0 where a photograph's colour mixes object and background)."""
-    masks: list
-    weights: list | None = None
 
 
 def dataset_views(exp):
@@ -89,7 +82,7 @@ def l1_weight(view, mask_file: bool) -> np.ndarray:
 
 
 def dataset_masks(exp, views):
-    """The :class:`~psdr_cli.stages.TargetMasks` of the experiment's views when every one has a
+    """The :class:`~.source.TargetMasks` of the experiment's views when every one has a
     mask, else None."""
     if not views or any(v.mask is None for v in views):
         return None
@@ -107,3 +100,17 @@ def dataset_initial_shape(exp, views):
         except PsdrError as exc:
             raise PsdrError(f"{exp.optimize.target_dataset.path}: {exc}") from None
     return meshes.sphere(radius=0.5, subdivisions=3)
+
+
+def read_dataset(exp) -> TargetInputs:
+    """The photographs of the experiment's views as targets, with their masks (:func:`dataset_masks`)."""
+    images, views = dataset_targets(exp)
+    return TargetInputs(images, None, None, masks=dataset_masks(exp, views), views=views)
+
+
+def dataset_initial(exp, inputs: TargetInputs):
+    """The visual hull of the views (:func:`dataset_initial_shape`, no UVs) unless ``init`` is given."""
+    return None if exp.optimize.init is not None else (*dataset_initial_shape(exp, inputs.views), None)
+
+
+SOURCE = TargetSource("dataset", lambda optimize: bool(optimize.target_dataset), read_dataset, initial=dataset_initial)
