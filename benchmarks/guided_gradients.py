@@ -133,7 +133,7 @@ class Bench:
                 for it in range(cfg.guide_every):
                     for v in batch_views(self.exp.seed, 1000 * window + it, len(self.scene.sensors), cfg.batch_size):
                         term_image(self.scene, edges, v, "direct", settings.boundary_spp, 90000 + 100 * it + v,
-                                   settings, Guides(direct=log))
+                                   settings, guides=Guides(direct=log))
                 t0 = time.perf_counter()
                 log = SampleLog(fitted_guides(log, breaks, settings.estimator), budget)
                 t_fit = time.perf_counter() - t0

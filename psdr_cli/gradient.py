@@ -103,7 +103,8 @@ def grad_experiment(exp: Experiment, spp: int | None = None, terms=None, views=N
         guides = make_guides(scene, edges, [v], terms, settings, parameter)
         guide_seconds = time.perf_counter() - t0
         estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes,
-                                         progress.advance if progress else None, guides) for t in terms}
+                                         progress=progress.advance if progress else None, guides=guides)
+                     for t in terms}
         image = estimates["interior"].primal if "interior" in estimates else \
             render_view(scene, v, settings.spp, seed=exp.seed)
         total = sum(e.gradient for e in estimates.values())

@@ -480,7 +480,7 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
 # --------------------------------------------------------------------------------------------
 # Building the Mitsuba scene
 # --------------------------------------------------------------------------------------------
-def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = False, emitter=None):
+def mesh(name: str, V, F, bsdf, *, normals=None, texcoords=None, smooth: bool = False, emitter=None):
     """``mi.Mesh`` from arrays with a BSDF instance (and optionally an area ``emitter`` instance);
     ``normals`` (or ``smooth``: normals computed by Mitsuba) and ``texcoords`` as given."""
     props = mi.Properties()
@@ -537,6 +537,6 @@ def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):
             d[name] = mesh(name, V, F, o.bsdf, smooth=o.normals is not None)
         else:
             V, F = o.V, o.F
-            d[name] = mesh(name, V, F, o.bsdf, o.normals, o.texcoords)
+            d[name] = mesh(name, V, F, o.bsdf, normals=o.normals, texcoords=o.texcoords)
         geometry[name] = (np.asarray(V, float), np.asarray(F, np.int64))
     return d, geometry
