@@ -53,12 +53,15 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
     return estimate.gradient_images(exp, view, terms, spp, min_passes, scene, progress)
 
 
-def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
+def grad(exp: Experiment, *, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None, report=None):
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
     ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings; ``report``: one
-    line before the work, what guides each boundary term (``guiding: auto`` resolved)."""
-    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn, report)
+    line before the work, what guides each boundary term (``guiding: auto`` resolved). The
+    keywords are the command's options (:class:`psdr_cli.gradient.GradRequest`) and where it
+    reports (:class:`psdr_cli.gradient.Feedback`)."""
+    request = gradient.GradRequest(spp, terms, views, out, fd, fd_spp)
+    return gradient.grad_experiment(exp, request, gradient.Feedback(progress, warn, report))
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import backend
 from .camera_motion import check_camera_motion, with_all_edges
-from .config import EstimatorConfig, Experiment, option_spp, parse_terms
+from .config import EstimatorConfig, Experiment, parse_terms, with_estimator
 from .errors import PsdrError
 from .estimators import registry
 from .estimators.boundary_sampling import BoundaryEdges, edge_list
@@ -98,11 +98,11 @@ class GradientSetup:
 
 
 def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetup:
-    """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
+    """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated;
+    ``spp`` (the interior term's samples per pixel) as its command checked it."""
     if exp.parameter is None:
         raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
     settings = Settings.from_experiment(exp, spp)
-    option_spp("--spp", spp, exp.scene.width, exp.scene.height)
     backend.activate(exp)
     scene = scene or build_scene(exp)
     if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
@@ -217,8 +217,9 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
     """Forward-mode gradient images dI/dθ of one view, without writing anything.
 
     Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
-    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
-    scene, parameter, edges, settings = prepare(exp, spp, scene)
+    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent.
+    ``spp`` is checked as the ``--spp`` option is (:func:`psdr_cli.config.with_estimator`)."""
+    scene, parameter, edges, settings = prepare(with_estimator(exp, spp=spp), scene=scene)
     terms = parse_terms(terms) or exp.estimator.terms
     guides = make_guides(scene, edges, [view], terms, settings, parameter)
     return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress=progress,
