@@ -101,9 +101,8 @@ def evaluate(paths, reference: Path | None = None, samples: int | None = None, j
     dataset = evaluation.dataset_experiment(paths)
     if dataset is not None:
         return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress)
-    reference, targets, samples, seed, report, labels, title = evaluation.evaluate_inputs(
-        paths, reference, samples, report)
-    return evaluation.evaluate_meshes(reference, targets, samples, seed, json_out, progress, report, labels, title)
+    inputs = evaluation.evaluate_inputs(paths, reference, samples, report)
+    return evaluation.evaluate_meshes(inputs, json_out, progress)
 
 
 def table2(experiments: list, out: Path) -> Path:
