@@ -79,10 +79,11 @@ def compare(exp: Experiment, out: Path | None = None, progress=None, ray: "sweep
 
 def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print):
     """``psdr optimize`` of one run (an experiment without variants, or one variant's run)."""
+    option_count("--iterations", iterations, 1, MAX_ITERATIONS)
     return optimization.optimize(exp, iterations=iterations, resume=resume, progress=progress, warn=warn)
 
 
-def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
+def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False, *,
                       progress=None, warn=print, ray: "sweep.RayOptions | None" = None, report=None):
     """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult). With
     ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving

@@ -49,7 +49,7 @@ def test_reverse_passes_after_the_first_compile_nothing_new(tmp_path):
     reference = ground_truth(exp)
     problem = Problem(exp, *initial_shape(exp, reference), None, {})
     settings = Settings.from_experiment(exp).with_estimator(guiding="none")
-    engine = Engine(settings, exp.estimator.terms)
+    engine = Engine(settings)
     target = jit_array(mi.Float, np.full(24 * 24 * 3, 0.1))
     name = exp.optimize.object
     flag = dr.flag(dr.JitFlag.KernelHistory)
