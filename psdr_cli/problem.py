@@ -4,7 +4,7 @@ albedo texture, environment rotation)."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -22,83 +22,123 @@ from .scene import build_scene, exr_texels
 from .stages import stage_at, stage_experiment, stage_value
 
 
-class Problem:
-    """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
+@dataclass
+class Shape:
+    """The shape being optimised: vertices, faces and per-vertex UVs (or None); with a saved
+    state, the "large steps" latent ``u`` and the vertices its basis was built from (``basis``;
+    None: ``V``)."""
+    V: np.ndarray
+    F: np.ndarray
+    uv: np.ndarray | None = None
+    u: np.ndarray | None = None
+    basis: np.ndarray | None = None
 
-    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None, stage: int = 0):
-        self.exp, self.cfg = exp, exp.optimize
+
+class Problem:
+    """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser.
+
+    Built from the experiment (the scene it describes, at the film of remesh stage ``stage``),
+    a :class:`Shape` and the saved values of the extra unknowns (``values``, as
+    :meth:`values` gives them; {} for their initial values); ``cameras`` replace the scene's."""
+
+    def __init__(self, exp, shape: Shape, cameras, values: dict, stage: int = 0):
+        self.cfg, self.file = exp.optimize, exp.file
         self.applied = None  # the optimiser's variables last written into the scene (apply)
         self.factor = stage_value(self.cfg.downsample, stage)
-        self.uv = None if uv is None else np.asarray(uv, np.float64)
+        self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
-        built = stage_experiment(exp, stage)
-        if self.texture:
-            if self.uv is None:
-                raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
-            init = state_values.get("albedo")
-            W, H = self.cfg.albedo_texture
-            if init is not None:
-                init = np.asarray(init, np.float64).reshape(H, W, 3)
-            else:
-                init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
-            built = texture_experiment(built, np.clip(init, 0.0, 1.0))
-        mesh = (V, F) if self.uv is None else (V, F, self.uv)
-        self.scene = build_scene(built, objects={self.cfg.object: mesh}, cameras=cameras)
+        self.scene = build_scene(self.stage_experiment(exp, stage, values), cameras=cameras,
+                                 objects={self.cfg.object: (shape.V, shape.F) if self.uv is None else
+                                          (shape.V, shape.F, self.uv)})
+        self.lookup = texture_lookup(exp) if self.texture else None  # how the texture is looked up
         self.params = mi.traverse(self.scene.mi_scene)
         self.key = f"{self.cfg.object}.vertex_positions"
-        self.F = np.asarray(F, np.int64)
-        # LargeSteps welds and orders the vertices by position: a resumed run rebuilds it from the
-        # same vertices as the original so that the saved u means the same thing
-        self.basis = np.asarray(V if basis is None else basis, np.float64)
-        self.steps = mi.ad.LargeSteps(jit_array(mi.Float, self.basis.ravel()),
-                                      self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
+        self.F = np.asarray(shape.F, np.int64)
+        self.steps = self.large_steps(shape, stage)
         self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
         # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
-        self.opt["u"] = jit_array(mi.Float, u) if u is not None else \
+        self.opt["u"] = jit_array(mi.Float, shape.u) if shape.u is not None else \
             self.steps.to_differential(self.params[self.key])
         self.albedo_key = self.envmap = None
         if self.cfg.albedo:
-            suffixes = ("reflectance.data", "base_color.data") if self.texture else \
-                ("reflectance.value", "base_color.value")
-            keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.") and k.endswith(suffixes)]
-            if not keys:
-                raise PsdrError(f"{exp.file}: optimize.albedo: the object's BSDF has no constant "
-                                f"reflectance/base_color to optimise (give 'texture: [W, H]' for a bitmap)")
-            self.albedo_key = keys[0]
-            if self.texture:  # the scene holds the initial texture already
-                self.opt["albedo"] = self.albedo_value(self.texture_image())
-            else:
-                init = state_values.get("albedo")
-                if init is None:
-                    init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
-                self.opt["albedo"] = self.albedo_value(init)
-            self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
+            self.init_albedo(values)
         if self.cfg.envmap_rotation:
-            self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
-            init = state_values.get("envmap_angle")
-            self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
-                                                else math.radians(self.cfg.envmap_init_deg))
-            self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
-        self.environment = Environment(exp, self.params, state_values.get("envmap_log")) if self.cfg.envmap else None
+            self.init_envmap_rotation(values)
+        self.environment = Environment(self.cfg, exp.scene.emitters, self.params, values.get("envmap_log")) \
+            if self.cfg.envmap else None
         if self.environment:
             self.opt["envmap"] = self.environment.initial
             self.opt.set_learning_rate({"envmap": self.cfg.envmap.learning_rate})
         self.materials = {}  # name -> (scene key, (lo, hi))
         for m in self.cfg.material:
-            self.materials[m.name] = material_key(exp, self.params, m.name)
-            init = state_values.get(m.name)
-            init = float(np.ravel(init)[0]) if init is not None else \
-                (m.init if m.init is not None else float(np.ravel(self.params[self.materials[m.name][0]])[0]))
-            lo, hi = self.materials[m.name][1]
-            self.opt[m.name] = mi.Float(min(max(init, lo), hi))
-            self.opt.set_learning_rate({m.name: m.learning_rate})
+            self.init_material(m, values)
+
+    def stage_experiment(self, exp, stage: int, values: dict):
+        """The experiment the scene is built from: the film of ``stage`` and, for a recovered
+        texture, the object's bitmap holding the saved texture (or its initial colour)."""
+        built = stage_experiment(exp, stage)
+        if not self.texture:
+            return built
+        if self.uv is None:
+            raise PsdrError(f"{exp.file}: optimize.albedo.texture: the shape being optimised has no UV coordinates")
+        init = values.get("albedo")
+        W, H = self.cfg.albedo_texture
+        if init is not None:
+            init = np.asarray(init, np.float64).reshape(H, W, 3)
+        else:
+            init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
+        return texture_experiment(built, np.clip(init, 0.0, 1.0))
+
+    def large_steps(self, shape: Shape, stage: int):
+        """``mi.ad.LargeSteps`` over the shape, with the stage's λ (its basis kept in ``basis``)."""
+        # LargeSteps welds and orders the vertices by position: a resumed run rebuilds it from the
+        # same vertices as the original so that the saved u means the same thing
+        self.basis = np.asarray(shape.V if shape.basis is None else shape.basis, np.float64)
+        return mi.ad.LargeSteps(jit_array(mi.Float, self.basis.ravel()),
+                                self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
+
+    def init_albedo(self, values: dict):
+        """``optimize.albedo``: the object's constant reflectance (or base colour), or its texture."""
+        suffixes = ("reflectance.data", "base_color.data") if self.texture else \
+            ("reflectance.value", "base_color.value")
+        keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.") and k.endswith(suffixes)]
+        if not keys:
+            raise PsdrError(f"{self.file}: optimize.albedo: the object's BSDF has no constant "
+                            f"reflectance/base_color to optimise (give 'texture: [W, H]' for a bitmap)")
+        self.albedo_key = keys[0]
+        if self.texture:  # the scene holds the initial texture already
+            self.opt["albedo"] = self.albedo_value(self.texture_image())
+        else:
+            init = values.get("albedo")
+            if init is None:
+                init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
+            self.opt["albedo"] = self.albedo_value(init)
+        self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
+
+    def init_envmap_rotation(self, values: dict):
+        """``optimize.envmap_rotation``: the environment's rotation angle about its axis."""
+        self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
+        init = values.get("envmap_angle")
+        self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
+                                            else math.radians(self.cfg.envmap_init_deg))
+        self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
+
+    def init_material(self, m, values: dict):
+        """``optimize.material.NAME``: one constant BSDF parameter, within its range."""
+        self.materials[m.name] = material_key(self.cfg.object, self.file, self.params, m.name)
+        init = values.get(m.name)
+        init = float(np.ravel(init)[0]) if init is not None else \
+            (m.init if m.init is not None else float(np.ravel(self.params[self.materials[m.name][0]])[0]))
+        lo, hi = self.materials[m.name][1]
+        self.opt[m.name] = mi.Float(min(max(init, lo), hi))
+        self.opt.set_learning_rate({m.name: m.learning_rate})
 
     @classmethod
     def from_state(cls, exp, state: State, cameras) -> "Problem":
         """The problem of a saved (or initial) state, its Adam moments restored: the shape of
         iteration ``state.iteration`` before its remesh, if one is due (the stage of the
         iteration before)."""
-        problem = cls(exp, state.V, state.F, cameras, state.values, state.u, state.basis, uv=state.uv,
+        problem = cls(exp, Shape(state.V, state.F, state.uv, state.u, state.basis), cameras, state.values,
                       stage=stage_at(exp.optimize, max(state.iteration - 1, 0)))
         for k, saved in state.adam.items():
             if k in problem.opt.keys():
@@ -208,15 +248,16 @@ class Problem:
                      np.asarray(self.opt["u"], np.float32), self.basis, uv=self.uv)
 
 
-def material_key(exp, params, name: str) -> tuple:
-    """(scene key, clamp range) of the object's BSDF parameter behind ``optimize.material.NAME``:
-    a constant ``roughness``/``alpha``, ``metallic`` or ``specular``."""
+def material_key(obj: str, file, params, name: str) -> tuple:
+    """(scene key, clamp range) of the BSDF parameter of object ``obj`` behind
+    ``optimize.material.NAME``: a constant ``roughness``/``alpha``, ``metallic`` or ``specular``
+    (``file``: the experiment, named in the error)."""
     (lo, hi), names = MATERIAL_UNKNOWNS[name]
-    prefix = f"{exp.optimize.object}.bsdf."
+    prefix = f"{obj}.bsdf."
     keys = [k for k in params.keys() if k.startswith(prefix) and
             any(k.endswith(f".{p}.value") or k.endswith(f".{p}") for p in set(names.values()))]
     if not keys:
-        raise PsdrError(f"{exp.file}: optimize.material.{name}: the object's BSDF has no constant "
+        raise PsdrError(f"{file}: optimize.material.{name}: the object's BSDF has no constant "
                         f"{'/'.join(sorted(set(names.values())))} to optimise (a texture, an anisotropic "
                         f"alpha_u/alpha_v, or a BSDF without it)")
     return keys[0], (lo, hi)
@@ -228,9 +269,11 @@ class Environment:
     given). Mitsuba's ``data`` is (H, W + 2, 3): one halo column either side, refreshed by the
     emitter from the real columns (each halo's derivative routed onto its source column)."""
 
-    def __init__(self, exp, params, saved=None):
-        cfg = exp.optimize.envmap
-        index = next(i for i, e in enumerate(exp.scene.emitters) if e.type == "envmap")
+    def __init__(self, cfg, emitters: list, params, saved=None):
+        """``cfg``: the ``optimize`` section; ``emitters``: the scene's; ``saved``: the saved
+        log-radiance, or None for the initial map."""
+        optimize, cfg = cfg, cfg.envmap
+        index = next(i for i, e in enumerate(emitters) if e.type == "envmap")
         self.key = f"{emitter_id(index)}.data"
         self.W, self.H = cfg.resolution
         scene_map = np.asarray(params[self.key], np.float64)[:, 1:-1]  # the map the scene was built with
@@ -244,7 +287,7 @@ class Environment:
             start = np.broadcast_to((scene_map * w[..., None]).sum((0, 1)) / w.sum(), (self.H, self.W, 3))
         start = np.maximum(start, 1e-4 * max(float(start.max()), 1e-30))  # log-radiance needs > 0
         self.mean = float((start * self.weights[..., None]).sum() / (3 * self.weights.sum()))
-        self.fixed_mean = cfg.mean == "fixed" or (cfg.mean == "auto" and exp.optimize.albedo)
+        self.fixed_mean = cfg.mean == "fixed" or (cfg.mean == "auto" and optimize.albedo)
         self.initial = jit_array(mi.TensorXf, np.log(start) if saved is None else saved)
         cols = np.concatenate([[self.W - 1], np.arange(self.W), [0]])
         idx = ((np.arange(self.H)[:, None] * self.W + cols[None, :])[..., None] * 3 + np.arange(3)).ravel()
@@ -361,7 +404,7 @@ def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
     if problem.texture:
         V2, F2, uv2, values = retextured(problem, V2, F2, say)
     problem.release()
-    return Problem(exp, V2, F2, cameras, values, uv=uv2, stage=stage_at(cfg, it))
+    return Problem(exp, Shape(V2, F2, uv2), cameras, values, stage=stage_at(cfg, it))
 
 
 def retextured(problem: Problem, V, F, warn):
@@ -371,7 +414,7 @@ def retextured(problem: Problem, V, F, warn):
     as the shape's do. Should the unwrap or the transfer fail, the current mesh, UVs and texture
     are kept (with a warning): a remesh never ends a run."""
     W, H = problem.cfg.albedo_texture
-    lookup = texture_lookup(problem.exp)
+    lookup = problem.lookup
     old = (problem.vertices(), problem.F, problem.uv)
     try:
         V2, F2, uv2 = atlas.unwrap(V, F, (W, H))

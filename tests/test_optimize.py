@@ -298,8 +298,8 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     api.optimize(exp, warn=lambda m: None)
     saved = State.load(exp.run_dir / "state.npz")
     assert saved.adam["albedo"][0] == 2
-    from psdr_cli.problem import Problem, adam_import, adam_export
-    problem = Problem(exp, saved.V, saved.F, None, saved.values, saved.u, saved.basis)
+    from psdr_cli.problem import Problem, Shape, adam_import, adam_export
+    problem = Problem(exp, Shape(saved.V, saved.F, u=saved.u, basis=saved.basis), None, saved.values)
     adam_import(problem.opt, "albedo", saved.adam["albedo"])
     t, m, v = adam_export(problem.opt, "albedo")
     assert t == 2 and np.allclose(m, saved.adam["albedo"][1]) and np.allclose(v, saved.adam["albedo"][2])
