@@ -91,7 +91,7 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
     starts, what guides its boundary terms in the loop."""
     option_count("--iterations", iterations, 1, MAX_ITERATIONS)  # before any run starts, here or on Ray
     if ray is not None:
-        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress, warn, report)
+        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress=progress, warn=warn, report=report)
     return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report)
 
 
