@@ -16,7 +16,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import backend
 from .camera_motion import check_camera_motion, with_all_edges
 from .config import EstimatorConfig, Experiment, parse_terms, with_estimator
 from .errors import PsdrError
@@ -98,12 +97,11 @@ class GradientSetup:
 
 
 def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetup:
-    """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated;
+    """(scene, θ, boundary edges, settings) of a loaded experiment (its Mitsuba variant active);
     ``spp`` (the interior term's samples per pixel) as its command checked it."""
     if exp.parameter is None:
         raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
     settings = Settings.from_experiment(exp, spp)
-    backend.activate(exp)
     scene = scene or build_scene(exp)
     if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
         with_all_edges(scene)

@@ -186,7 +186,6 @@ def rotated_environment(exp, angle: float, notes: list):
         notes.append("the recovered environment rotation is not exported as an image (the environment is "
                      "not an envmap file of a YAML scene); it is in export.json")
         return None
-    backend.activate(exp)
     em = emitters[0]
     if em.file.suffix.lower() == ".exr":
         texels = exr_texels(em.file)

@@ -22,7 +22,7 @@ import mitsuba as mi
 import numpy as np
 from skimage.metrics import structural_similarity
 
-from . import backend, fileio, meshes
+from . import fileio, meshes
 from .dataset_scene import dataset_scene, to_normalised
 from .dataset_targets import dataset_views, target_image
 from .config import ParameterConfig, emitter_id
@@ -140,7 +140,6 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
     (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
     the photographs; strips go to ``out`` when given."""
     test = dataset_scene(exp, split="test")
-    backend.activate(test)
     views = dataset_views(test)
     V, F = meshes.read_mesh_file(mesh)
     scene = build_scene(test, objects={test.optimize.object: (to_normalised(V, test.optimize.target_dataset.frame), F)})

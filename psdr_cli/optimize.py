@@ -68,7 +68,6 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     total = cfg.iterations if iterations is None else iterations
-    backend.activate(exp)
     check_stages(exp)  # again: the experiment may have been changed in code after loading
     files = RunFiles(exp.run_dir)
     files.check_files()

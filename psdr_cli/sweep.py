@@ -242,6 +242,7 @@ def optimize_task(run: Experiment, task: RunTask, place: TaskPlace):
     mode: the run folder's resume set) the task runs in a temporary folder and returns
     (result, (seq, fresh, files)); shared mode (None): returns (result, None)."""
     limit_threads(place.threads, place.variant)
+    backend.activate(run)  # a worker process: the run was loaded in the driver
     if task.snapshot is None:
         progress = place.progress(task, None)
         return optimize(run, iterations=task.iterations, resume=task.resume, progress=progress,
