@@ -19,7 +19,7 @@ from .parameters import Parameter
 from .remesh import remesh
 from .runs import State
 from .scene import build_scene, exr_texels
-from .stages import stage_at, stage_experiment, stage_value
+from .stages import stage_at, stage_value
 
 
 @dataclass
@@ -47,7 +47,7 @@ class Problem:
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
-        self.scene = build_scene(self.stage_experiment(exp, stage, values), cameras=cameras,
+        self.scene = build_scene(self.scene_experiment(exp, stage, values), cameras=cameras,
                                  objects={self.cfg.object: (shape.V, shape.F) if self.uv is None else
                                           (shape.V, shape.F, self.uv)})
         self.lookup = texture_lookup(exp) if self.texture else None  # how the texture is looked up
@@ -73,7 +73,7 @@ class Problem:
         for m in self.cfg.material:
             self.init_material(m, values)
 
-    def stage_experiment(self, exp, stage: int, values: dict):
+    def scene_experiment(self, exp, stage: int, values: dict):
         """The experiment the scene is built from: the film of ``stage`` and, for a recovered
         texture, the object's bitmap holding the saved texture (or its initial colour)."""
         built = stage_experiment(exp, stage)
@@ -341,6 +341,15 @@ def latlong_resample(image, W: int, H: int) -> np.ndarray:
     xa, xb = x0 % w, (x0 + 1) % w
     row = lambda r: image[r][:, xa] * (1 - fx) + image[r][:, xb] * fx  # noqa: E731
     return row(y0) * (1 - fy) + row(y1) * fy
+
+
+def stage_experiment(exp, stage: int):
+    """``exp`` with the film of remesh stage ``stage``: W/k × H/k pixels for ``downsample`` k
+    (:func:`psdr_cli.stages.stage_value`)."""
+    k = stage_value(exp.optimize.downsample, stage)
+    if k == 1:
+        return exp
+    return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
 
 
 def texture_experiment(exp, texture):

@@ -606,7 +606,8 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
     k-th pixel instead does not."""
     from psdr_cli import backend
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.stages import downsample, stage_experiment
+    from psdr_cli.problem import stage_experiment
+    from psdr_cli.stages import downsample
     from psdr_cli.render import render_view
     from psdr_cli.scene import build_scene
     data = copy.deepcopy(TINY)
