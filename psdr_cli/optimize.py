@@ -102,8 +102,7 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) ->
     it, seconds = start.state.iteration, start.state.seconds
     result = OptimizeResult(files.root, resumed_from=it)
     now, loop = start_loop(exp, start, total, warn)
-    rows = read_log(files.log, it)
-    write_log(files.log, rows)
+    write_log(files.log, read_log(files.log, it))  # rows of unsaved iterations dropped
     if progress:
         progress.start(total, it)
     try:
@@ -116,7 +115,7 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) ->
                 remesh(now, exp, start, loop, it)
             step = iterate(now.problem, loop, now.stage, now.guides, it)
             seconds += step.t_end - t_start
-            rows.append(record_step(result, files, step, it, t_start, seconds, now))
+            record_step(result, files, step, it, t_start, seconds, now)
             if cfg.seconds is not None and seconds >= cfg.seconds:
                 total = it + 1  # time budget spent: this is the last iteration
             save_iteration(now, files, exp, it + 1, seconds, result, last=it + 1 == total)
@@ -169,13 +168,12 @@ def remesh(now: Current, exp, start: RunStart, loop, it: int):
 
 
 def record_step(result: OptimizeResult, files: RunFiles, step, it: int, t_start: float, seconds: float,
-                now: Current) -> dict:
+                now: Current):
     """The log row of iteration ``it``, appended to log.csv, and its loss and skip in ``result``."""
     result.skipped += int(step.skipped)
     row = log_row(it, step, t_start, seconds, now.problem, now.guides)
     result.losses.append(step.loss)
     append_log(files.log, row)
-    return row
 
 
 def save_iteration(now: Current, files: RunFiles, exp, iteration: int, seconds: float, result: OptimizeResult,
