@@ -142,7 +142,7 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch):
     real = estimate.ad_image
 
     def poisoned(scene, edges, view, terms, settings, pass_index=0, scale=1.0, guides=None):
-        img = real(scene, edges, view, terms, settings, pass_index, scale, guides)
+        img = real(scene, edges, view, terms, settings, pass_index, scale=scale, guides=guides)
         return img * (dr.nan if pass_index == 1 else 1.0)
 
     monkeypatch.setattr(estimate, "ad_image", poisoned)
