@@ -36,7 +36,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from . import backend, fileio, meshes
+from . import fileio, meshes
 from .config import BitmapConfig
 from .errors import ConfigError, PsdrError
 from .experiment import load_experiment
