@@ -145,8 +145,8 @@ def setup(scale: int, tmp: Path):
     problem = Problem.from_state(exp, state, cameras)
     settings = Settings.from_experiment(exp)
     settings = settings.with_estimator(guiding=auto.in_loop(settings.guiding))
-    engine = Engine(settings, exp.estimator.terms)
-    stage = stage_of(problem, targets, settings, exp.estimator.terms)
+    engine = Engine(settings)
+    stage = stage_of(problem, targets, engine.settings, engine.terms)
     return exp, files, problem, settings, engine, stage
 
 
@@ -158,8 +158,8 @@ def run_scale(scale: int, warmup: int, iterations: int, phases: Phases) -> dict:
         problem.opt.step = phases.wrap("update", problem.opt.step)
         total = warmup + iterations
         seconds = 0.0
-        body = phases.wrap("step", lambda it: iteration.iterate(problem, exp, engine, settings, stage, guides, it,
-                                                                  total, print))
+        loop = iteration.Loop(exp.optimize, engine, total, print)
+        body = phases.wrap("step", lambda it: iteration.iterate(problem, loop, stage, guides, it))
         save = phases.wrap("save", lambda it, s: save_state(problem, files, it + 1, s, guides))
         with backend.optimization_threads():
             for it in range(total):

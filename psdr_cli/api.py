@@ -55,12 +55,15 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
     return estimate.gradient_images(exp, view, terms, spp, min_passes, scene, progress)
 
 
-def grad(exp: Experiment, spp: int | None = None, terms=None, views=None, out: Path | None = None,
+def grad(exp: Experiment, *, spp: int | None = None, terms=None, views=None, out: Path | None = None,
          fd: float | None = None, fd_spp: int | None = None, progress=None, warn=None, report=None):
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
     ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings; ``report``: one
-    line before the work, what guides each boundary term (``guiding: auto`` resolved)."""
-    return gradient.grad_experiment(exp, spp, terms, views, out, fd, fd_spp, progress, warn, report)
+    line before the work, what guides each boundary term (``guiding: auto`` resolved). The
+    keywords are the command's options (:class:`psdr_cli.gradient.GradRequest`) and where it
+    reports (:class:`psdr_cli.gradient.Feedback`)."""
+    request = gradient.GradRequest(spp, terms, views, out, fd, fd_spp)
+    return gradient.grad_experiment(exp, request, gradient.Feedback(progress, warn, report))
 
 
 def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None, progress=None):
@@ -78,10 +81,11 @@ def compare(exp: Experiment, out: Path | None = None, progress=None, ray: "sweep
 
 def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print):
     """``psdr optimize`` of one run (an experiment without variants, or one variant's run)."""
+    option_count("--iterations", iterations, 1, MAX_ITERATIONS)
     return optimization.optimize(exp, iterations=iterations, resume=resume, progress=progress, warn=warn)
 
 
-def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
+def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False, *,
                       progress=None, warn=print, ray: "sweep.RayOptions | None" = None, report=None):
     """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult). With
     ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving
@@ -89,7 +93,7 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
     starts, what guides its boundary terms in the loop."""
     option_count("--iterations", iterations, 1, MAX_ITERATIONS)  # before any run starts, here or on Ray
     if ray is not None:
-        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress, warn, report)
+        return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress=progress, warn=warn, report=report)
     return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report)
 
 
@@ -100,9 +104,8 @@ def evaluate(paths, reference: Path | None = None, samples: int | None = None, j
     dataset = evaluation.dataset_experiment(paths)
     if dataset is not None:
         return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress)
-    reference, targets, samples, seed, report, labels, title = evaluation.evaluate_inputs(
-        paths, reference, samples, report)
-    return evaluation.evaluate_meshes(reference, targets, samples, seed, json_out, progress, report, labels, title)
+    inputs = evaluation.evaluate_inputs(paths, reference, samples, report)
+    return evaluation.evaluate_meshes(inputs, json_out, progress)
 
 
 def table2(experiments: list, out: Path) -> Path:

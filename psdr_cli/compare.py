@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import backend, estimate, fileio, plots
+from . import estimate, fileio, plots
 from .config.experiment_file import Experiment
 from .config.options import with_estimator
 from .config.variants import Variant
@@ -141,7 +141,6 @@ def run_comparison(exp: Experiment, out: Path | None = None, progress=None) -> C
     ``compare.json``, ``compare.md``, ``grid.png`` and one EXR per variant to
     ``<output>/<name>/compare/``."""
     cfg = check_comparison(exp)
-    backend.activate(exp)
     folder = exp.command_dir("compare", out)
     c = Comparison(exp, cfg.terms, cfg.view)
     if progress:

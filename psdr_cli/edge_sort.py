@@ -43,8 +43,22 @@ class Chains:
         return Chains(np.arange(n), np.zeros(n, bool), np.arange(n))
 
 
-def _extend(start_vertex, prev_dir, a, b, P, incident, used, limit, cos_turn):
+@dataclass
+class EdgeGraph:
+    """What the greedy walks share: welded vertex positions ``P``, the edges (a[i], b[i]), the
+    edges incident to each vertex, which edges a chain has taken (``used``, updated by the
+    walks) and the cosine of the largest turn a chain may take."""
+    P: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    incident: list
+    used: np.ndarray
+    cos_turn: float
+
+
+def _extend(graph: EdgeGraph, start_vertex, prev_dir, limit: int):
     """Greedy walk from ``start_vertex``; returns [(edge, forward?)] in walking order."""
+    P, a, b, incident, used, cos_turn = graph.P, graph.a, graph.b, graph.incident, graph.used, graph.cos_turn
     out, cur, d_prev = [], start_vertex, prev_dir
     while len(out) < limit:
         best, best_cos, best_fwd = -1, cos_turn, True
@@ -78,7 +92,7 @@ def sort_edges(P, a, b, max_turn_deg: float = 60.0, max_length: int = 1024) -> C
         incident[a[e]].append(e)
         incident[b[e]].append(e)
     used = np.zeros(n, bool)
-    cos_turn = float(np.cos(np.radians(max_turn_deg)))
+    graph = EdgeGraph(P, a, b, incident, used, float(np.cos(np.radians(max_turn_deg))))
     order, flip, starts = [], [], []
     for e0 in range(n):
         if used[e0]:
@@ -86,8 +100,8 @@ def sort_edges(P, a, b, max_turn_deg: float = 60.0, max_length: int = 1024) -> C
         used[e0] = True
         d = P[b[e0]] - P[a[e0]]
         d = d / max(np.linalg.norm(d), 1e-30)
-        ahead = _extend(b[e0], d, a, b, P, incident, used, max_length - 1, cos_turn)
-        behind = _extend(a[e0], -d, a, b, P, incident, used, max_length - 1 - len(ahead), cos_turn)
+        ahead = _extend(graph, b[e0], d, max_length - 1)
+        behind = _extend(graph, a[e0], -d, max_length - 1 - len(ahead))
         # walking backwards from a[e0] visits edges in reverse chain order and direction
         chain = [(e, not fwd) for e, fwd in reversed(behind)] + [(e0, True)] + ahead
         starts.append(len(order))

@@ -56,12 +56,17 @@ def mitsuba_image(scene, params, integrator, view: int, spp: int, seed: int) -> 
 
 
 class Engine:
-    """The AD image of one view in one iteration, by psdr's estimators or by Mitsuba."""
+    """The AD image of one view in one iteration, by psdr's estimators or by Mitsuba.
 
-    def __init__(self, settings: Settings, terms):
-        self.settings, self.terms = settings, tuple(terms)
+    ``settings`` are the loop's, as the engine uses them: Mitsuba's integrators sample their own
+    boundaries, so under ``estimator.engine: mitsuba`` no psdr guide is built (``guiding: none``).
+    The terms are the estimator's (``settings.estimator.terms``)."""
+
+    def __init__(self, settings: Settings):
         est = settings.estimator
         self.name = est.engine
+        self.settings = settings if self.needs_edges else settings.with_estimator(guiding="none")
+        self.terms = tuple(est.terms)
         self.integrator = mitsuba_integrator(est, settings.max_depth) if self.name == "mitsuba" else None
 
     @property

@@ -16,11 +16,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import backend
 from .camera_motion import check_camera_motion, with_all_edges
 from .config.estimator import EstimatorConfig
 from .config.experiment_file import Experiment
-from .config.options import option_spp, parse_terms
+from .config.options import parse_terms, with_estimator
 from .errors import PsdrError
 from .estimators import registry
 from .estimators.boundary_sampling import BoundaryEdges, edge_list
@@ -100,12 +99,11 @@ class GradientSetup:
 
 
 def prepare(exp: Experiment, spp: int | None = None, scene=None) -> GradientSetup:
-    """(scene, θ, boundary edges, settings) of an experiment, its Mitsuba variant activated."""
+    """(scene, θ, boundary edges, settings) of a loaded experiment (its Mitsuba variant active);
+    ``spp`` (the interior term's samples per pixel) as its command checked it."""
     if exp.parameter is None:
         raise PsdrError(f"{exp.file}: parameter: missing (expected e.g. {{object: NAME, kind: translate, axis: [1, 0, 0]}})")
     settings = Settings.from_experiment(exp, spp)
-    option_spp("--spp", spp, exp.scene.width, exp.scene.height)
-    backend.activate(exp)
     scene = scene or build_scene(exp)
     if exp.parameter.camera is not None:  # every surface's discontinuities move in the image
         with_all_edges(scene)
@@ -143,7 +141,7 @@ def guiding_line(exp: Experiment, terms=None, loop: bool = False) -> str:
 
 
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
-               settings: Settings, guides=None):
+               settings: Settings, *, guides=None):
     """One pass of ``term`` for camera ``view`` with ``spp`` samples per pixel (flat W·H·3, AD).
 
     ``scene`` is a :class:`psdr_cli.scene.Scene`; its AD state (θ or vertex gradients) must be
@@ -171,7 +169,7 @@ class TermEstimate:
 
 
 def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Settings,
-                     min_passes: int = 1, progress=None, guides=None) -> TermEstimate:
+                     min_passes: int = 1, *, progress=None, guides=None) -> TermEstimate:
     """dI/dθ of one term (forward mode), as the sample-weighted mean over its passes."""
     width, height = scene.resolution
     counts = term_passes(term, settings, width * height, min_passes)
@@ -182,7 +180,8 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
         theta = mi.Float(0.0)
         dr.enable_grad(theta)
         parameter.apply(theta)
-        img = term_image(scene, edges, view, term, spp, term_seed(settings, view, p, term), settings, guides)
+        img = term_image(scene, edges, view, term, spp, term_seed(settings, view, p, term), settings,
+                         guides=guides)
         dr.forward(theta)
         images.append(np.asarray(dr.grad(img), np.float64).reshape(height, width, 3))
         primal += np.asarray(dr.detach(img), np.float64).reshape(height, width, 3) * spp / total
@@ -196,7 +195,7 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
                         primal if term == "interior" else None)
 
 
-def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int = 0,
+def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int = 0, *,
              scale: float = 1.0, guides=None) -> mi.Float:
     """Sum of the requested terms for one pass (flat W·H·3, AD), for reverse mode.
 
@@ -206,7 +205,7 @@ def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int
     for term in terms:
         spp = term_passes(term, settings, width * height)[0]
         img = img + term_image(scene, edges, view, term, spp, term_seed(settings, view, pass_index, term), settings,
-                               guides)
+                               guides=guides)
     return img * scale
 
 
@@ -218,9 +217,11 @@ def gradient_images(exp: Experiment, view: int = 0, terms=None, spp: int | None 
     """Forward-mode gradient images dI/dθ of one view, without writing anything.
 
     Returns ``{term: TermEstimate}`` for the requested terms (default: ``estimator.terms``);
-    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent."""
-    scene, parameter, edges, settings = prepare(exp, spp, scene)
+    each estimate holds the mean image (H, W, 3), the per-pass images and the seconds spent.
+    ``spp`` is checked as the ``--spp`` option is (:func:`psdr_cli.config.with_estimator`)."""
+    scene, parameter, edges, settings = prepare(with_estimator(exp, spp=spp), scene=scene)
     terms = parse_terms(terms) or exp.estimator.terms
     guides = make_guides(scene, edges, [view], terms, settings, parameter)
-    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress, guides)
+    return {t: forward_gradient(scene, edges, parameter, view, t, settings, min_passes, progress=progress,
+                             guides=guides)
             for t in terms}

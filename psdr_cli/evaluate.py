@@ -149,10 +149,26 @@ class EvaluateResult:
     report: Path | None = None
 
 
-def evaluate_meshes(reference: Path, paths, samples: int = 100_000, seed: int = 0, json_out: Path | None = None,
-             progress=None, report: Path | None = None, labels: list | None = None, title: str = "") -> EvaluateResult:
+@dataclass
+class EvaluateInputs:
+    """What ``psdr evaluate PATH…`` compares (:func:`evaluate_inputs`): the reference mesh, the
+    meshes or run folders, the surface samples and their seed, and the side-by-side report of
+    several runs (its folder, None: no report; the runs' labels and the report's title)."""
+    reference: Path
+    paths: list
+    samples: int = 100_000
+    seed: int = 0
+    report: Path | None = None
+    labels: list | None = None
+    title: str = ""
+
+
+def evaluate_meshes(inputs: EvaluateInputs, json_out: Path | None = None, progress=None) -> EvaluateResult:
     """Chamfer/Hausdorff distances of meshes (or of every checkpoint of run folders) to
-    ``reference``; a run folder also gets ``chamfer.png`` (distance against iteration and time)."""
+    ``inputs.reference``; a run folder also gets ``chamfer.png`` (distance against iteration and
+    time)."""
+    reference, paths, samples, seed = inputs.reference, inputs.paths, inputs.samples, inputs.seed
+    report, labels, title = inputs.report, inputs.labels, inputs.title
     option_count("--samples", samples, MIN_EVAL_SAMPLES, MAX_EVAL_SAMPLES)
     if json_out:  # outputs that cannot be written are refused before the work
         fileio.check_output_file(json_out, "--json")
@@ -321,9 +337,9 @@ def held_out_table(rows: list) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = None, report: Path | None = None):
-    """What ``psdr evaluate PATH…`` compares: (reference, meshes or run folders, samples, seed,
-    report folder, labels, title). An experiment file among ``paths`` names its runs (all its
+def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = None,
+                    report: Path | None = None) -> EvaluateInputs:
+    """What ``psdr evaluate PATH…`` compares (:class:`EvaluateInputs`). An experiment file among ``paths`` names its runs (all its
     variants, reported side by side) and its ``evaluate:`` defaults; the reference is, in this
     order, ``reference``, ``evaluate.reference``, or the first run's ``reference.ply``."""
     paths = [str(p) for p in paths or []]
@@ -355,7 +371,7 @@ def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = 
                         "experiment, or a run folder with reference.ply)")
     if not targets:
         raise PsdrError("evaluate: nothing to evaluate (give meshes or `psdr optimize` run folders)")
-    return reference, targets, 100_000 if samples is None else samples, seed, report, labels, title
+    return EvaluateInputs(reference, targets, 100_000 if samples is None else samples, seed, report, labels, title)
 
 
 # --------------------------------------------------------------------------------------------

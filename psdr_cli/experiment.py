@@ -2,7 +2,9 @@
 then its scene read: a Mitsuba XML scene's cameras, film, emitters and objects filled in
 (:mod:`psdr_cli.mitsuba_scene`, one ``warn`` line per item psdr renders but cannot
 differentiate), split OBJ objects expanded into their parts (:mod:`psdr_cli.obj_parts`); then
-the checks that need object names, views and emitters run. A camera dataset
+the checks that need object names, views and emitters run. Loading activates the experiment's
+Mitsuba variant (:func:`psdr_cli.backend.activate`): the commands, which all start from a loaded
+experiment, do not activate it again (a Ray task, in its own process, does). A camera dataset
 (``optimize.target.dataset``) gives the cameras and the film (:mod:`psdr_cli.dataset_scene`). Everything that uses an experiment
 loads it here, so no later step has to ask whether its scene has been read.
 """
@@ -34,12 +36,14 @@ def parse_experiment(data, file: Path, cwd: Path | None = None, warn=warn_stderr
 
 
 def complete(exp: Experiment, warn=warn_stderr) -> Experiment:
-    """``exp`` as parsed, with its scene read and the checks that need object names run."""
+    """``exp`` as parsed, with its Mitsuba variant activated (the one place an in-process command
+    activates it: every command starts from a loaded experiment), its scene read and the checks
+    that need object names run."""
+    backend.activate(exp)
     scene = exp.scene
     if scene.mitsuba is None:
         scene = expand_objects(scene, str(exp.file))
     else:
-        backend.activate(exp)
         scene = mitsuba_scene.scene_config(exp, warn)
     check_scene(scene, str(exp.file))
     exp = replace(exp, scene=scene)

@@ -39,7 +39,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from . import backend, fileio, meshes
+from . import fileio, meshes
 from .config.objects import BitmapConfig
 from .errors import ConfigError, PsdrError
 from .experiment import load_experiment
@@ -204,7 +204,6 @@ def rotated_environment(exp, angle: float, notes: list):
         notes.append("the recovered environment rotation is not exported as an image (the environment is "
                      "not an envmap file of a YAML scene); it is in export.json")
         return None
-    backend.activate(exp)
     em = emitters[0]
     if em.file.suffix.lower() == ".exr":
         texels = exr_texels(em.file)

@@ -22,7 +22,7 @@ import mitsuba as mi
 import numpy as np
 from skimage.metrics import structural_similarity
 
-from . import backend, fileio, meshes
+from . import fileio, meshes
 from .dataset_scene import dataset_scene, to_normalised
 from .target_sources.camera_dataset import dataset_views, target_image
 from .config.parameter import ParameterConfig
@@ -108,7 +108,7 @@ def apply_values(scene, exp, values: dict):
     for material in MATERIAL_UNKNOWNS:
         value = values.get(material)
         if value is not None and not isinstance(value, str):
-            params[material_key(exp, params, material)[0]] = mi.Float(float(np.ravel(value)[0]))
+            params[material_key(name, exp.file, params, material)[0]] = mi.Float(float(np.ravel(value)[0]))
     albedo = values.get("albedo")
     if albedo is not None and not isinstance(albedo, str):
         keys = [k for k in params.keys() if k.startswith(f"{name}.bsdf.") and k.endswith(("reflectance.value",
@@ -147,7 +147,6 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
     (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
     the photographs; strips go to ``out`` when given."""
     test = dataset_scene(exp, split="test")
-    backend.activate(test)
     views = dataset_views(test)
     V, F = meshes.read_mesh_file(mesh)
     scene = build_scene(test, objects={test.optimize.object: (to_normalised(V, test.optimize.target_dataset.frame), F)})

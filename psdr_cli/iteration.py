@@ -25,8 +25,29 @@ from .guiding.targets import Guides
 from .jitarray import jit_array
 from .losses.loss import ViewImages
 from .losses.registry import view_losses
-from .outlier_clip import clip_factor, clip_outliers
+from .outlier_clip import clip_outliers
 from .render import render_view
+
+
+@dataclass
+class Loop:
+    """What every iteration of a run uses: the ``optimize`` section, the engine that renders each
+    view (its settings hold the estimator, the terms and the seed: the one source of each), the
+    run's length (the learning-rate schedule's), where one-line warnings go and the factor
+    gradient spikes are clipped to (:mod:`psdr_cli.outlier_clip`)."""
+    cfg: object
+    engine: object
+    total: int
+    warn: object
+    clip: float | None = None  # the gradient clip factor (outlier_clip.clip_factor), None: no clipping
+
+    @property
+    def settings(self):
+        return self.engine.settings
+
+    @property
+    def terms(self) -> tuple:
+        return self.engine.terms
 
 
 @dataclass
@@ -51,20 +72,20 @@ class GuideCache:
         self.guides, self.snapshot, self.log = guides, snapshot, log
 
     @classmethod
-    def resumed(cls, problem, exp, settings, state, stage) -> "GuideCache":
+    def resumed(cls, problem, loop: Loop, state, stage) -> "GuideCache":
         """The guides in use when the run stopped: built ones rebuilt from the shape they were
         built from, loop-fed ones and their samples as saved (none for a fresh run, or a stage
         that is not guided)."""
         if not stage.guided or (state.guide_V is None and not state.guide_arrays):
             return cls()
-        fed, built = split_terms(settings, exp.estimator.terms, stage)
+        fed, built = split_terms(loop.settings, loop.terms, stage)
         guides = Guides()
         if state.guide_V is not None and built:
-            guides = rebuild_guides(problem, exp, settings, state.guide_V, state.guide_values, len(stage.arrays),
+            guides = rebuild_guides(problem, loop.settings, state.guide_V, state.guide_values, len(stage.arrays),
                                     built)
         log = None
         if fed:
-            log = log_from_arrays(state.guide_arrays, window_budget(exp.optimize, len(stage.arrays)))
+            log = log_from_arrays(state.guide_arrays, window_budget(loop.cfg, len(stage.arrays)))
             guides["direct"] = log
         snapshot = (state.guide_V, state.guide_values) if state.guide_V is not None else None
         return cls(guides, snapshot, log)
@@ -73,10 +94,12 @@ class GuideCache:
         """No guides and no kept samples (a remesh changed the edges they index)."""
         self.guides = self.snapshot = self.log = None
 
-    def refresh(self, problem, edges, views: int, terms, settings, stage, cfg):
-        """Build the built guides anew, fit the loop-fed direct guides to the samples kept since
-        the last refresh (none yet: the direct term runs unguided and keeps samples)."""
-        fed, built = split_terms(settings, terms, stage)
+    def refresh(self, problem, edges, stage, loop: Loop):
+        """Build the built guides anew (for every view of ``stage``), fit the loop-fed direct
+        guides to the samples kept since the last refresh (none yet: the direct term runs unguided
+        and keeps samples)."""
+        views, settings, cfg = len(stage.arrays), loop.settings, loop.cfg
+        fed, built = split_terms(settings, loop.terms, stage)
         with dr.suspend_grad():
             guides = make_guides(problem.scene, edges, list(range(views)), built, settings)
             if fed:
@@ -110,24 +133,24 @@ def window_budget(cfg, views: int) -> int:
     return per_pass_budget(cfg.guide_every * min(cfg.batch_size, views))
 
 
-def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, total: int, warn) -> Step:
-    """Iteration ``it`` of a ``total``-iteration run on the shape of ``problem``."""
-    cfg = exp.optimize
-    terms, n_views = exp.estimator.terms, len(stage.arrays)
+def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
+    """Iteration ``it`` of the run ``loop`` on the shape of ``problem``."""
+    cfg, engine, settings, warn = loop.cfg, loop.engine, loop.settings, loop.warn
+    n_views, seed = len(stage.arrays), settings.seed
     problem.apply()
     problem.scene.objects[cfg.object].vertices = problem.vertices()
     problem.scene.objects[cfg.object].faces = problem.F
-    edges = edge_list(problem.scene, exp.estimator, settings.edge_sort) if engine.needs_edges else None
+    edges = edge_list(problem.scene, settings.estimator, settings.edge_sort) if engine.needs_edges else None
     t_guide = time.perf_counter()
     anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
     if stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0):
-        guides.refresh(problem, edges, n_views, terms, settings, stage, cfg)
+        guides.refresh(problem, edges, stage, loop)
     t_render = time.perf_counter()
-    views = batch_views(exp.seed, it, n_views, cfg.batch_size)
+    views = batch_views(seed, it, n_views, cfg.batch_size)
     loss = mi.Float(0.0)
     for v in views:
         img = engine.image(problem, edges, v, it, guides.guides)
-        adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, exp.seed, it) if cfg.adjoint_spp else None
+        adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, seed, it) if cfg.adjoint_spp else None
         view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
                           stage.masks[v] if stage.masks is not None else None,
                           partial(engine.coverage, problem, edges, v, it))
@@ -148,8 +171,8 @@ def iterate(problem, exp, engine, settings, stage, guides: GuideCache, it: int, 
             dr.set_grad(problem.opt[k], 0.0)
     else:
         if cfg.learning_rate_final is not None:
-            problem.opt.set_learning_rate(learning_rate_at(cfg, it, total))
-        clip_outliers(problem.opt, clip_factor(cfg.outlier_clip, exp.scene.max_depth))
+            problem.opt.set_learning_rate(learning_rate_at(cfg, it, loop.total))
+        clip_outliers(problem.opt, loop.clip)
         problem.opt.step()
         problem.after_step()  # ranges and the environment's mean (problem.py)
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
@@ -173,11 +196,11 @@ def learning_rate_at(cfg, iteration: int, total: int) -> float:
     return lr * (final / lr) ** (min(iteration - s, total - 1 - s) / (total - 1 - s))
 
 
-def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms):
+def rebuild_guides(problem, settings, V, values: dict, n_views: int, terms):
     """The guides of ``problem`` as they were built from vertices ``V`` and unknowns ``values``
     (a resumed run continues with the guides the interrupted run was using; guide building is
     seeded, so they are the same guides). The scene is left for :meth:`Problem.apply` to reset."""
-    cfg = exp.optimize
+    cfg = problem.cfg
     with dr.suspend_grad():
         problem.applied = None  # the scene is written here, for Problem.apply to reset
         problem.params[problem.key] = jit_array(mi.Float, np.ravel(V))
@@ -190,7 +213,7 @@ def rebuild_guides(problem, exp, settings, V, values: dict, n_views: int, terms)
             problem.params.update()
         problem.scene.objects[cfg.object].vertices = np.asarray(V, np.float64)
         problem.scene.objects[cfg.object].faces = problem.F
-        edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
+        edges = edge_list(problem.scene, settings.estimator, settings.edge_sort)
         return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
 
 

@@ -30,17 +30,18 @@ def bsdf_parameter(exp, name: str) -> str:
     return names[bsdf.type]
 
 
-def material_key(exp, params, name: str, texture: bool = False) -> tuple:
-    """(Mitsuba key, clamp range) of the object's BSDF parameter behind ``optimize.material.NAME``:
-    a constant ``roughness``/``alpha``, ``metallic`` or ``specular`` (``….value`` or the parameter
-    itself), or with ``texture`` the texels of the bitmap put there (``….data``)."""
+def material_key(obj: str, file, params, name: str, texture: bool = False) -> tuple:
+    """(Mitsuba key, clamp range) of the BSDF parameter of object ``obj`` behind
+    ``optimize.material.NAME``: a constant ``roughness``/``alpha``, ``metallic`` or ``specular``
+    (``….value`` or the parameter itself), or with ``texture`` the texels of the bitmap put there
+    (``….data``); ``file``: the experiment, named in the error."""
     (lo, hi), names = MATERIAL_UNKNOWNS[name]
-    prefix = f"{exp.optimize.object}.bsdf."
+    prefix = f"{obj}.bsdf."
     ends = [f".{p}.data" for p in set(names.values())] if texture else \
         [e for p in set(names.values()) for e in (f".{p}.value", f".{p}")]
     keys = [k for k in params.keys() if k.startswith(prefix) and k.endswith(tuple(ends))]
     if not keys:
-        raise PsdrError(f"{exp.file}: optimize.material.{name}: the object's BSDF has no constant "
+        raise PsdrError(f"{file}: optimize.material.{name}: the object's BSDF has no constant "
                         f"{'/'.join(sorted(set(names.values())))} to optimise (a texture, an anisotropic "
                         f"alpha_u/alpha_v, or a BSDF without it)")
     return keys[0], (lo, hi)

@@ -298,100 +298,117 @@ def bsdf_name(bsdf) -> str:
 def read_scene(exp: Experiment) -> XmlScene:
     """Read and check the experiment's XML scene (a variant must be active)."""
     src, yaml_file = exp.scene.mitsuba, str(exp.file)
-    xml = src.file
     mi_scene = load_xml(src, yaml_file)
-
-    def fail(what: str, message: str) -> ConfigError:
-        return ConfigError(xml, what, message)
-
     warnings = []
-    # Sensors
-    sensors, cameras = [], []
+    sensors, cameras, sizes = read_sensors(mi_scene, exp, warnings)
+    emitters, environment = read_emitters(mi_scene, src.file)
+    shapes, objects = read_shapes(mi_scene, src.file, emitters, warnings)
+    unknown = [n for n in src.edges if n not in objects]
+    if unknown:
+        raise ConfigError(yaml_file, f"scene.objects.{unknown[0]}",
+                          f"no mesh shape '{unknown[0]}' in {src.file.name} (meshes: {', '.join(objects) or 'none'})")
+    max_depth = read_max_depth(mi_scene, src, warnings)
+    return XmlScene(sensors, cameras, sizes.pop() if len(sizes) == 1 else None, emitters, environment, shapes,
+                    objects, max_depth, warnings, scene_digest(src, objects))
+
+
+def read_sensors(mi_scene, exp: Experiment, warnings: list) -> tuple:
+    """(sensors, cameras, film sizes) of the XML: each perspective sensor's (to_world, x_fov,
+    near, far, principal point offset) and its :class:`CameraConfig`, none when ``scene.cameras``
+    replace them (the film size is then the first sensor's); warnings appended to ``warnings``."""
+    src = exp.scene.mitsuba
+    xml = src.file
     films = [tuple(int(s) for s in sensor.film().size()) for sensor in mi_scene.sensors() if sensor.film()]
-    sizes = set(films)
     for i, (w, h) in enumerate(films[:1] if src.cameras_given else films):
         if src.film is None and not (1 <= w <= MAX_FILM and 1 <= h <= MAX_FILM):  # as scene.film's limits
-            raise fail(f"sensor {i}", f"film {w}×{h}: expected a width and height in [1, {MAX_FILM}] "
-                                      f"(a resource limit; or give scene.film)")
+            raise ConfigError(xml, f"sensor {i}", f"film {w}×{h}: expected a width and height in [1, {MAX_FILM}] "
+                                                  f"(a resource limit; or give scene.film)")
     if src.cameras_given:   # scene.cameras replace the XML's sensors; the film size is the first one's
-        sizes = {films[0] if films else (128, 128)}
-    else:
-        for i, sensor in enumerate(mi_scene.sensors()):
-            kind = sensor.class_name()
-            what = f"sensor {i}" + (f" '{sensor.id()}'" if sensor.id() else "")
-            if sensor.get_medium() is not None:
-                raise fail(what, "participating media are not supported (remove the sensor's <medium> or <ref>)")
-            if kind != "PerspectiveCamera":
-                raise fail(what, f"'{kind}' is not supported (psdr needs perspective sensors: its film "
-                                 f"projection and camera connections assume a pinhole)")
-            p = mi.traverse(sensor)
-            offset = tuple(float(p[f"principal_point_offset_{a}"][0]) for a in "xy")
-            if not all(abs(o) <= MAX_PRINCIPAL_OFFSET for o in offset):
-                raise fail(what, f"principal point offset {list(offset)}: expected offsets within "
-                                 f"±{MAX_PRINCIPAL_OFFSET:g} (fractions of the film width and height)")
-            film = sensor.film()
-            if tuple(film.crop_size()) != tuple(film.size()) and src.film is None:
-                warnings.append(f"{xml.name}: {what}: the film's crop window is ignored (psdr renders the whole film)")
-            M = _matrix(p["to_world"])
-            fov = float(p["x_fov"][0])
-            sensors.append((M, fov, float(sensor.near_clip()), float(sensor.far_clip()), offset))
-            origin = M[:3, 3]
-            cameras.append(CameraConfig(origin=tuple(float(c) for c in origin),
-                                        target=tuple(float(c) for c in origin + _unit(M[:3, 2])),
-                                        up=tuple(float(c) for c in _unit(M[:3, 1])), fov=fov,
-                                        principal_point=offset))
-        if not sensors:
-            raise fail("", "has no sensor (add a perspective <sensor>, or give scene.cameras)")
-        if len(sizes) > 1 and src.film is None:
-            raise fail("", f"its sensors have different film sizes {sorted(sizes)}; give scene.film")
-        if not src.up_given:
-            axis = int(np.argmax(np.abs(cameras[0].up)))
-            uses_up = src.cameras_given or (exp.parameter is not None and exp.parameter.kind in ("rotate", "envmap_rotate"))
-            if axis != 2 and uses_up:
-                name = "xyz"[axis]
-                warnings.append(f"{xml.name}: its first camera is {name}-up but scene.up is [0, 0, 1] (the default "
-                                f"of rotation axes and camera up); set scene.up for this scene's frame")
-    # Emitters (area lights are counted with their shapes)
+        return [], [], {films[0] if films else (128, 128)}
+    sensors, cameras, sizes = [], [], set(films)
+    for i, sensor in enumerate(mi_scene.sensors()):
+        sensors.append(read_sensor(sensor, i, src, warnings))
+        M, fov, _, _, offset = sensors[-1]
+        origin = M[:3, 3]
+        cameras.append(CameraConfig(origin=tuple(float(c) for c in origin),
+                                    target=tuple(float(c) for c in origin + _unit(M[:3, 2])),
+                                    up=tuple(float(c) for c in _unit(M[:3, 1])), fov=fov,
+                                    principal_point=offset))
+    if not sensors:
+        raise ConfigError(xml, "", "has no sensor (add a perspective <sensor>, or give scene.cameras)")
+    if len(sizes) > 1 and src.film is None:
+        raise ConfigError(xml, "", f"its sensors have different film sizes {sorted(sizes)}; give scene.film")
+    if not src.up_given:
+        axis = int(np.argmax(np.abs(cameras[0].up)))
+        uses_up = src.cameras_given or (exp.parameter is not None and exp.parameter.kind in ("rotate", "envmap_rotate"))
+        if axis != 2 and uses_up:
+            name = "xyz"[axis]
+            warnings.append(f"{xml.name}: its first camera is {name}-up but scene.up is [0, 0, 1] (the default "
+                            f"of rotation axes and camera up); set scene.up for this scene's frame")
+    return sensors, cameras, sizes
+
+
+def read_sensor(sensor, i: int, src, warnings: list) -> tuple:
+    """(to_world 4×4, x_fov, near, far, principal point offset) of XML sensor ``i``, checked: a
+    perspective camera without a medium, its offset within the limits."""
+    xml = src.file
+    kind = sensor.class_name()
+    what = f"sensor {i}" + (f" '{sensor.id()}'" if sensor.id() else "")
+    if sensor.get_medium() is not None:
+        raise ConfigError(xml, what, "participating media are not supported (remove the sensor's <medium> or <ref>)")
+    if kind != "PerspectiveCamera":
+        raise ConfigError(xml, what, f"'{kind}' is not supported (psdr needs perspective sensors: its film "
+                                     f"projection and camera connections assume a pinhole)")
+    p = mi.traverse(sensor)
+    offset = tuple(float(p[f"principal_point_offset_{a}"][0]) for a in "xy")
+    if not all(abs(o) <= MAX_PRINCIPAL_OFFSET for o in offset):
+        raise ConfigError(xml, what, f"principal point offset {list(offset)}: expected offsets within "
+                                     f"±{MAX_PRINCIPAL_OFFSET:g} (fractions of the film width and height)")
+    film = sensor.film()
+    if tuple(film.crop_size()) != tuple(film.size()) and src.film is None:
+        warnings.append(f"{xml.name}: {what}: the film's crop window is ignored (psdr renders the whole film)")
+    return _matrix(p["to_world"]), float(p["x_fov"][0]), float(sensor.near_clip()), float(sensor.far_clip()), offset
+
+
+def read_emitters(mi_scene, xml: Path) -> tuple:
+    """(emitters, {@emitter_NN: environment emitter}) of the XML: delta and unknown emitters
+    refused, at most one environment, its values finite (area lights are counted with their
+    shapes)."""
     emitters, environment = [], {}
     for em in mi_scene.emitters():
         kind = em.class_name()
         what = f"emitter '{em.id()}'" if em.id() else f"emitter {kind}"
         if kind in DELTA_EMITTERS:
-            raise fail(what, f"'{DELTA_EMITTERS[kind]}' lights are not supported (delta lights: psdr's boundary "
-                             f"terms need area or environment emitters; its hard shadows would have no derivative)")
+            raise ConfigError(xml, what, f"'{DELTA_EMITTERS[kind]}' lights are not supported (delta lights: psdr's "
+                                         f"boundary terms need area or environment emitters; its hard shadows would "
+                                         f"have no derivative)")
         if kind not in EMITTERS:
-            raise fail(what, f"'{kind}' is not supported (psdr handles area, envmap, constant and sunsky emitters)")
+            raise ConfigError(xml, what, f"'{kind}' is not supported (psdr handles area, envmap, constant and sunsky "
+                                         f"emitters)")
         if kind == "AreaLight":
             continue
         bad = nonfinite_parameter(em, set())
         if bad:
-            raise fail(what, f"'{bad}' has NaN or infinite values (the environment map or a value of the XML)")
+            raise ConfigError(xml, what, f"'{bad}' has NaN or infinite values (the environment map or a value of "
+                                         f"the XML)")
         environment[emitter_id(len(environment))] = em
         emitters.append(EmitterConfig(type=EMITTERS[kind], key=what))
     if len(environment) > 1:
-        raise fail("", "has more than one environment emitter (psdr allows one envmap, constant or sunsky)")
-    # Shapes (and the shapegroups instances draw, kept under their ids)
+        raise ConfigError(xml, "", "has more than one environment emitter (psdr allows one envmap, constant or sunsky)")
+    return emitters, environment
+
+
+def read_shapes(mi_scene, xml: Path, emitters: list, warnings: list) -> tuple:
+    """({id: kept shape}, {id: :class:`XmlObject`}) of the XML: emitting shapes (their area lights
+    appended to ``emitters``), analytic shapes (a warning each) and shapegroups are kept as they
+    are; triangle meshes become the objects psdr differentiates."""
     shapes, objects, checked = shape_groups(mi_scene), {}, set()
     for name in shapes:
         if name_problem(name):
-            raise fail(f"shapegroup '{name}'", f"id {name_problem(name)}")
+            raise ConfigError(xml, f"shapegroup '{name}'", f"id {name_problem(name)}")
     for name, shape in zip(_shape_names(mi_scene, shapes), mi_scene.shapes()):
         what = f"shape '{name}'"
-        if name_problem(name):
-            raise fail(what, f"id {name_problem(name)}")
-        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
-            raise fail(what, "participating media are not supported")
-        bsdf = shape.bsdf()
-        if bsdf is not None and bsdf.class_name() in PASS_THROUGH_BSDFS:
-            raise fail(what, f"'{PASS_THROUGH_BSDFS[bsdf.class_name()]}' BSDFs are not supported (rays pass through "
-                             f"the surface; psdr's boundary terms assume opaque or refracting surfaces)")
-        if name in objects or name in shapes:
-            raise fail(what, "duplicate shape id")
-        for part, obj in (("BSDF", bsdf), ("emitter", shape.emitter())):
-            bad = nonfinite_parameter(obj, checked)
-            if bad:
-                raise fail(what, f"{part} parameter '{bad}' has NaN or infinite values (a texture or a value "
-                                 f"of the XML)")
+        check_shape(shape, name, xml, checked, duplicate=name in objects or name in shapes)
         if shape.emitter() is not None:
             shapes[name] = shape
             emitters.append(EmitterConfig(type="area", key=what))
@@ -402,48 +419,83 @@ def read_scene(exp: Experiment) -> XmlScene:
                             f"its edges, so its silhouette and shadows have no derivative (use a mesh)")
             shapes[name] = shape
             continue
-        V = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
-        F = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
-        if len(F) == 0:
-            raise fail(what, "mesh is empty")
-        if not np.isfinite(V).all():
-            raise fail(what, f"mesh has {int((~np.isfinite(V).all(axis=1)).sum())} vertices with NaN or "
-                             f"infinite coordinates")
-        far = (np.abs(V) > MAX_COORD).any(axis=1)
-        if far.any():
-            raise fail(what, f"mesh has {int(far.sum())} vertices with world coordinates beyond ±{MAX_COORD:g} "
-                             f"(e.g. {V[far][0].tolist()}; float32 rendering needs smaller values)")
-        bad = meshes.degenerate_faces(V, F)
-        if bad.all():
-            raise fail(what, f"mesh has only degenerate (zero-area) triangles ({len(F)})")
-        if bad.any():
-            warnings.append(f"{xml.name}: {what}: {int(bad.sum())} degenerate (zero-area) triangles of {len(F)} dropped")
-            F = F[~bad]
-        normals = np.array(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3) if shape.has_vertex_normals() else None
-        if normals is not None and flat_normals(V, F, normals):
-            normals = None  # per-face normals on split vertices (a cube, a rectangle): flat shading
-        uv = np.array(shape.vertex_texcoords_buffer(), np.float64).reshape(-1, 2) if shape.has_vertex_texcoords() else None
-        objects[name] = XmlObject(name, V, F, normals, uv, bsdf)
-    unknown = [n for n in src.edges if n not in objects]
-    if unknown:
-        raise ConfigError(yaml_file, f"scene.objects.{unknown[0]}",
-                          f"no mesh shape '{unknown[0]}' in {xml.name} (meshes: {', '.join(objects) or 'none'})")
-    # Integrator depth: psdr renders with its own estimators; the XML's max_depth is the default
-    max_depth = None
+        objects[name] = xml_object(shape, name, xml, warnings)
+    return shapes, objects
+
+
+def check_shape(shape, name: str, xml: Path, checked: set, duplicate: bool):
+    """A shape psdr can render: its id valid, no medium, no pass-through BSDF, its id not taken
+    (``duplicate``), finite BSDF and emitter values (``checked``: the BSDFs and emitters already
+    checked)."""
+    what = f"shape '{name}'"
+    if name_problem(name):
+        raise ConfigError(xml, what, f"id {name_problem(name)}")
+    if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+        raise ConfigError(xml, what, "participating media are not supported")
+    bsdf = shape.bsdf()
+    if bsdf is not None and bsdf.class_name() in PASS_THROUGH_BSDFS:
+        raise ConfigError(xml, what, f"'{PASS_THROUGH_BSDFS[bsdf.class_name()]}' BSDFs are not supported (rays pass "
+                                     f"through the surface; psdr's boundary terms assume opaque or refracting surfaces)")
+    if duplicate:
+        raise ConfigError(xml, what, "duplicate shape id")
+    for part, obj in (("BSDF", bsdf), ("emitter", shape.emitter())):
+        bad = nonfinite_parameter(obj, checked)
+        if bad:
+            raise ConfigError(xml, what, f"{part} parameter '{bad}' has NaN or infinite values (a texture or a value "
+                                         f"of the XML)")
+
+
+def xml_object(shape, name: str, xml: Path, warnings: list) -> XmlObject:
+    """The world-space arrays of a triangle mesh of the XML, checked: not empty, finite and within
+    float32's useful range; degenerate triangles dropped (with a warning); per-face normals on
+    split vertices read as flat shading."""
+    what = f"shape '{name}'"
+    V = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+    F = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
+    if len(F) == 0:
+        raise ConfigError(xml, what, "mesh is empty")
+    if not np.isfinite(V).all():
+        raise ConfigError(xml, what, f"mesh has {int((~np.isfinite(V).all(axis=1)).sum())} vertices with NaN or "
+                                     f"infinite coordinates")
+    far = (np.abs(V) > MAX_COORD).any(axis=1)
+    if far.any():
+        raise ConfigError(xml, what, f"mesh has {int(far.sum())} vertices with world coordinates beyond "
+                                     f"±{MAX_COORD:g} (e.g. {V[far][0].tolist()}; float32 rendering needs smaller "
+                                     f"values)")
+    bad = meshes.degenerate_faces(V, F)
+    if bad.all():
+        raise ConfigError(xml, what, f"mesh has only degenerate (zero-area) triangles ({len(F)})")
+    if bad.any():
+        warnings.append(f"{xml.name}: {what}: {int(bad.sum())} degenerate (zero-area) triangles of {len(F)} dropped")
+        F = F[~bad]
+    normals = np.array(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3) if shape.has_vertex_normals() else None
+    if normals is not None and flat_normals(V, F, normals):
+        normals = None  # per-face normals on split vertices (a cube, a rectangle): flat shading
+    uv = np.array(shape.vertex_texcoords_buffer(), np.float64).reshape(-1, 2) if shape.has_vertex_texcoords() else None
+    return XmlObject(name, V, F, normals, uv, shape.bsdf())
+
+
+def read_max_depth(mi_scene, src, warnings: list) -> int | None:
+    """The XML integrator's ``max_depth`` (psdr renders with its own estimators; this is the
+    default of ``scene.max_depth``), or None (with a warning unless the experiment sets it)."""
     m = re.search(r"max_depth\s*=\s*(-?\d+)", str(mi_scene.integrator()))
     if m and int(m.group(1)) >= 1:
-        max_depth = int(m.group(1))
-    elif not src.max_depth_given:
-        warnings.append(f"{xml.name}: the integrator's max_depth is {m.group(1) if m else 'not given'}; psdr uses "
-                        f"scene.max_depth = 2 (set it in the experiment)")
-    h = hashlib.sha256(xml.read_bytes())
+        return int(m.group(1))
+    if not src.max_depth_given:
+        warnings.append(f"{src.file.name}: the integrator's max_depth is {m.group(1) if m else 'not given'}; psdr "
+                        f"uses scene.max_depth = 2 (set it in the experiment)")
+    return None
+
+
+def scene_digest(src, objects: dict) -> str:
+    """16 hex digits of the XML's bytes, its ``$name`` substitutions and its meshes' arrays."""
+    h = hashlib.sha256(src.file.read_bytes())
     h.update(repr(sorted(src.params.items())).encode())
     for name, o in objects.items():
         h.update(name.encode())
         h.update(np.ascontiguousarray(o.V).tobytes())
         h.update(np.ascontiguousarray(o.F).tobytes())
-    return XmlScene(sensors, cameras, sizes.pop() if len(sizes) == 1 else None, emitters, environment, shapes,
-                    objects, max_depth, warnings, h.hexdigest()[:16])
+    return h.hexdigest()[:16]
 
 
 # --------------------------------------------------------------------------------------------
@@ -485,7 +537,7 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
 # --------------------------------------------------------------------------------------------
 # Building the Mitsuba scene
 # --------------------------------------------------------------------------------------------
-def mesh(name: str, V, F, bsdf, normals=None, texcoords=None, smooth: bool = False, emitter=None):
+def mesh(name: str, V, F, bsdf, *, normals=None, texcoords=None, smooth: bool = False, emitter=None):
     """``mi.Mesh`` from arrays with a BSDF instance (and optionally an area ``emitter`` instance);
     ``normals`` (or ``smooth``: normals computed by Mitsuba) and ``texcoords`` as given."""
     props = mi.Properties()
@@ -542,6 +594,6 @@ def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):
             d[name] = mesh(name, V, F, o.bsdf, smooth=o.normals is not None)
         else:
             V, F = o.V, o.F
-            d[name] = mesh(name, V, F, o.bsdf, o.normals, o.texcoords)
+            d[name] = mesh(name, V, F, o.bsdf, normals=o.normals, texcoords=o.texcoords)
         geometry[name] = (np.asarray(V, float), np.asarray(F, np.int64))
     return d, geometry

@@ -32,14 +32,13 @@ import numpy as np
 
 from . import backend, fileio
 from .config.experiment_file import Experiment, check_stages
-from .config.limits import MAX_ITERATIONS
-from .config.options import option_count
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
 from .guiding import auto
-from .iteration import GuideCache, iterate
+from .iteration import GuideCache, Loop, iterate
 from .losses.registry import PLOT_LABEL
+from .outlier_clip import clip_factor
 from .problem import Problem, remeshed_problem
 from .render import render_view
 from .run_folder.checkpoints import write_checkpoint, write_mesh
@@ -48,7 +47,7 @@ from .run_folder.log import append_log, plot_loss, read_log, write_log
 from .run_folder.record import run_record
 from .run_folder.state import resumable_state
 from .run_folder.variants import variant_experiments
-from .stages import stage_of
+from .stages import Stage, stage_of
 from .targets import dataset_coordinates, initial_state, load_targets, read_targets
 
 
@@ -69,72 +68,64 @@ class OptimizeResult:
 def optimize(exp, iterations: int | None = None, resume: bool = False, progress=None, warn=print) -> OptimizeResult:
     """Run (or continue) the optimisation of ``exp.optimize``; see the module docstring.
 
-    ``progress``: optional object with ``start(total)``, ``advance(n, loss)``; ``warn``: one-line
-    messages (NaN gradients, interruption)."""
+    ``iterations``: the run's total (default ``optimize.iterations``), checked by the command
+    (:func:`psdr_cli.api.optimize`); ``progress``: optional object with ``start(total)``,
+    ``advance(n, loss)``; ``warn``: one-line messages (NaN gradients, interruption)."""
     cfg = exp.optimize
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
-    option_count("--iterations", iterations, 1, MAX_ITERATIONS)
     total = cfg.iterations if iterations is None else iterations
-    backend.activate(exp)
     check_stages(exp)  # again: the experiment may have been changed in code after loading
     files = RunFiles(exp.run_dir)
     files.check_files()
     with lock_run(files), backend.optimization_threads():
-        return _optimize(exp, files, total, iterations, resume, progress, warn)
+        return _optimize(exp, files, total, resume, progress, warn)
 
 
-def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progress, warn) -> OptimizeResult:
+@dataclass
+class RunStart:
+    """What a run starts from: the saved or initial state, the inputs read and checked
+    (:class:`psdr_cli.targets.TargetInputs`: masks included), the target images and their
+    cameras (None: the scene's)."""
+    state: object
+    inputs: object
+    targets: list
+    cameras: list | None
+
+
+@dataclass
+class Current:
+    """What a remesh replaces as the loop runs: the problem, the stage it renders against and the
+    guides in use."""
+    problem: Problem
+    stage: Stage
+    guides: GuideCache
+
+
+def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) -> OptimizeResult:
     """:func:`optimize` once the run folder is locked: the loop, from the saved or initial state."""
-    cfg = exp.optimize
-    state = resumable_state(files, exp, total, resume, warn)
-    inputs = read_targets(exp, fresh=state is None)  # every input read and checked before the run folder is touched
-    if state is None:  # a fresh run: a run found in the folder is moved aside, never overwritten
-        keep_previous_run(files, warn)
-    targets, cameras, reference = load_targets(exp, files, inputs)
-    if state is None:
-        state = initial_state(exp, files, inputs.initial, warn)
-    fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
-    start, seconds = state.iteration, state.seconds
-    result = OptimizeResult(files.root, resumed_from=start)
-    problem = Problem.from_state(exp, state, cameras)
-    rows = read_log(files.log, start)
-    write_log(files.log, rows)
-    settings, terms = Settings.from_experiment(exp), exp.estimator.terms
-    settings = settings.with_estimator(guiding=auto.in_loop(settings.guiding))
-    engine = Engine(settings, terms)
-    if not engine.needs_edges:
-        settings = settings.with_estimator(guiding="none")  # Mitsuba's integrators have their own
-    stage = stage_of(problem, targets, settings, terms, masks=inputs.masks)
+    cfg, requested = exp.optimize, total
+    start = run_start(exp, files, total, resume, warn)
+    it, seconds = start.state.iteration, start.state.seconds
+    result = OptimizeResult(files.root, resumed_from=it)
+    now, loop = start_loop(exp, start, total, warn)
+    write_log(files.log, read_log(files.log, it))  # rows of unsaved iterations dropped
     if progress:
-        progress.start(total, start)
-    guides = GuideCache.resumed(problem, exp, settings, state, stage)
-    it = start
+        progress.start(total, it)
     try:
-        for it in range(start, total):
+        for it in range(start.state.iteration, total):
             if cfg.seconds is not None and seconds >= cfg.seconds:
                 total = it  # the time budget is spent (a resumed run that had finished)
                 break
             t_start = time.perf_counter()
             if it in cfg.remesh.at and it > 0:
-                problem = remeshed_problem(problem, exp, cameras, it, warn)
-                stage = stage_of(problem, targets, settings, terms, stage, inputs.masks)
-                guides.reset()
-            step = iterate(problem, exp, engine, settings, stage, guides, it, total, warn)
+                remesh(now, exp, start, loop, it)
+            step = iterate(now.problem, loop, now.stage, now.guides, it)
             seconds += step.t_end - t_start
-            result.skipped += int(step.skipped)
-            rows.append(log_row(it, step, t_start, seconds, problem, guides))
-            result.losses.append(step.loss)
-            # Persist: the log row, the checkpoint when due, then the state after this iteration
-            # (a kill before the state is saved repeats this iteration on --resume: its log row is
-            # dropped and its checkpoint rewritten, so nothing saved is ever missing)
-            append_log(files.log, rows[-1])
-            problem.apply()
+            record_step(result, files, step, it, t_start, seconds, now)
             if cfg.seconds is not None and seconds >= cfg.seconds:
                 total = it + 1  # time budget spent: this is the last iteration
-            if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == total:
-                result.checkpoints.append(save_checkpoint(problem, files, it + 1, stage.images, exp))
-            save_state(problem, files, it + 1, seconds, guides)
+            save_iteration(now, files, exp, it + 1, seconds, result, last=it + 1 == total)
             if progress:
                 progress.advance(1, step.loss)
             if it + 1 == total:
@@ -146,8 +137,62 @@ def _optimize(exp, files: RunFiles, total: int, iterations, resume: bool, progre
              f"continue with --resume")
         return result
     finally:
-        problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
-    return finish(exp, files, problem, result, total, iterations, seconds, len(targets), warn)
+        now.problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
+    return finish(exp, files, now.problem, result, RunEnd(total, requested, seconds, len(start.targets)), warn)
+
+
+def run_start(exp, files: RunFiles, total: int, resume: bool, warn) -> RunStart:
+    """The state a run starts from (the saved one with ``resume``, else the initial shape) and its
+    targets; every input is read and checked before the run folder is touched, and a run found
+    in the folder by a fresh start is moved aside, never overwritten. run.json is (re)written."""
+    state = resumable_state(files, exp, total, resume, warn)
+    inputs = read_targets(exp, fresh=state is None)
+    if state is None:
+        keep_previous_run(files, warn)
+    targets, cameras, reference = load_targets(exp, files, inputs)
+    if state is None:
+        state = initial_state(exp, files, inputs.initial, warn)
+    fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
+    return RunStart(state, inputs, targets, cameras)
+
+
+def start_loop(exp, start: RunStart, total: int, warn) -> tuple:
+    """(the loop's :class:`Current` problem, stage and guides, its :class:`~psdr_cli.iteration.Loop`)
+    of a run from ``start``: the guides in use when a resumed run stopped are rebuilt."""
+    problem = Problem.from_state(exp, start.state, start.cameras)
+    settings = Settings.from_experiment(exp)
+    engine = Engine(settings.with_estimator(guiding=auto.in_loop(settings.guiding)))
+    loop = Loop(exp.optimize, engine, total, warn, clip_factor(exp.optimize.outlier_clip, exp.scene.max_depth))
+    stage = stage_of(problem, start.targets, loop.settings, loop.terms, masks=start.inputs.masks)
+    return Current(problem, stage, GuideCache.resumed(problem, loop, start.state, stage)), loop
+
+
+def remesh(now: Current, exp, start: RunStart, loop, it: int):
+    """The remesh at the start of iteration ``it``: a new problem, its stage and no guides."""
+    now.problem = remeshed_problem(now.problem, exp, start.cameras, it, loop.warn)
+    now.stage = stage_of(now.problem, start.targets, loop.settings, loop.terms, now.stage, start.inputs.masks)
+    now.guides.reset()
+
+
+def record_step(result: OptimizeResult, files: RunFiles, step, it: int, t_start: float, seconds: float,
+                now: Current):
+    """The log row of iteration ``it``, appended to log.csv, and its loss and skip in ``result``."""
+    result.skipped += int(step.skipped)
+    row = log_row(it, step, t_start, seconds, now.problem, now.guides)
+    result.losses.append(step.loss)
+    append_log(files.log, row)
+
+
+def save_iteration(now: Current, files: RunFiles, exp, iteration: int, seconds: float, result: OptimizeResult,
+                   last: bool):
+    """After a step (the log row is written): the problem applied, the checkpoint when due, then
+    the state after ``iteration`` iterations (a kill before the state is saved repeats the
+    iteration on --resume: its log row is dropped and its checkpoint rewritten, so nothing saved
+    is ever missing)."""
+    now.problem.apply()
+    if iteration % exp.optimize.checkpoint_every == 0 or last:
+        result.checkpoints.append(save_checkpoint(now.problem, files, iteration, now.stage.images, exp))
+    save_state(now.problem, files, iteration, seconds, now.guides)
 
 
 def log_row(it: int, step, t_start: float, seconds: float, problem, guides: GuideCache) -> dict:
@@ -186,20 +231,29 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
                             previews, problem.factor)
 
 
-def finish(exp, files: RunFiles, problem, result: OptimizeResult, total: int, iterations, seconds: float,
-           n_views: int, warn) -> OptimizeResult:
+@dataclass
+class RunEnd:
+    """How a run ended: the iterations done in all (the requested ones, unless the time budget
+    ended it early), the requested ones, the optimisation seconds and the number of views."""
+    total: int
+    requested: int
+    seconds: float
+    views: int
+
+
+def finish(exp, files: RunFiles, problem, result: OptimizeResult, end: RunEnd, warn) -> OptimizeResult:
     """The end of a run: the final mesh, the loss plot and optimize.json."""
-    cfg = exp.optimize
+    cfg, total, seconds = exp.optimize, end.total, end.seconds
     result.iterations, result.seconds = total, seconds
-    result.budget_stop = cfg.seconds is not None and total < (iterations or cfg.iterations)
-    if cfg.seconds is not None and cfg.remesh.at and total < max(cfg.remesh.at) and total < (iterations or cfg.iterations):
+    result.budget_stop = cfg.seconds is not None and total < end.requested
+    if cfg.seconds is not None and cfg.remesh.at and total < max(cfg.remesh.at) and total < end.requested:
         warn(f"the time budget ({cfg.seconds:g} s) ended the run at iteration {total}, before the remesh at "
              f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")
     write_mesh(files.final, dataset_coordinates(exp, problem.vertices()), problem.F)
     result.final = files.final
     plot_loss(files, read_log(files.log, total), PLOT_LABEL)
     fileio.write_json(files.summary, {
-        "experiment": str(exp.file), "iterations": total, "resumed_from": result.resumed_from, "views": n_views,
+        "experiment": str(exp.file), "iterations": total, "resumed_from": result.resumed_from, "views": end.views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),
         "values": summary_values(problem, files), "skipped_updates": result.skipped,
         "seconds": seconds})

@@ -4,7 +4,7 @@ albedo texture, environment rotation)."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -24,95 +24,137 @@ from .parameters import Parameter
 from .remesh import remesh
 from .run_folder.state import State
 from .scene import build_scene, exr_texels
-from .stages import stage_at, stage_experiment, stage_value
+from .stages import stage_at, stage_value
+
+
+@dataclass
+class Shape:
+    """The shape being optimised: vertices, faces and per-vertex UVs (or None); with a saved
+    state, the "large steps" latent ``u`` and the vertices its basis was built from (``basis``;
+    None: ``V``)."""
+    V: np.ndarray
+    F: np.ndarray
+    uv: np.ndarray | None = None
+    u: np.ndarray | None = None
+    basis: np.ndarray | None = None
 
 
 class Problem:
-    """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser."""
+    """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser.
 
-    def __init__(self, exp, V, F, cameras, state_values: dict, u=None, basis=None, uv=None, stage: int = 0):
-        self.exp, self.cfg = exp, exp.optimize
+    Built from the experiment (the scene it describes, at the film of remesh stage ``stage``),
+    a :class:`Shape` and the saved values of the extra unknowns (``values``, as
+    :meth:`values` gives them; {} for their initial values); ``cameras`` replace the scene's."""
+
+    def __init__(self, exp, shape: Shape, cameras, values: dict, stage: int = 0):
+        self.cfg, self.file = exp.optimize, exp.file
         self.applied = None  # the optimiser's variables last written into the scene (apply)
         self.factor = stage_value(self.cfg.downsample, stage)
-        self.uv = None if uv is None else np.asarray(uv, np.float64)
+        self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
         self.material_textures = {m.name: m.texture for m in self.cfg.material if m.texture is not None}
+        self.scene = build_scene(self.scene_experiment(exp, stage, values), cameras=cameras,
+                                 objects={self.cfg.object: (shape.V, shape.F) if self.uv is None else
+                                          (shape.V, shape.F, self.uv)})
+        self.lookup = texture_lookup(exp) if needs_uv(self.cfg) else None  # how the textures are looked up
+        self.params = mi.traverse(self.scene.mi_scene)
+        self.key = f"{self.cfg.object}.vertex_positions"
+        self.F = np.asarray(shape.F, np.int64)
+        self.steps = self.large_steps(shape, stage)
+        self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
+        # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
+        self.opt["u"] = jit_array(mi.Float, shape.u) if shape.u is not None else \
+            self.steps.to_differential(self.params[self.key])
+        self.albedo_key = self.envmap = None
+        if self.cfg.albedo:
+            self.init_albedo(values)
+        if self.cfg.envmap_rotation:
+            self.init_envmap_rotation(values)
+        self.environment = Environment(self.cfg, exp.scene.emitters, self.params, values.get("envmap_log")) \
+            if self.cfg.envmap else None
+        if self.environment:
+            self.opt["envmap"] = self.environment.initial
+            self.opt.set_learning_rate({"envmap": self.cfg.envmap.learning_rate})
+        self.materials = {}  # name -> (scene key, (lo, hi))
+        for m in self.cfg.material:
+            self.init_material(m, values)
+
+    def scene_experiment(self, exp, stage: int, values: dict):
+        """The experiment the scene is built from: the film of ``stage`` and, for a recovered
+        texture, the object's bitmap holding the saved texture (or its initial colour); the same
+        for each recovered material texture (:func:`initial_texels`)."""
         built = stage_experiment(exp, stage)
         if needs_uv(self.cfg) and self.uv is None:
             what = "albedo.texture" if self.texture else f"material.{next(iter(self.material_textures))}.texture"
             raise PsdrError(f"{exp.file}: optimize.{what}: the shape being optimised has no UV coordinates")
         for m in self.cfg.material:
             if m.texture is not None:
-                built = material_texture_experiment(built, m.name, initial_texels(exp, m, state_values.get(m.name)),
+                built = material_texture_experiment(built, m.name, initial_texels(exp, m, values.get(m.name)),
                                                     texture_lookup(exp))
-        if self.texture:
-            init = state_values.get("albedo")
-            W, H = self.cfg.albedo_texture
-            if init is not None:
-                init = np.asarray(init, np.float64).reshape(H, W, 3)
-            else:
-                init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
-            built = texture_experiment(built, np.clip(init, 0.0, 1.0))
-        mesh = (V, F) if self.uv is None else (V, F, self.uv)
-        self.scene = build_scene(built, objects={self.cfg.object: mesh}, cameras=cameras)
-        self.params = mi.traverse(self.scene.mi_scene)
-        self.key = f"{self.cfg.object}.vertex_positions"
-        self.F = np.asarray(F, np.int64)
+        if not self.texture:
+            return built
+        init = values.get("albedo")
+        W, H = self.cfg.albedo_texture
+        if init is not None:
+            init = np.asarray(init, np.float64).reshape(H, W, 3)
+        else:
+            init = np.broadcast_to(np.asarray(self.cfg.albedo_init or (0.5, 0.5, 0.5), np.float64), (H, W, 3))
+        return texture_experiment(built, np.clip(init, 0.0, 1.0))
+
+    def large_steps(self, shape: Shape, stage: int):
+        """``mi.ad.LargeSteps`` over the shape, with the stage's λ (its basis kept in ``basis``)."""
         # LargeSteps welds and orders the vertices by position: a resumed run rebuilds it from the
         # same vertices as the original so that the saved u means the same thing
-        self.basis = np.asarray(V if basis is None else basis, np.float64)
-        self.steps = mi.ad.LargeSteps(jit_array(mi.Float, self.basis.ravel()),
-                                      self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
-        self.opt = mi.ad.Adam(lr=self.cfg.learning_rate, uniform=True)
-        # a resumed run restores u itself: V = solve(u) is then bit-identical to the saved run's
-        self.opt["u"] = jit_array(mi.Float, u) if u is not None else \
-            self.steps.to_differential(self.params[self.key])
-        self.albedo_key = self.envmap = None
-        if self.cfg.albedo:
-            suffixes = ("reflectance.data", "base_color.data") if self.texture else \
-                ("reflectance.value", "base_color.value")
-            keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.") and k.endswith(suffixes)]
-            if not keys:
-                raise PsdrError(f"{exp.file}: optimize.albedo: the object's BSDF has no constant "
-                                f"reflectance/base_color to optimise (give 'texture: [W, H]' for a bitmap)")
-            self.albedo_key = keys[0]
-            if self.texture:  # the scene holds the initial texture already
-                self.opt["albedo"] = self.albedo_value(self.texture_image())
-            else:
-                init = state_values.get("albedo")
-                if init is None:
-                    init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
-                self.opt["albedo"] = self.albedo_value(init)
-            self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
-        if self.cfg.envmap_rotation:
-            self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
-            init = state_values.get("envmap_angle")
-            self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
-                                                else math.radians(self.cfg.envmap_init_deg))
-            self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
-        self.environment = Environment(exp, self.params, state_values.get("envmap_log")) if self.cfg.envmap else None
-        if self.environment:
-            self.opt["envmap"] = self.environment.initial
-            self.opt.set_learning_rate({"envmap": self.cfg.envmap.learning_rate})
-        self.materials = {}  # name -> (scene key, (lo, hi))
-        for m in self.cfg.material:
-            self.materials[m.name] = material_key(exp, self.params, m.name, texture=m.texture is not None)
-            lo, hi = self.materials[m.name][1]
-            if m.texture is not None:  # the scene holds the initial texels already
-                self.opt[m.name] = dr.clip(mi.TensorXf(self.params[self.materials[m.name][0]]), lo, hi)
-            else:
-                init = state_values.get(m.name)
-                init = float(np.ravel(init)[0]) if init is not None else \
-                    (m.init if m.init is not None else float(np.ravel(self.params[self.materials[m.name][0]])[0]))
-                self.opt[m.name] = mi.Float(min(max(init, lo), hi))
-            self.opt.set_learning_rate({m.name: m.learning_rate})
+        self.basis = np.asarray(shape.V if shape.basis is None else shape.basis, np.float64)
+        return mi.ad.LargeSteps(jit_array(mi.Float, self.basis.ravel()),
+                                self.params[f"{self.cfg.object}.faces"], stage_value(self.cfg.lambda_, stage))
+
+    def init_albedo(self, values: dict):
+        """``optimize.albedo``: the object's constant reflectance (or base colour), or its texture."""
+        suffixes = ("reflectance.data", "base_color.data") if self.texture else \
+            ("reflectance.value", "base_color.value")
+        keys = [k for k in self.params.keys() if k.startswith(f"{self.cfg.object}.bsdf.") and k.endswith(suffixes)]
+        if not keys:
+            raise PsdrError(f"{self.file}: optimize.albedo: the object's BSDF has no constant "
+                            f"reflectance/base_color to optimise (give 'texture: [W, H]' for a bitmap)")
+        self.albedo_key = keys[0]
+        if self.texture:  # the scene holds the initial texture already
+            self.opt["albedo"] = self.albedo_value(self.texture_image())
+        else:
+            init = values.get("albedo")
+            if init is None:
+                init = self.cfg.albedo_init or np.asarray(self.params[self.albedo_key]).ravel()
+            self.opt["albedo"] = self.albedo_value(init)
+        self.opt.set_learning_rate({"albedo": self.cfg.albedo_learning_rate})
+
+    def init_envmap_rotation(self, values: dict):
+        """``optimize.envmap_rotation``: the environment's rotation angle about its axis."""
+        self.envmap = Parameter(self.scene, ParameterConfig(kind="envmap_rotate", axis=self.cfg.envmap_axis), self.params)
+        init = values.get("envmap_angle")
+        self.opt["envmap_angle"] = mi.Float(float(init[0]) if init is not None
+                                            else math.radians(self.cfg.envmap_init_deg))
+        self.opt.set_learning_rate({"envmap_angle": self.cfg.envmap_learning_rate})
+
+    def init_material(self, m, values: dict):
+        """``optimize.material.NAME``: one BSDF parameter, a constant or a texture (the scene holds
+        its initial texels already), within its range."""
+        key, (lo, hi) = material_key(self.cfg.object, self.file, self.params, m.name, texture=m.texture is not None)
+        self.materials[m.name] = key, (lo, hi)
+        if m.texture is not None:
+            self.opt[m.name] = dr.clip(mi.TensorXf(self.params[key]), lo, hi)
+        else:
+            init = values.get(m.name)
+            init = float(np.ravel(init)[0]) if init is not None else \
+                (m.init if m.init is not None else float(np.ravel(self.params[key])[0]))
+            self.opt[m.name] = mi.Float(min(max(init, lo), hi))
+        self.opt.set_learning_rate({m.name: m.learning_rate})
 
     @classmethod
     def from_state(cls, exp, state: State, cameras) -> "Problem":
         """The problem of a saved (or initial) state, its Adam moments restored: the shape of
         iteration ``state.iteration`` before its remesh, if one is due (the stage of the
         iteration before)."""
-        problem = cls(exp, state.V, state.F, cameras, state.values, state.u, state.basis, uv=state.uv,
+        problem = cls(exp, Shape(state.V, state.F, state.uv, state.u, state.basis), cameras, state.values,
                       stage=stage_at(exp.optimize, max(state.iteration - 1, 0)))
         for k, saved in state.adam.items():
             if k in problem.opt.keys():
@@ -236,9 +278,11 @@ class Environment:
     given). Mitsuba's ``data`` is (H, W + 2, 3): one halo column either side, refreshed by the
     emitter from the real columns (each halo's derivative routed onto its source column)."""
 
-    def __init__(self, exp, params, saved=None):
-        cfg = exp.optimize.envmap
-        index = next(i for i, e in enumerate(exp.scene.emitters) if e.type == "envmap")
+    def __init__(self, cfg, emitters: list, params, saved=None):
+        """``cfg``: the ``optimize`` section; ``emitters``: the scene's; ``saved``: the saved
+        log-radiance, or None for the initial map."""
+        optimize, cfg = cfg, cfg.envmap
+        index = next(i for i, e in enumerate(emitters) if e.type == "envmap")
         self.key = f"{emitter_id(index)}.data"
         self.W, self.H = cfg.resolution
         scene_map = np.asarray(params[self.key], np.float64)[:, 1:-1]  # the map the scene was built with
@@ -252,7 +296,7 @@ class Environment:
             start = np.broadcast_to((scene_map * w[..., None]).sum((0, 1)) / w.sum(), (self.H, self.W, 3))
         start = np.maximum(start, 1e-4 * max(float(start.max()), 1e-30))  # log-radiance needs > 0
         self.mean = float((start * self.weights[..., None]).sum() / (3 * self.weights.sum()))
-        self.fixed_mean = cfg.mean == "fixed" or (cfg.mean == "auto" and exp.optimize.albedo)
+        self.fixed_mean = cfg.mean == "fixed" or (cfg.mean == "auto" and optimize.albedo)
         self.initial = jit_array(mi.TensorXf, np.log(start) if saved is None else saved)
         cols = np.concatenate([[self.W - 1], np.arange(self.W), [0]])
         idx = ((np.arange(self.H)[:, None] * self.W + cols[None, :])[..., None] * 3 + np.arange(3)).ravel()
@@ -306,6 +350,15 @@ def latlong_resample(image, W: int, H: int) -> np.ndarray:
     xa, xb = x0 % w, (x0 + 1) % w
     row = lambda r: image[r][:, xa] * (1 - fx) + image[r][:, xb] * fx  # noqa: E731
     return row(y0) * (1 - fy) + row(y1) * fy
+
+
+def stage_experiment(exp, stage: int):
+    """``exp`` with the film of remesh stage ``stage``: W/k × H/k pixels for ``downsample`` k
+    (:func:`psdr_cli.stages.stage_value`)."""
+    k = stage_value(exp.optimize.downsample, stage)
+    if k == 1:
+        return exp
+    return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
 
 
 def texture_experiment(exp, texture):
@@ -369,7 +422,7 @@ def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
     if problem.uv is not None:
         V2, F2, uv2, values = retextured(problem, V2, F2, say)
     problem.release()
-    return Problem(exp, V2, F2, cameras, values, uv=uv2, stage=stage_at(cfg, it))
+    return Problem(exp, Shape(V2, F2, uv2), cameras, values, stage=stage_at(cfg, it))
 
 
 def retextured(problem: Problem, V, F, warn):
@@ -378,7 +431,7 @@ def retextured(problem: Problem, V, F, warn):
     current one (:mod:`psdr_cli.atlas`), the other unknowns as they are. Adam's moments of the
     textures restart (a new :class:`Problem`), as the shape's do. Should the unwrap or a transfer
     fail, the current mesh, UVs and textures are kept (with a warning): a remesh never ends a run."""
-    lookup = texture_lookup(problem.exp)
+    lookup = problem.lookup
     old = (problem.vertices(), problem.F, problem.uv)
     images = {n: problem.material_image(n) for n in problem.material_textures}
     if problem.texture:

@@ -21,7 +21,7 @@ from .render import render_view
 from .verdict import agrees
 
 
-def finite_difference(scene, parameter, view: int, h: float, spp: int, seed: int = 0,
+def finite_difference(scene, parameter, view: int, h: float, spp: int, *, seed: int = 0,
                       batches: int = 4, progress=None) -> list:
     """Per-batch central differences (H, W, 3) with ``spp`` samples per pixel in total."""
     out = []

@@ -12,9 +12,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
-from . import backend, fileio
+from . import fileio
 from .config.cameras import CameraConfig
 from .config.experiment_file import Experiment
 from .config.options import option_spp, parse_views
@@ -79,7 +80,7 @@ def render_experiment(exp: Experiment, spp: int | None = None, views=None, out: 
     """
     spp = exp.estimator.spp if spp is None else spp
     option_spp("--spp", spp, exp.scene.width, exp.scene.height)
-    variant = backend.activate(exp)
+    variant = mi.variant()  # activated when the experiment was loaded
     scene = build_scene(exp)
     views = parse_views(views, len(exp.scene.cameras))
     folder = fileio.writable_folder(exp.command_dir("render", out))

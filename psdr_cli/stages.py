@@ -2,7 +2,7 @@
 downsampling, the targets at that resolution, whether the film is guided)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import mitsuba as mi
 import numpy as np
@@ -22,14 +22,6 @@ def stage_value(values: tuple, stage: int):
     """The value of a per-stage key (``lambda``, ``downsample``) at ``stage``; a single value holds
     for every stage."""
     return values[min(stage, len(values) - 1)]
-
-
-def stage_experiment(exp, stage: int):
-    """``exp`` with the film of ``stage``: W/k × H/k pixels for ``downsample`` k."""
-    k = stage_value(exp.optimize.downsample, stage)
-    if k == 1:
-        return exp
-    return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
 
 
 def downsample(image: np.ndarray, k: int) -> np.ndarray:

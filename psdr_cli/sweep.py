@@ -213,26 +213,53 @@ class TaskProgress:
         self.hub.event.remote(self.label, "warn", message)
 
 
-def optimize_task(run: Experiment, label, iterations, resume: bool, hub, attempt: int, snapshot: dict | None,
-                  sync_seconds: float, threads: int | None, variant: str | None):
-    """One run of a sweep (a Ray task): :func:`optimize` on the run. ``snapshot``: copy mode, the
-    run folder's resume set; the task runs in a temporary folder and returns
+@dataclass
+class RunTask:
+    """One submission of a sweep's run: its label, its attempt (0 first; a later one resumes),
+    the iterations (None: ``optimize.iterations``), whether it resumes and, in copy mode, the run
+    folder's files it starts from (``snapshot``; None: shared mode)."""
+    label: str | None
+    attempt: int
+    iterations: int | None
+    resume: bool
+    snapshot: dict | None
+
+
+@dataclass
+class TaskPlace:
+    """Where a task runs and reports: the hub its events and files go to, how often it sends its
+    files (copy mode), its Dr.Jit threads and the variant pinned in it."""
+    hub: object
+    sync_seconds: float
+    threads: int | None
+    variant: str | None
+
+    def progress(self, task: RunTask, folder: Path | None) -> "TaskProgress":
+        return TaskProgress(self.hub, task.label, task.attempt, folder, self.sync_seconds)
+
+
+def optimize_task(run: Experiment, task: RunTask, place: TaskPlace):
+    """One run of a sweep (a Ray task): :func:`optimize` on the run. With ``task.snapshot`` (copy
+    mode: the run folder's resume set) the task runs in a temporary folder and returns
     (result, (seq, fresh, files)); shared mode (None): returns (result, None)."""
-    limit_threads(threads, variant)
-    if snapshot is None:
-        progress = TaskProgress(hub, label, attempt, None, sync_seconds)
-        return optimize(run, iterations=iterations, resume=resume, progress=progress, warn=progress.warn), None
+    limit_threads(place.threads, place.variant)
+    backend.activate(run)  # a worker process: the run was loaded in the driver
+    if task.snapshot is None:
+        progress = place.progress(task, None)
+        return optimize(run, iterations=task.iterations, resume=task.resume, progress=progress,
+                        warn=progress.warn), None
     target = run.run_dir
     tmp = Path(tempfile.mkdtemp(prefix="psdr-ray-"))
     try:
         local = replace(run, output=tmp)
-        for rel, data in snapshot.items():
+        for rel, data in task.snapshot.items():
             path = local.run_dir / rel
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(data)
         local.run_dir.mkdir(parents=True, exist_ok=True)
-        progress = TaskProgress(hub, label, attempt, local.run_dir, sync_seconds)
-        result = optimize(local, iterations=iterations, resume=resume, progress=progress, warn=progress.warn)
+        progress = place.progress(task, local.run_dir)
+        result = optimize(local, iterations=task.iterations, resume=task.resume, progress=progress,
+                          warn=progress.warn)
         files = RunFiles(local.run_dir)
         if files.summary.exists():  # the summary names the final mesh where the driver will have it
             info = json.loads(files.summary.read_text())
@@ -351,8 +378,59 @@ def died(ray, exc) -> bool:
     return isinstance(exc, kinds)
 
 
+class Sweep:
+    """The driver's side of an optimisation sweep: the runs by label, their attempts, the files
+    applied from each, the tasks pending, the progress objects and where warnings go."""
+
+    def __init__(self, session: Session, runs: dict, iterations: int | None, progress, warn):
+        self.session, self.opts, self.runs, self.iterations, self.warn = session, session.opts, runs, iterations, warn
+        ray = session.ray
+        self.hub = ray.remote(num_cpus=0)(Hub).remote()
+        self.task = ray.remote(max_retries=0)(optimize_task)   # retried below, resuming
+        self.attempts, self.applied, self.pending, self.kept = {}, {}, {}, set()
+        self.bars = {label: progress(label) if progress else None for label in runs}
+
+    def submit(self, label, resume_run: bool):
+        """Submit (again) the task of run ``label``; copy mode sends the files it resumes from (a
+        fresh start needs only the cached targets: the driver moves a run it finds aside)."""
+        run = self.runs[label]
+        self.attempts[label] = self.attempts.get(label, -1) + 1
+        self.applied[label] = 0
+        request, variant, threads = self.session.resources(run)
+        snapshot = read_folder(run.run_dir, RESUME_SET if resume_run else ("targets/",)) if self.opts.copy else None
+        task = RunTask(label, self.attempts[label], self.iterations, resume_run, snapshot)
+        place = TaskPlace(self.hub, self.opts.sync_seconds, threads, variant)
+        self.pending[self.task.options(**request).remote(run, task, place)] = label
+
+    def on_files(self, label, attempt, seq, fresh, files):
+        """Files of a task's sync, written into its run folder (late syncs of a finished or dead
+        attempt are dropped)."""
+        if attempt == self.attempts[label] and seq > self.applied[label]:
+            if fresh and label not in self.kept:  # a fresh start moves a run it finds aside, as optimize() does
+                keep_previous_run(RunFiles(self.runs[label].run_dir), self.warn)
+                self.kept.add(label)
+            write_files(self.runs[label].run_dir, fresh, files)
+            self.applied[label] = seq
+
+    def on_event(self, label, kind, args):
+        """A task's warning, or its progress (``start``, ``advance``) on its progress object."""
+        if kind == "warn":
+            self.warn(f"{label}: {args[0]}" if label else args[0])
+        elif self.bars[label] is not None:
+            getattr(self.bars[label], kind)(*args)
+
+    def retried(self, label, outcome: Exception) -> bool:
+        """Whether the failed task of ``label`` is submitted again (its worker died, retries left)."""
+        if died(self.session.ray, outcome) and self.attempts[label] < self.opts.retries:
+            self.warn(f"{label or 'run'}: the task died ({type(outcome).__name__}); attempt "
+                      f"{self.attempts[label] + 2} resumes from the saved state")
+            self.submit(label, True)
+            return True
+        return False
+
+
 def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
-                   opts: RayOptions | None = None, progress=None, warn=print, report=None):
+                   opts: RayOptions | None = None, *, progress=None, warn=print, report=None):
     """:func:`psdr_cli.optimize.optimize_variants` on Ray: every run one task; yields
     (label, OptimizeResult) as each ends (in the order they end); raises the first failure once
     every run has ended. A task whose worker died is submitted again (``opts.retries`` times),
@@ -372,47 +450,13 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
         if opts.copy:  # the driver is the one writer of every run folder (shared mode: each task's optimize locks)
             for run in runs.values():
                 locks.enter_context(lock_run(RunFiles(run.run_dir)))
-        ray = session.ray
-        hub = ray.remote(num_cpus=0)(Hub).remote()
-        task = ray.remote(max_retries=0)(optimize_task)   # retried below, resuming
-        attempts, applied, pending, kept = {}, {}, {}, set()
-
-        def submit(label, resume_run: bool):
-            run = runs[label]
-            attempts[label] = attempts.get(label, -1) + 1
-            applied[label] = 0
-            request, variant, threads = session.resources(run)
-            # a fresh start needs only the cached targets (the driver moves a run it finds aside)
-            snapshot = read_folder(run.run_dir, RESUME_SET if resume_run else ("targets/",)) if opts.copy else None
-            ref = task.options(**request).remote(run, label, iterations, resume_run, hub, attempts[label], snapshot,
-                                                 opts.sync_seconds, threads, variant)
-            pending[ref] = label
-
-        def on_files(label, attempt, seq, fresh, files):
-            if attempt == attempts[label] and seq > applied[label]:  # late syncs of a finished or dead attempt: dropped
-                if fresh and label not in kept:  # a fresh start moves a run it finds aside, as optimize() does
-                    keep_previous_run(RunFiles(runs[label].run_dir), warn)
-                    kept.add(label)
-                write_files(runs[label].run_dir, fresh, files)
-                applied[label] = seq
-
-        bars = {label: progress(label) if progress else None for label in runs}
-
-        def on_event(label, kind, args):
-            if kind == "warn":
-                warn(f"{label}: {args[0]}" if label else args[0])
-            elif bars[label] is not None:
-                getattr(bars[label], kind)(*args)
-
+        sweep = Sweep(session, runs, iterations, progress, warn)
         for label in runs:
-            submit(label, resume)
+            sweep.submit(label, resume)
         failure = None
-        for label, outcome in wait_all(ray, hub, pending, on_event, on_files):
+        for label, outcome in wait_all(session.ray, sweep.hub, sweep.pending, sweep.on_event, sweep.on_files):
             if isinstance(outcome, Exception):
-                if died(ray, outcome) and attempts[label] < opts.retries:
-                    warn(f"{label or 'run'}: the task died ({type(outcome).__name__}); attempt "
-                         f"{attempts[label] + 2} resumes from the saved state")
-                    submit(label, True)
+                if sweep.retried(label, outcome):
                     continue
                 error = task_error(label, outcome)
                 warn(f"{label or 'run'} failed: {error}")
@@ -420,7 +464,7 @@ def optimize_sweep(exp: Experiment, labels=None, iterations: int | None = None, 
                 continue
             result, final = outcome
             if final is not None:
-                on_files(label, attempts[label], *final)
+                sweep.on_files(label, sweep.attempts[label], *final)
             yield label, result
         if failure:
             raise failure

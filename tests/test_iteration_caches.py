@@ -11,7 +11,7 @@ import numpy as np
 import psdr_cli
 from psdr_cli import backend, meshes
 from psdr_cli.estimators.boundary_sampling import camera_origins, edge_distribution, edge_list
-from psdr_cli.problem import Problem
+from psdr_cli.problem import Problem, Shape
 from psdr_cli.scene import build_scene
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
@@ -40,7 +40,7 @@ def test_camera_origins_follow_a_moved_sensor():
 def test_edge_memo_is_recomputed_for_a_new_vertex_buffer():
     exp = experiment()
     V, F = meshes.sphere(0.4, 2)
-    problem = Problem(exp, V + [0, 0, 0.42], F, None, {})
+    problem = Problem(exp, Shape(V + [0, 0, 0.42], F), None, {})
     problem.apply()
     problem.scene.objects["bunny"].vertices, problem.scene.objects["bunny"].faces = problem.vertices(), F
     edges = edge_list(problem.scene, exp.estimator, False)
@@ -61,7 +61,7 @@ def test_apply_after_a_backward_pass_rebuilds_the_ad_graph():
     second is skipped, unless a backward pass used up the graph (a skipped update keeps u)."""
     exp = experiment()
     V, F = meshes.sphere(0.4, 2)
-    problem = Problem(exp, V + [0, 0, 0.42], F, None, {})
+    problem = Problem(exp, Shape(V + [0, 0, 0.42], F), None, {})
     grads = []
     for _ in range(2):  # no step in between: u is unchanged, as after a skipped update
         problem.apply()

@@ -17,7 +17,7 @@ from psdr_cli.estimate import Settings
 from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
 from psdr_cli.iteration import adjoint_image
 from psdr_cli.losses.l1 import l1_loss
-from psdr_cli.problem import Problem
+from psdr_cli.problem import Problem, Shape
 from psdr_cli.target_sources.rendered_mesh import ground_truth
 from psdr_cli.targets import initial_shape
 from test_optimize import TINY, write
@@ -48,9 +48,9 @@ def test_reverse_passes_after_the_first_compile_nothing_new(tmp_path):
     x = jit_array(mi.UInt32, np.array([3, 1, 2]))
     assert isinstance(x, mi.UInt32) and list(x) == [3, 1, 2]
     reference = ground_truth(exp)
-    problem = Problem(exp, *initial_shape(exp, reference), None, {})
+    problem = Problem(exp, Shape(*initial_shape(exp, reference)), None, {})
     settings = Settings.from_experiment(exp).with_estimator(guiding="none")
-    engine = Engine(settings, exp.estimator.terms)
+    engine = Engine(settings)
     target = jit_array(mi.Float, np.full(24 * 24 * 3, 0.1))
     name = exp.optimize.object
     flag = dr.flag(dr.JitFlag.KernelHistory)

@@ -14,7 +14,7 @@ from psdr_cli import backend, cli, fileio, load_experiment, meshes
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
 from psdr_cli.estimate import Settings, ad_image
-from psdr_cli.problem import Problem
+from psdr_cli.problem import Problem, Shape
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.state import State
 from test_unknown_light import experiment_data, write
@@ -31,7 +31,7 @@ def test_material_texel_gradients_agree_with_finite_differences(tmp_path):
     exp = load_experiment(write(tmp_path, data))
     backend.activate(exp)
     V, F, uv = meshes.uv_sphere(0.7, 16)
-    problem = Problem(exp, V, F, None, {}, uv=uv)
+    problem = Problem(exp, Shape(V, F, uv), None, {})
     assert problem.opt["roughness"].shape == (4, 4, 1) and problem.opt["metallic"].shape == (2, 4, 1)
     settings = Settings.from_experiment(exp)
     edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)

@@ -142,7 +142,7 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch):
     real = estimate.ad_image
 
     def poisoned(scene, edges, view, terms, settings, pass_index=0, scale=1.0, guides=None):
-        img = real(scene, edges, view, terms, settings, pass_index, scale, guides)
+        img = real(scene, edges, view, terms, settings, pass_index, scale=scale, guides=guides)
         return img * (dr.nan if pass_index == 1 else 1.0)
 
     monkeypatch.setattr(estimate, "ad_image", poisoned)
@@ -298,8 +298,8 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     api.optimize(exp, warn=lambda m: None)
     saved = State.load(exp.run_dir / "state.npz")
     assert saved.adam["albedo"][0] == 2
-    from psdr_cli.problem import Problem, adam_import, adam_export
-    problem = Problem(exp, saved.V, saved.F, None, saved.values, saved.u, saved.basis)
+    from psdr_cli.problem import Problem, Shape, adam_import, adam_export
+    problem = Problem(exp, Shape(saved.V, saved.F, u=saved.u, basis=saved.basis), None, saved.values)
     adam_import(problem.opt, "albedo", saved.adam["albedo"])
     t, m, v = adam_export(problem.opt, "albedo")
     assert t == 2 and np.allclose(m, saved.adam["albedo"][1]) and np.allclose(v, saved.adam["albedo"][2])
@@ -606,7 +606,8 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
     k-th pixel instead does not."""
     from psdr_cli import backend
     from psdr_cli.experiment import load_experiment
-    from psdr_cli.stages import downsample, stage_experiment
+    from psdr_cli.problem import stage_experiment
+    from psdr_cli.stages import downsample
     from psdr_cli.render import render_view
     from psdr_cli.scene import build_scene
     data = copy.deepcopy(TINY)

@@ -19,7 +19,7 @@ from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
 from psdr_cli.estimate import Settings, ad_image
 from psdr_cli.held_out import apply_values
-from psdr_cli.problem import Problem
+from psdr_cli.problem import Problem, Shape
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.log import read_log
 from psdr_cli.run_folder.state import State
@@ -77,7 +77,7 @@ def test_envmap_and_material_gradients_agree_with_finite_differences(tmp_path):
     exp = load_experiment(write(tmp_path, data))
     backend.activate(exp)
     built = build_scene(exp).objects["ball"]
-    problem = Problem(exp, built.vertices, built.faces, None, {})
+    problem = Problem(exp, Shape(built.vertices, built.faces), None, {})
     assert np.allclose(np.exp(np.asarray(problem.opt["envmap"])), peaky_map(), rtol=1e-5)
     settings = Settings.from_experiment(exp)
     edges = edge_list(problem.scene, exp.estimator, settings.edge_sort)
