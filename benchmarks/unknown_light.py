@@ -55,7 +55,7 @@ BUNNY_ALBEDO = (0.7, 0.6, 0.5)
 CUP_ALBEDO = (0.8, 0.7, 0.6)
 # the concave runs: (label, scene.max_depth, optimize.outlier_clip); "auto" clips from depth 3 on
 CUP_RUNS = (("depth2", 2, "auto"), ("depth4", 4, "auto"), ("depth4_noclip", 4, "off"))
-CUP_LABELS = {"depth2": "max_depth 2", "depth4": "max_depth 4", "depth4_noclip": "max_depth 4, no outlier clip"}
+CUP_LABELS = {"depth2": "max_depth 2", "depth4": "max_depth 4", "depth4_noclip": "max_depth 4, clip off"}
 #: The cup's profile (r, z), closed on the axis: outer wall flaring from r 0.75 to 1 over height
 #: 1.2, wall 0.12 at the rim, bottom 0.14 thick.
 CUP_PROFILE = [(0.0, 0.0), (0.75, 0.0), (1.0, 1.2), (0.88, 1.2), (0.66, 0.14), (0.0, 0.14)]
@@ -346,7 +346,7 @@ def figure(light: dict | None, concave: dict | None, path: Path) -> Path | None:
         if strips:
             w = next(iter(strips.values())).shape[1] // 3
             panels = [labelled(strips["depth2"][:, :w], f"cup: held-out photo ({concave['elevations'][v]:.0f} deg down)", 3)]
-            panels += [labelled(s[:, w:2 * w], f"{CUP_LABELS[d]} run (at depth 4)", 3) for d, s in strips.items()]
+            panels += [labelled(s[:, w:2 * w], CUP_LABELS[d], 3) for d, s in strips.items()]
             rows.append(panels)
     if not rows:
         return None
@@ -439,7 +439,7 @@ def write_report(args, light: dict | None, concave: dict | None, reference_s: fl
         lines += [f"![maps and relit views]({picture.name})", "",
                   "Top: the true map box-averaged and the recovered one, both as sRGB(0.5 · L) (before the emitter's "
                   "scale 0.8). Then two held-out views relit (ground truth, known-light and unknown-light "
-                  "reconstructions), and the held-out view of the cup that looks into it the most, with both runs "
+                  "reconstructions), and the held-out view of the cup that looks into it the most, with each run "
                   "rendered at depth 4.", ""]
     (args.out / "unknown_light.json").write_text(json.dumps(record, indent=1, default=lambda o: np.asarray(o).tolist()))
     (args.out / "unknown_light.md").write_text("\n".join(lines))
