@@ -13,11 +13,11 @@ import trimesh
 from psdr_cli import backend, cli, fileio, load_experiment, meshes
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
-from psdr_cli.estimate import Settings, ad_image
+from psdr_cli.estimate import Settings
 from psdr_cli.problem import Problem, Shape
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.state import State
-from test_unknown_light import experiment_data, write
+from test_unknown_light import experiment_data, weighted_gradients, write
 
 
 def test_material_texel_gradients_agree_with_finite_differences(tmp_path):
@@ -42,14 +42,8 @@ def test_material_texel_gradients_agree_with_finite_differences(tmp_path):
     n = 12
 
     def reverse(k):
-        problem.apply()
-        img = ad_image(problem.scene, edges, 0, exp.estimator.terms, settings, pass_index=k)
-        dr.backward(dr.sum(img * mi.Float(weights.ravel().astype(np.float32))))
-        problem.applied = None
-        out = {m: float((np.asarray(dr.grad(problem.opt[m])) * direction[m]).sum()) for m in direction}
-        for key in problem.opt.keys():
-            dr.set_grad(problem.opt[key], 0.0)
-        return out
+        grads = weighted_gradients(problem, edges, exp, settings, weights, k)
+        return {m: float((grads[m] * direction[m]).sum()) for m in direction}
 
     def weighted_sum(key, h, k):
         with dr.suspend_grad():

@@ -63,6 +63,19 @@ def write(tmp_path, data, name="light.yaml"):
     return path
 
 
+def weighted_gradients(problem, edges, exp, settings, weights, k: int) -> dict:
+    """Reverse mode of pass ``k`` of view 0: d/dx Σ weights · image for every unknown x of the
+    optimiser (numpy), the gradients cleared afterwards."""
+    problem.apply()
+    img = ad_image(problem.scene, edges, 0, exp.estimator.terms, settings, pass_index=k)
+    dr.backward(dr.sum(img * mi.Float(weights.ravel().astype(np.float32))))
+    problem.applied = None
+    grads = {key: np.asarray(dr.grad(problem.opt[key])) for key in problem.opt.keys()}
+    for key in problem.opt.keys():
+        dr.set_grad(problem.opt[key], 0.0)
+    return grads
+
+
 def test_envmap_and_material_gradients_agree_with_finite_differences(tmp_path):
     """d/dt of a weighted image sum along a direction of all log-texels (the bright lobe and a
     smooth longitude wave), and w.r.t. roughness, metallic and specular of a principled sphere:
@@ -88,14 +101,9 @@ def test_envmap_and_material_gradients_agree_with_finite_differences(tmp_path):
     n = 12
 
     def reverse(k):
-        problem.apply()
-        img = ad_image(problem.scene, edges, 0, exp.estimator.terms, settings, pass_index=k)
-        dr.backward(dr.sum(img * mi.Float(weights.ravel().astype(np.float32))))
-        problem.applied = None
-        out = {"envmap": float((np.asarray(dr.grad(problem.opt["envmap"])) * direction).sum())}
-        out.update({m: float(np.asarray(dr.grad(problem.opt[m]))[0]) for m in names})
-        for key in problem.opt.keys():
-            dr.set_grad(problem.opt[key], 0.0)
+        grads = weighted_gradients(problem, edges, exp, settings, weights, k)
+        out = {"envmap": float((grads["envmap"] * direction).sum())}
+        out.update({m: float(grads[m].ravel()[0]) for m in names})
         return out
 
     def weighted_sum(key, h, k):
