@@ -411,7 +411,7 @@ def write_report(args, light: dict | None, concave: dict | None, reference_s: fl
                   f"integrator at max_depth 4, downsampled {args.downsample}×, every {args.cup_holdout}th view held out "
                   f"(cameras looking {min(concave['elevations']):.0f}° to {max(concave['elevations']):.0f}° down). "
                   "Same route (hull start, albedo free, "
-                  f"remesh to 2000 vertices at iteration {args.remesh_at}), `optimize.seconds: {args.seconds:g}`, "
+                  f"remesh to 2000 vertices at iteration {args.remesh_at}), `optimize.seconds: {res['depth2']['exp'].optimize.seconds:g}`, "
                   "seed 0; depth 4 adds the indirect boundary term. Cavity: mean distance from the cup's inner surface "
                   "to the reconstruction (normalised as Chamfer). Held-out scores at the run's own depth "
                   "(`psdr evaluate`) and at depth 4.", "",
