@@ -18,7 +18,7 @@ from .config.scene_ids import emitter_id
 from .config.unknowns import MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS
 from .errors import PsdrError
 from .jitarray import jit_array
-from .material_params import bsdf_parameter, material_key, material_texture_experiment
+from .material_params import bsdf_parameter, material_key, material_texture_experiment, object_bsdf
 from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
@@ -53,10 +53,10 @@ class Problem:
         self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
         self.material_textures = {m.name: m.texture for m in self.cfg.material if m.texture is not None}
+        self.lookup = texture_lookup(exp) if needs_uv(self.cfg) else None  # how the textures are looked up
         self.scene = build_scene(self.scene_experiment(exp, stage, values), cameras=cameras,
                                  objects={self.cfg.object: (shape.V, shape.F) if self.uv is None else
                                           (shape.V, shape.F, self.uv)})
-        self.lookup = texture_lookup(exp) if needs_uv(self.cfg) else None  # how the textures are looked up
         self.params = mi.traverse(self.scene.mi_scene)
         self.key = f"{self.cfg.object}.vertex_positions"
         self.F = np.asarray(shape.F, np.int64)
@@ -90,7 +90,7 @@ class Problem:
         for m in self.cfg.material:
             if m.texture is not None:
                 built = material_texture_experiment(built, m.name, initial_texels(exp, m, values.get(m.name)),
-                                                    texture_lookup(exp))
+                                                    self.lookup)
         if not self.texture:
             return built
         init = values.get("albedo")
@@ -455,6 +455,6 @@ def initial_texels(exp, m, saved) -> np.ndarray:
     if saved is not None:
         return np.clip(np.asarray(saved, np.float64).reshape(H, W, 1), lo, hi)
     parameter = bsdf_parameter(exp, m.name)
-    given = next(o for o in exp.scene.objects if o.name == exp.optimize.object).bsdf.params.get(parameter)
+    given = object_bsdf(exp).params.get(parameter)
     value = m.init if m.init is not None else given if isinstance(given, (int, float)) else MATERIAL_DEFAULTS[parameter]
     return np.full((H, W, 1), min(max(float(value), lo), hi))
