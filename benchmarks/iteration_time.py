@@ -41,7 +41,6 @@ from psdr_cli import backend, iteration  # noqa: E402
 from psdr_cli.engines import Engine  # noqa: E402
 from psdr_cli.estimators import registry  # noqa: E402
 from psdr_cli.estimate import Settings  # noqa: E402
-from psdr_cli.guiding import auto  # noqa: E402
 from psdr_cli.iteration import GuideCache  # noqa: E402
 from psdr_cli.losses import registry as loss_registry  # noqa: E402
 from psdr_cli.optimize import log_row, save_state  # noqa: E402
@@ -143,8 +142,7 @@ def setup(scale: int, tmp: Path):
     targets, cameras, _ = load_targets(exp, files, inputs)
     state = initial_state(exp, files, inputs.initial, print)
     problem = Problem.from_state(exp, state, cameras)
-    settings = Settings.from_experiment(exp)
-    settings = settings.with_estimator(guiding=auto.in_loop(settings.guiding))
+    settings = Settings.from_experiment(exp, loop=True)
     engine = Engine(settings)
     stage = stage_of(problem, targets, engine.settings, engine.terms)
     return exp, files, problem, settings, engine, stage

@@ -18,7 +18,6 @@ from .estimators.passes import pass_seed
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
-from .guiding import auto
 from .guiding.kinds import LOOP_FED
 from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
@@ -78,7 +77,7 @@ class GuideCache:
         that is not guided)."""
         if not stage.guided or (state.guide_V is None and not state.guide_arrays):
             return cls()
-        fed, built = split_terms(loop.settings, loop.terms, stage)
+        fed, built = split_terms(loop.settings, loop.terms)
         guides = Guides()
         if state.guide_V is not None and built:
             guides = rebuild_guides(problem, loop.settings, state.guide_V, state.guide_values, len(stage.arrays),
@@ -99,7 +98,7 @@ class GuideCache:
         guides to the samples kept since the last refresh (none yet: the direct term runs unguided
         and keeps samples)."""
         views, settings, cfg = len(stage.arrays), loop.settings, loop.cfg
-        fed, built = split_terms(settings, loop.terms, stage)
+        fed, built = split_terms(settings, loop.terms)
         with dr.suspend_grad():
             guides = make_guides(problem.scene, edges, list(range(views)), built, settings)
             if fed:
@@ -119,10 +118,11 @@ class GuideCache:
         return sum(g.stats.memory_bytes for _, g in self.guides.all()) if self.guides else 0
 
 
-def split_terms(settings, terms, stage) -> tuple:
+def split_terms(settings, terms) -> tuple:
     """(whether the direct term's guides are fed by the loop, the guided terms whose guides are
-    built): the direct term is loop-fed when its guide kind is (a Kd-tree: guiding/kinds.py)."""
-    kinds = auto.resolve(settings.guiding, terms, stage.pixels, settings.boundary_spp)
+    built), from the guide kinds ``settings`` decided: the direct term is loop-fed when its guide
+    kind is (a Kd-tree: guiding/kinds.py)."""
+    kinds = settings.guide_kinds(terms)
     fed = kinds.get("direct") in LOOP_FED
     return fed, [t for t, kind in kinds.items() if kind != "none" and not (fed and t == "direct")]
 

@@ -35,7 +35,6 @@ from .config.experiment_file import Experiment, check_stages
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
-from .guiding import auto
 from .iteration import GuideCache, Loop, iterate
 from .losses.registry import PLOT_LABEL
 from .outlier_clip import clip_factor
@@ -160,8 +159,7 @@ def start_loop(exp, start: RunStart, total: int, warn) -> tuple:
     """(the loop's :class:`Current` problem, stage and guides, its :class:`~psdr_cli.iteration.Loop`)
     of a run from ``start``: the guides in use when a resumed run stopped are rebuilt."""
     problem = Problem.from_state(exp, start.state, start.cameras)
-    settings = Settings.from_experiment(exp)
-    engine = Engine(settings.with_estimator(guiding=auto.in_loop(settings.guiding)))
+    engine = Engine(Settings.from_experiment(exp, loop=True))
     loop = Loop(exp.optimize, engine, total, warn, clip_factor(exp.optimize.outlier_clip, exp.scene.max_depth))
     stage = stage_of(problem, start.targets, loop.settings, loop.terms, masks=start.inputs.masks)
     return Current(problem, stage, GuideCache.resumed(problem, loop, start.state, stage)), loop
@@ -278,7 +276,7 @@ def loop_guiding_line(label: str, run: Experiment) -> str:
     Mitsuba's projective integrators (``estimator.engine: mitsuba``) take no psdr guide."""
     line = "guiding none: estimator.engine mitsuba samples its own boundaries"
     if run.estimator.engine == "psdr":
-        line = guiding_line(run, loop=True)
+        line = guiding_line(Settings.from_experiment(run, loop=True))
     return f"{label}: {line}" if label else line
 
 
