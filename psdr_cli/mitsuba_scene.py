@@ -526,12 +526,12 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
     for name, o in xs.objects.items():
         cfg = object_config(name, o, src)
         cfg.mesh.params["digest"] = xs.digest
-        meshes.remember_xml_mesh(xs.digest, name, o.V, o.F)
         objects.append(cfg)
     max_depth = scene.max_depth if src.max_depth_given or xs.max_depth is None else xs.max_depth
+    geometry = {name: (o.V, o.F) for name, o in xs.objects.items()}
     return replace(scene, width=width, height=height, max_depth=max_depth,
                    cameras=scene.cameras if src.cameras_given else xs.cameras, emitters=xs.emitters,
-                   objects=objects, mitsuba=replace(src, digest=xs.digest))
+                   objects=objects, mitsuba=replace(src, digest=xs.digest, geometry=geometry))
 
 
 # --------------------------------------------------------------------------------------------
