@@ -31,7 +31,7 @@ import drjit as dr
 import numpy as np
 
 from . import backend, fileio
-from .config.experiment_file import Experiment, check_stages
+from .config.experiment_file import Experiment, check_experiment
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
@@ -74,7 +74,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     total = cfg.iterations if iterations is None else iterations
-    check_stages(exp)  # again: the experiment may have been changed in code after loading
+    check_experiment(exp)  # again: the experiment may have been changed in code after loading
     files = RunFiles(exp.run_dir)
     files.check_files()
     with lock_run(files), backend.optimization_threads():
