@@ -49,7 +49,7 @@ from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.estimators.passes import pass_seed  # noqa: E402
 from psdr_cli.iteration import adjoint_image  # noqa: E402
 from psdr_cli.losses.l1 import l1_loss  # noqa: E402
-from psdr_cli.problem import Problem, Shape  # noqa: E402
+from psdr_cli.problem import Problem, SceneSource, Shape  # noqa: E402
 from psdr_cli.target_sources.rendered_mesh import ground_truth  # noqa: E402
 from psdr_cli.targets import initial_shape  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
@@ -99,7 +99,7 @@ class Bench:
         scene = build_scene(exp, objects={exp.optimize.object: reference})
         self.targets = {v: mi.Float(np.asarray(render_view(scene, v, 256, seed=7919), np.float32).ravel())
                         for v in VIEWS}
-        self.problem = Problem(exp, Shape(*fixed_shape(exp, reference, state)), None, {})
+        self.problem = Problem(SceneSource.of(exp), Shape(*fixed_shape(exp, reference, state)), None, {})
         self.settings = Settings.from_experiment(exp).with_estimator(guiding="none")
 
     def image(self, config, edges, view: int, draw: int):

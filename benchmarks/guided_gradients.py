@@ -54,7 +54,7 @@ from psdr_cli.guiding.loop_fed import fitted_guides, per_pass_budget  # noqa: E4
 from psdr_cli.guiding.targets import Guides  # noqa: E402
 from psdr_cli.iteration import batch_views  # noqa: E402
 from psdr_cli.meshes import read_mesh_file  # noqa: E402
-from psdr_cli.problem import Problem, Shape  # noqa: E402
+from psdr_cli.problem import Problem, SceneSource, Shape  # noqa: E402
 from psdr_cli.render import render_view  # noqa: E402
 from psdr_cli.scene import build_scene  # noqa: E402
 
@@ -77,7 +77,7 @@ class Bench:
         self.exp, self.views = exp, list(views)
         truth = build_scene(exp)
         targets = {v: np.asarray(render_view(truth, v, target_spp, seed=7919), np.float64) for v in self.views}
-        self.problem = Problem(exp, Shape(V, F), None, {})
+        self.problem = Problem(SceneSource.of(exp), Shape(V, F), None, {})
         self.problem.apply()
         name = exp.optimize.object
         self.problem.scene.objects[name].vertices = self.problem.vertices()

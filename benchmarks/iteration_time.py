@@ -41,11 +41,10 @@ from psdr_cli import backend, iteration  # noqa: E402
 from psdr_cli.engines import Engine  # noqa: E402
 from psdr_cli.estimators import registry  # noqa: E402
 from psdr_cli.estimate import Settings  # noqa: E402
-from psdr_cli.guiding import auto  # noqa: E402
 from psdr_cli.iteration import GuideCache  # noqa: E402
 from psdr_cli.losses import registry as loss_registry  # noqa: E402
 from psdr_cli.optimize import log_row, save_state  # noqa: E402
-from psdr_cli.problem import Problem  # noqa: E402
+from psdr_cli.problem import Problem, SceneSource  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
 from psdr_cli.run_folder.log import append_log  # noqa: E402
 from psdr_cli.stages import stage_of  # noqa: E402
@@ -142,9 +141,8 @@ def setup(scale: int, tmp: Path):
     inputs = read_targets(exp, fresh=True)
     targets, cameras, _ = load_targets(exp, files, inputs)
     state = initial_state(exp, files, inputs.initial, print)
-    problem = Problem.from_state(exp, state, cameras)
-    settings = Settings.from_experiment(exp)
-    settings = settings.with_estimator(guiding=auto.in_loop(settings.guiding))
+    problem = Problem.from_state(SceneSource.of(exp), state, cameras)
+    settings = Settings.from_experiment(exp, loop=True)
     engine = Engine(settings)
     stage = stage_of(problem, targets, engine.settings, engine.terms)
     return exp, files, problem, settings, engine, stage

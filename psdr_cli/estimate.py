@@ -34,16 +34,32 @@ from .scene import build_scene
 @dataclass
 class Settings:
     """What one gradient estimate uses: the experiment's validated estimator configuration
-    (sample counts, techniques, guide parameters; per-call overrides are copies of it) and the
-    scene's path depth and the seed."""
+    (sample counts, techniques, guide parameters; per-call overrides are copies of it), the
+    scene's path depth, the seed, and the guide of each boundary term (``kinds``), decided here
+    once from ``estimator.guiding``, the image's ``pixels`` and whether the settings are the
+    optimisation ``loop``'s (:func:`psdr_cli.guiding.auto.decide`; a copy with other estimator
+    keys decides again)."""
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     max_depth: int = 3
     seed: int = 0
+    pixels: int = 0
+    loop: bool = False
+    kinds: dict = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        self.kinds = auto.decide(self.estimator.guiding, self.pixels, self.estimator.boundary_spp, self.loop)
 
     @staticmethod
-    def from_experiment(exp: Experiment, spp: int | None = None, seed: int | None = None) -> "Settings":
+    def from_experiment(exp: Experiment, spp: int | None = None, seed: int | None = None,
+                        loop: bool = False) -> "Settings":
+        """The settings of ``exp``'s images (``loop``: of its optimisation loop)."""
         est = replace(exp.estimator, spp=spp) if spp else exp.estimator
-        return Settings(est, exp.scene.max_depth, exp.seed if seed is None else seed)
+        return Settings(est, exp.scene.max_depth, exp.seed if seed is None else seed,
+                        exp.scene.width * exp.scene.height, loop)
+
+    def guide_kinds(self, terms) -> dict:
+        """{term: guide kind} of the guidable terms among ``terms`` (``none``: unguided)."""
+        return {t: k for t, k in self.kinds.items() if t in terms}
 
     def with_estimator(self, **changes) -> "Settings":
         """A copy whose estimator keys (spp, guiding, passes, ...) are replaced."""
@@ -119,25 +135,24 @@ def term_passes(term: str, settings: Settings, pixels: int, min_passes: int = 1)
 
 
 def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings, parameter=None) -> Guides:
-    """Guides of the direct and indirect terms for ``views`` (empty when no term is guided;
-    ``guiding: auto`` picks per term, :mod:`psdr_cli.guiding.auto`). With the scalar
-    ``parameter`` θ (forward mode) the direct term's guides follow dv/dθ, velocity included."""
-    return build_guides(scene, edges, list(views), terms, settings.sampling, settings.max_depth,
-                        settings.estimator, settings.seed, parameter=parameter)
+    """Guides of the guided terms among ``terms`` for ``views``, of the kinds ``settings``
+    decided (empty when none is guided; ``guiding: auto`` picks per term,
+    :mod:`psdr_cli.guiding.auto`). With the scalar ``parameter`` θ (forward mode) the direct
+    term's guides follow dv/dθ, velocity included."""
+    return build_guides(scene, edges, list(views), settings.guide_kinds(terms), settings.sampling,
+                        settings.max_depth, settings.estimator, settings.seed, parameter=parameter)
 
 
-def uses_guides(settings: Settings, terms, pixels: int) -> bool:
-    """Whether any of ``terms`` is guided for images of ``pixels`` pixels."""
-    kinds = auto.resolve(settings.guiding, terms, pixels, settings.boundary_spp)
-    return any(k != "none" for k in kinds.values())
+def uses_guides(settings: Settings, terms) -> bool:
+    """Whether any of ``terms`` is guided under ``settings``."""
+    return any(k != "none" for k in settings.guide_kinds(terms).values())
 
 
-def guiding_line(exp: Experiment, terms=None, loop: bool = False) -> str:
-    """One line saying what guides the boundary terms of ``exp`` get (``auto`` resolved; ``loop``:
-    in the optimisation loop)."""
-    e = exp.estimator
-    return auto.describe(e.guiding, parse_terms(terms) or e.terms, exp.scene.width * exp.scene.height,
-                         e.boundary_spp, loop)
+def guiding_line(settings: Settings, terms=None) -> str:
+    """One line saying what guides the boundary terms get under ``settings`` (``auto`` as
+    decided; in the optimisation loop when they are the loop's)."""
+    kinds = settings.guide_kinds(parse_terms(terms) or settings.estimator.terms)
+    return auto.describe(settings.guiding, kinds, settings.pixels * settings.boundary_spp, settings.loop)
 
 
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,

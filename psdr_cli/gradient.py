@@ -15,7 +15,7 @@ from . import fileio
 from .config.experiment_file import Experiment
 from .config.options import option_number, option_spp, parse_terms, parse_views
 from .errors import PsdrError
-from .estimate import forward_gradient, guiding_line, make_guides, prepare
+from .estimate import Settings, forward_gradient, guiding_line, make_guides, prepare
 from .parameters import Parameter
 from .reference import agreement, fd_resolution, finite_difference
 from .render import render_view
@@ -123,7 +123,7 @@ def grad_experiment(exp: Experiment, request: GradRequest, feedback: Feedback | 
     statistics. PNG previews use a diverging colour map shared by all terms. ``feedback.report``
     gets one line first: what guides each boundary term."""
     feedback = feedback or Feedback()
-    guided_by = guiding_line(exp, request.terms)
+    guided_by = guiding_line(Settings.from_experiment(exp), request.terms)
     if feedback.report:
         feedback.report(guided_by)
     check_request(exp, request)

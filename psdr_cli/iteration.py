@@ -18,9 +18,7 @@ from .estimators.passes import pass_seed
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
-from .guiding import auto
-from .guiding.kinds import LOOP_FED
-from .guiding.loop_fed import fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
+from .guiding.loop_fed import fed_term, fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
 from .jitarray import jit_array
 from .losses.loss import ViewImages
@@ -64,9 +62,9 @@ class Step:
 
 class GuideCache:
     """The guides in use and the shape and unknowns they were built from (saved with the state,
-    so that a resumed run rebuilds the same guides). A direct term guided by a Kd-tree is fed by
-    the loop (:mod:`psdr_cli.guiding.loop_fed`): ``log`` holds its guides and the samples its
-    passes kept since the last fit."""
+    so that a resumed run rebuilds the same guides). A term whose guides the loop feeds (its
+    ``GuideTarget.loop_fed`` and a loop-fed guide kind: :mod:`psdr_cli.guiding.loop_fed`) keeps
+    them in ``log`` with the samples its passes kept since the last fit."""
 
     def __init__(self, guides=None, snapshot=None, log=None):
         self.guides, self.snapshot, self.log = guides, snapshot, log
@@ -78,7 +76,7 @@ class GuideCache:
         that is not guided)."""
         if not stage.guided or (state.guide_V is None and not state.guide_arrays):
             return cls()
-        fed, built = split_terms(loop.settings, loop.terms, stage)
+        fed, built = split_terms(loop.settings, loop.terms)
         guides = Guides()
         if state.guide_V is not None and built:
             guides = rebuild_guides(problem, loop.settings, state.guide_V, state.guide_values, len(stage.arrays),
@@ -86,7 +84,7 @@ class GuideCache:
         log = None
         if fed:
             log = log_from_arrays(state.guide_arrays, window_budget(loop.cfg, len(stage.arrays)))
-            guides["direct"] = log
+            guides[fed] = log
         snapshot = (state.guide_V, state.guide_values) if state.guide_V is not None else None
         return cls(guides, snapshot, log)
 
@@ -95,11 +93,11 @@ class GuideCache:
         self.guides = self.snapshot = self.log = None
 
     def refresh(self, problem, edges, stage, loop: Loop):
-        """Build the built guides anew (for every view of ``stage``), fit the loop-fed direct
-        guides to the samples kept since the last refresh (none yet: the direct term runs unguided
-        and keeps samples)."""
+        """Build the built guides anew (for every view of ``stage``), fit the loop-fed term's
+        guides to the samples kept since the last refresh (none yet: the term runs unguided and
+        keeps samples)."""
         views, settings, cfg = len(stage.arrays), loop.settings, loop.cfg
-        fed, built = split_terms(settings, loop.terms, stage)
+        fed, built = split_terms(settings, loop.terms)
         with dr.suspend_grad():
             guides = make_guides(problem.scene, edges, list(range(views)), built, settings)
             if fed:
@@ -107,7 +105,7 @@ class GuideCache:
                 if self.log is not None and self.log.kept and edges.count > 0:
                     P = dr.detach(edges.positions(mi.traverse(problem.scene.mi_scene)))
                     fitted = fitted_guides(self.log, edges.breakpoints(P), settings.estimator)
-                self.log = guides["direct"] = SampleLog(fitted, window_budget(cfg, views))
+                self.log = guides[fed] = SampleLog(fitted, window_budget(cfg, views))
         self.guides = guides
         self.snapshot = (problem.vertices(), problem.values())
 
@@ -119,12 +117,12 @@ class GuideCache:
         return sum(g.stats.memory_bytes for _, g in self.guides.all()) if self.guides else 0
 
 
-def split_terms(settings, terms, stage) -> tuple:
-    """(whether the direct term's guides are fed by the loop, the guided terms whose guides are
-    built): the direct term is loop-fed when its guide kind is (a Kd-tree: guiding/kinds.py)."""
-    kinds = auto.resolve(settings.guiding, terms, stage.pixels, settings.boundary_spp)
-    fed = kinds.get("direct") in LOOP_FED
-    return fed, [t for t, kind in kinds.items() if kind != "none" and not (fed and t == "direct")]
+def split_terms(settings, terms) -> tuple:
+    """(the term whose guides the loop feeds, or None; the guided terms whose guides are built),
+    from the guide kinds ``settings`` decided (:func:`psdr_cli.guiding.loop_fed.fed_term`)."""
+    kinds = settings.guide_kinds(terms)
+    fed = fed_term(kinds)
+    return fed, [t for t, kind in kinds.items() if kind != "none" and t != fed]
 
 
 def window_budget(cfg, views: int) -> int:

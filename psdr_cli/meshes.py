@@ -404,22 +404,18 @@ class ObjectMesh:
     uv: np.ndarray | None = None   # per-vertex texture coordinates (n, 2), when the mesh has them
 
 
-_GEOMETRY = {}  # (digest, object id) -> (V, F): the XML's meshes, for optimize's ground truth
-
-
-def remember_xml_mesh(digest: str, name: str, V, F):
-    """Keep the world-space (V, F) of object ``name`` of the XML scene ``digest`` (as
-    :func:`psdr_cli.mitsuba_scene.scene_config` reads it) for :func:`object_geometry`."""
-    _GEOMETRY[(digest, name)] = (V, F)
-
-
-def object_geometry(obj: ObjectConfig):
-    """World-space (V, F) of an XML object (after :func:`psdr_cli.mitsuba_scene.scene_config`)."""
-    key = (obj.mesh.params.get("digest"), obj.mesh.params.get("id"))
-    if key not in _GEOMETRY:
+def object_geometry(obj: ObjectConfig, geometry: dict):
+    """World-space (V, F) of an XML object, from ``geometry`` (``scene.mitsuba.geometry``: the
+    XML's meshes as :func:`psdr_cli.mitsuba_scene.scene_config` read them at load)."""
+    if obj.name not in geometry:
         raise ConfigError(obj.mesh.key, "", "the XML scene has not been read (load the experiment with "
                           "psdr_cli.experiment.load_experiment)")
-    return _GEOMETRY[key]
+    return geometry[obj.name]
+
+
+def xml_geometry(scene) -> dict:
+    """{id: (V, F)} of the meshes of a scene's XML as read at load (empty without an XML)."""
+    return scene.mitsuba.geometry if scene.mitsuba is not None else {}
 
 
 def has_bitmap(obj: ObjectConfig) -> bool:
@@ -427,17 +423,17 @@ def has_bitmap(obj: ObjectConfig) -> bool:
     return any(isinstance(v, BitmapConfig) for v in obj.bsdf.params.values())
 
 
-def object_mesh(obj: ObjectConfig, file: str):
+def object_mesh(obj: ObjectConfig, file: str, geometry: dict):
     """World-space (V, F) of an object: its mesh, validated, then its transform (an XML scene's
-    mesh: as Mitsuba loaded it, in world space)."""
-    return object_mesh_uv(obj, file)[:2]
+    mesh: as Mitsuba loaded it, in world space, from ``geometry``: :func:`xml_geometry`)."""
+    return object_mesh_uv(obj, file, geometry)[:2]
 
 
-def object_mesh_uv(obj: ObjectConfig, file: str):
+def object_mesh_uv(obj: ObjectConfig, file: str, geometry: dict):
     """:func:`object_mesh` with the mesh's per-vertex texture coordinates: (V, F, UV or None); a
     file mesh keeps its UVs (and its seam-split vertices) only when the BSDF has a bitmap."""
     if obj.mesh.shape == "mitsuba":
-        return (*object_geometry(obj), None)
+        return (*object_geometry(obj, geometry), None)
     V, F, uv = load_mesh_uv(obj.mesh, file, keep_uv=has_bitmap(obj))
     V = apply_transform(V, transform_matrix(obj.transform))
     return V, F, uv
@@ -447,6 +443,6 @@ def build_objects(exp: Experiment) -> dict:
     """World-space meshes of every object, validated (no Mitsuba needed)."""
     out = {}
     for obj in exp.scene.objects:
-        V, F, uv = object_mesh_uv(obj, str(exp.file))
+        V, F, uv = object_mesh_uv(obj, str(exp.file), xml_geometry(exp.scene))
         out[obj.name] = ObjectMesh(obj.name, V, F, obj.edges, obj, uv)
     return out

@@ -295,12 +295,13 @@ def bsdf_name(bsdf) -> str:
     return name
 
 
-def read_scene(exp: Experiment) -> XmlScene:
-    """Read and check the experiment's XML scene (a variant must be active)."""
-    src, yaml_file = exp.scene.mitsuba, str(exp.file)
+def read_scene(src, yaml_file: str, rotates: bool = False) -> XmlScene:
+    """Read and check the XML scene ``src`` (``scene.mitsuba`` of the experiment file
+    ``yaml_file``; a variant must be active). ``rotates``: the experiment's parameter turns
+    something about the up axis (a warning when the XML's frame is not z-up)."""
     mi_scene = load_xml(src, yaml_file)
     warnings = []
-    sensors, cameras, sizes = read_sensors(mi_scene, exp, warnings)
+    sensors, cameras, sizes = read_sensors(mi_scene, src, warnings, rotates)
     emitters, environment = read_emitters(mi_scene, src.file)
     shapes, objects = read_shapes(mi_scene, src.file, emitters, warnings)
     unknown = [n for n in src.edges if n not in objects]
@@ -312,11 +313,11 @@ def read_scene(exp: Experiment) -> XmlScene:
                     objects, max_depth, warnings, scene_digest(src, objects))
 
 
-def read_sensors(mi_scene, exp: Experiment, warnings: list) -> tuple:
+def read_sensors(mi_scene, src, warnings: list, rotates: bool) -> tuple:
     """(sensors, cameras, film sizes) of the XML: each perspective sensor's (to_world, x_fov,
     near, far, principal point offset) and its :class:`CameraConfig`, none when ``scene.cameras``
-    replace them (the film size is then the first sensor's); warnings appended to ``warnings``."""
-    src = exp.scene.mitsuba
+    replace them (the film size is then the first sensor's); warnings appended to ``warnings``
+    (``rotates``: see :func:`read_scene`)."""
     xml = src.file
     films = [tuple(int(s) for s in sensor.film().size()) for sensor in mi_scene.sensors() if sensor.film()]
     for i, (w, h) in enumerate(films[:1] if src.cameras_given else films):
@@ -340,7 +341,7 @@ def read_sensors(mi_scene, exp: Experiment, warnings: list) -> tuple:
         raise ConfigError(xml, "", f"its sensors have different film sizes {sorted(sizes)}; give scene.film")
     if not src.up_given:
         axis = int(np.argmax(np.abs(cameras[0].up)))
-        uses_up = src.cameras_given or (exp.parameter is not None and exp.parameter.kind in ("rotate", "envmap_rotate"))
+        uses_up = src.cameras_given or rotates
         if axis != 2 and uses_up:
             name = "xyz"[axis]
             warnings.append(f"{xml.name}: its first camera is {name}-up but scene.up is [0, 0, 1] (the default "
@@ -514,8 +515,9 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
     :mod:`psdr_cli.experiment`). ``warn`` receives one line per item psdr renders but cannot
     differentiate."""
     scene, src = exp.scene, exp.scene.mitsuba
+    rotates = exp.parameter is not None and exp.parameter.kind in ("rotate", "envmap_rotate")
     try:
-        xs = read_scene(exp)
+        xs = read_scene(src, str(exp.file), rotates)
     except UnicodeDecodeError:  # an encoding check_utf8 leaves to Mitsuba, which passed the bytes through
         raise ConfigError(src.file, "", "an id or name in it is not valid UTF-8 once read by Mitsuba "
                                         "(save the file as UTF-8)") from None
@@ -526,12 +528,12 @@ def scene_config(exp: Experiment, warn=warn_stderr) -> SceneConfig:
     for name, o in xs.objects.items():
         cfg = object_config(name, o, src)
         cfg.mesh.params["digest"] = xs.digest
-        meshes.remember_xml_mesh(xs.digest, name, o.V, o.F)
         objects.append(cfg)
     max_depth = scene.max_depth if src.max_depth_given or xs.max_depth is None else xs.max_depth
+    geometry = {name: (o.V, o.F) for name, o in xs.objects.items()}
     return replace(scene, width=width, height=height, max_depth=max_depth,
                    cameras=scene.cameras if src.cameras_given else xs.cameras, emitters=xs.emitters,
-                   objects=objects, mitsuba=replace(src, digest=xs.digest))
+                   objects=objects, mitsuba=replace(src, digest=xs.digest, geometry=geometry))
 
 
 # --------------------------------------------------------------------------------------------
@@ -575,12 +577,14 @@ def sensor_dicts(xs: XmlScene, width: int, height: int) -> list:
     return out
 
 
-def scene_entries(exp: Experiment, overrides: dict, sensors: list | None):
+def scene_entries(exp, overrides: dict, sensors: list | None):
     """(``mi.load_dict`` entries without the integrator, {id: (V, F)} of the objects) of a
-    loaded XML experiment. ``overrides``: {id: (V, F)} replacing meshes (flat or, for shapes
-    with normals, smooth shading computed by Mitsuba); ``sensors``: sensor dicts replacing the
-    XML's."""
-    xs = read_scene(exp)
+    loaded XML experiment (its ``scene`` and ``file``: :func:`psdr_cli.scene.build_scene`).
+    ``overrides``: {id: (V, F)} replacing meshes (flat or, for shapes with normals, smooth
+    shading computed by Mitsuba); ``sensors``: sensor dicts replacing the XML's. The XML is read
+    again (:func:`read_scene`, its warnings given at load): each scene gets its own BSDF and
+    emitter instances, which an optimisation changes."""
+    xs = read_scene(exp.scene.mitsuba, str(exp.file))
     cfg = exp.scene
     d = {}
     for i, s in enumerate(sensors if sensors is not None else sensor_dicts(xs, cfg.width, cfg.height)):

@@ -31,15 +31,14 @@ import drjit as dr
 import numpy as np
 
 from . import backend, fileio
-from .config.experiment_file import Experiment, check_stages
+from .config.experiment_file import Experiment, check_experiment
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
-from .guiding import auto
 from .iteration import GuideCache, Loop, iterate
 from .losses.registry import PLOT_LABEL
 from .outlier_clip import clip_factor
-from .problem import Problem, remeshed_problem
+from .problem import Problem, SceneSource, remeshed_problem
 from .render import render_view
 from .run_folder.checkpoints import write_checkpoint, write_mesh
 from .run_folder.layout import RunFiles, keep_previous_run, lock_run
@@ -75,7 +74,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     total = cfg.iterations if iterations is None else iterations
-    check_stages(exp)  # again: the experiment may have been changed in code after loading
+    check_experiment(exp)  # again: the experiment may have been changed in code after loading
     files = RunFiles(exp.run_dir)
     files.check_files()
     with lock_run(files), backend.optimization_threads():
@@ -119,7 +118,7 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) ->
                 break
             t_start = time.perf_counter()
             if it in cfg.remesh.at and it > 0:
-                remesh(now, exp, start, loop, it)
+                remesh(now, start, loop, it)
             step = iterate(now.problem, loop, now.stage, now.guides, it)
             seconds += step.t_end - t_start
             record_step(result, files, step, it, t_start, seconds, now)
@@ -159,17 +158,16 @@ def run_start(exp, files: RunFiles, total: int, resume: bool, warn) -> RunStart:
 def start_loop(exp, start: RunStart, total: int, warn) -> tuple:
     """(the loop's :class:`Current` problem, stage and guides, its :class:`~psdr_cli.iteration.Loop`)
     of a run from ``start``: the guides in use when a resumed run stopped are rebuilt."""
-    problem = Problem.from_state(exp, start.state, start.cameras)
-    settings = Settings.from_experiment(exp)
-    engine = Engine(settings.with_estimator(guiding=auto.in_loop(settings.guiding)))
+    problem = Problem.from_state(SceneSource.of(exp), start.state, start.cameras)
+    engine = Engine(Settings.from_experiment(exp, loop=True))
     loop = Loop(exp.optimize, engine, total, warn, clip_factor(exp.optimize.outlier_clip, exp.scene.max_depth))
     stage = stage_of(problem, start.targets, loop.settings, loop.terms, masks=start.inputs.masks)
     return Current(problem, stage, GuideCache.resumed(problem, loop, start.state, stage)), loop
 
 
-def remesh(now: Current, exp, start: RunStart, loop, it: int):
+def remesh(now: Current, start: RunStart, loop, it: int):
     """The remesh at the start of iteration ``it``: a new problem, its stage and no guides."""
-    now.problem = remeshed_problem(now.problem, exp, start.cameras, it, loop.warn)
+    now.problem = remeshed_problem(now.problem, start.cameras, it, loop.warn)
     now.stage = stage_of(now.problem, start.targets, loop.settings, loop.terms, now.stage, start.inputs.masks)
     now.guides.reset()
 
@@ -278,7 +276,7 @@ def loop_guiding_line(label: str, run: Experiment) -> str:
     Mitsuba's projective integrators (``estimator.engine: mitsuba``) take no psdr guide."""
     line = "guiding none: estimator.engine mitsuba samples its own boundaries"
     if run.estimator.engine == "psdr":
-        line = guiding_line(run, loop=True)
+        line = guiding_line(Settings.from_experiment(run, loop=True))
     return f"{label}: {line}" if label else line
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -12,8 +13,9 @@ import numpy as np
 
 from . import atlas
 from .config.objects import BitmapConfig, BsdfConfig
-from .config.optimize import needs_uv, unwrap_size
+from .config.optimize import OptimizeConfig, needs_uv, unwrap_size
 from .config.parameter import ParameterConfig
+from .config.scene import SceneConfig
 from .config.scene_ids import emitter_id
 from .config.unknowns import MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS
 from .errors import PsdrError
@@ -25,6 +27,21 @@ from .remesh import remesh
 from .run_folder.state import State
 from .scene import build_scene, exr_texels
 from .stages import stage_at, stage_value
+
+
+@dataclass(frozen=True)
+class SceneSource:
+    """What a problem builds its scene from, rather than the whole experiment: the loaded scene
+    section (an XML scene read, split OBJ objects expanded), the experiment file (relative paths
+    and messages) and the ``optimize`` section (the object and its unknowns). These are all that
+    :func:`psdr_cli.scene.build_scene` and :mod:`psdr_cli.material_params` read of an experiment."""
+    scene: SceneConfig
+    file: Path
+    optimize: OptimizeConfig
+
+    @staticmethod
+    def of(exp) -> "SceneSource":
+        return SceneSource(exp.scene, exp.file, exp.optimize)
 
 
 @dataclass
@@ -42,19 +59,19 @@ class Shape:
 class Problem:
     """The scene being optimised: Mitsuba scene with the current shape, parameters, optimiser.
 
-    Built from the experiment (the scene it describes, at the film of remesh stage ``stage``),
-    a :class:`Shape` and the saved values of the extra unknowns (``values``, as
+    Built from a :class:`SceneSource` (the scene it describes, at the film of remesh stage
+    ``stage``), a :class:`Shape` and the saved values of the extra unknowns (``values``, as
     :meth:`values` gives them; {} for their initial values); ``cameras`` replace the scene's."""
 
-    def __init__(self, exp, shape: Shape, cameras, values: dict, stage: int = 0):
-        self.cfg, self.file = exp.optimize, exp.file
+    def __init__(self, source: SceneSource, shape: Shape, cameras, values: dict, stage: int = 0):
+        self.source, self.cfg, self.file = source, source.optimize, source.file
         self.applied = None  # the optimiser's variables last written into the scene (apply)
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
         self.material_textures = {m.name: m.texture for m in self.cfg.material if m.texture is not None}
-        self.lookup = texture_lookup(exp) if needs_uv(self.cfg) else None  # how the textures are looked up
-        self.scene = build_scene(self.scene_experiment(exp, stage, values), cameras=cameras,
+        self.lookup = texture_lookup(source) if needs_uv(self.cfg) else None  # how the textures are looked up
+        self.scene = build_scene(self.scene_experiment(source, stage, values), cameras=cameras,
                                  objects={self.cfg.object: (shape.V, shape.F) if self.uv is None else
                                           (shape.V, shape.F, self.uv)})
         self.params = mi.traverse(self.scene.mi_scene)
@@ -70,7 +87,7 @@ class Problem:
             self.init_albedo(values)
         if self.cfg.envmap_rotation:
             self.init_envmap_rotation(values)
-        self.environment = Environment(self.cfg, exp.scene.emitters, self.params, values.get("envmap_log")) \
+        self.environment = Environment(self.cfg, source.scene.emitters, self.params, values.get("envmap_log")) \
             if self.cfg.envmap else None
         if self.environment:
             self.opt["envmap"] = self.environment.initial
@@ -79,17 +96,17 @@ class Problem:
         for m in self.cfg.material:
             self.init_material(m, values)
 
-    def scene_experiment(self, exp, stage: int, values: dict):
-        """The experiment the scene is built from: the film of ``stage`` and, for a recovered
+    def scene_experiment(self, source: SceneSource, stage: int, values: dict) -> SceneSource:
+        """The source the scene is built from: the film of ``stage`` and, for a recovered
         texture, the object's bitmap holding the saved texture (or its initial colour); the same
         for each recovered material texture (:func:`initial_texels`)."""
-        built = stage_experiment(exp, stage)
+        built = stage_experiment(source, stage)
         if needs_uv(self.cfg) and self.uv is None:
             what = "albedo.texture" if self.texture else f"material.{next(iter(self.material_textures))}.texture"
-            raise PsdrError(f"{exp.file}: optimize.{what}: the shape being optimised has no UV coordinates")
+            raise PsdrError(f"{source.file}: optimize.{what}: the shape being optimised has no UV coordinates")
         for m in self.cfg.material:
             if m.texture is not None:
-                built = material_texture_experiment(built, m.name, initial_texels(exp, m, values.get(m.name)),
+                built = material_texture_experiment(built, m.name, initial_texels(source, m, values.get(m.name)),
                                                     self.lookup)
         if not self.texture:
             return built
@@ -150,12 +167,12 @@ class Problem:
         self.opt.set_learning_rate({m.name: m.learning_rate})
 
     @classmethod
-    def from_state(cls, exp, state: State, cameras) -> "Problem":
+    def from_state(cls, source: SceneSource, state: State, cameras) -> "Problem":
         """The problem of a saved (or initial) state, its Adam moments restored: the shape of
         iteration ``state.iteration`` before its remesh, if one is due (the stage of the
         iteration before)."""
-        problem = cls(exp, Shape(state.V, state.F, state.uv, state.u, state.basis), cameras, state.values,
-                      stage=stage_at(exp.optimize, max(state.iteration - 1, 0)))
+        problem = cls(source, Shape(state.V, state.F, state.uv, state.u, state.basis), cameras, state.values,
+                      stage=stage_at(source.optimize, max(state.iteration - 1, 0)))
         for k, saved in state.adam.items():
             if k in problem.opt.keys():
                 adam_import(problem.opt, k, saved)
@@ -353,7 +370,7 @@ def latlong_resample(image, W: int, H: int) -> np.ndarray:
 
 
 def stage_experiment(exp, stage: int):
-    """``exp`` with the film of remesh stage ``stage``: W/k × H/k pixels for ``downsample`` k
+    """``exp`` (an experiment or a :class:`SceneSource`) with the film of remesh stage ``stage``: W/k × H/k pixels for ``downsample`` k
     (:func:`psdr_cli.stages.stage_value`)."""
     k = stage_value(exp.optimize.downsample, stage)
     if k == 1:
@@ -407,10 +424,10 @@ def adam_import(opt, key, saved):
     opt.state[key] = (value, flag, lr, (type(t0)([t]), restore(m, m0), restore(v, v0), extra))
 
 
-def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
+def remeshed_problem(problem: Problem, cameras, it: int, warn) -> Problem:
     """The problem of iteration ``it``, a remesh of ``remesh.at``: the current shape remeshed to
     the stage's vertex count, the extra unknowns carried over (the old problem is released)."""
-    cfg = exp.optimize
+    cfg = problem.cfg
     k = cfg.remesh.at.index(it)
     say = lambda m: warn(f"iteration {it}: {m}")  # noqa: E731
     V, F = problem.vertices(), problem.F
@@ -422,7 +439,7 @@ def remeshed_problem(problem: Problem, exp, cameras, it: int, warn) -> Problem:
     if problem.uv is not None:
         V2, F2, uv2, values = retextured(problem, V2, F2, say)
     problem.release()
-    return Problem(exp, Shape(V2, F2, uv2), cameras, values, stage=stage_at(cfg, it))
+    return Problem(problem.source, Shape(V2, F2, uv2), cameras, values, stage=stage_at(cfg, it))
 
 
 def retextured(problem: Problem, V, F, warn):

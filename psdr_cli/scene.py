@@ -196,8 +196,10 @@ def build_scene(exp: Experiment, objects: dict | None = None, cameras: list | No
     ``objects`` may override meshes by name (``{name: (V, F)}`` or ``(V, F, UV)``, e.g. the
     current shape of an optimisation; a (V, F) override keeps the object's UVs when F is the
     object's own triangle list, i.e. the same vertices moved); ``cameras`` may replace the camera
-    list. An object whose BSDF has a bitmap texture must have UVs. ``exp`` is whole, as loaded
-    (:mod:`psdr_cli.experiment`): an XML scene read, split OBJ objects expanded into their parts.
+    list. An object whose BSDF has a bitmap texture must have UVs. ``exp`` is as loaded
+    (:mod:`psdr_cli.experiment`): an XML scene read, split OBJ objects expanded into their parts;
+    only its ``scene`` and ``file`` are read (an optimisation's problem passes just those:
+    :class:`psdr_cli.problem.SceneSource`).
     """
     if exp.scene.mitsuba is not None:
         return build_xml_scene(exp, objects or {}, cameras)

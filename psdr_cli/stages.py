@@ -63,7 +63,7 @@ def stage_of(problem, targets, settings, terms, previous: Stage | None = None,
         return previous
     images, arrays = stage_images(targets, problem.factor)
     pixels = pixel_count(problem)
-    stage = Stage(problem.factor, images, arrays, uses_guides(settings, terms, pixels), pixels)
+    stage = Stage(problem.factor, images, arrays, uses_guides(settings, terms), pixels)
     if masks is not None:
         stage.masks = stage_images([m[..., None] for m in masks.masks], problem.factor)[1]
     if masks is not None and masks.weights is not None:

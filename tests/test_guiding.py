@@ -373,16 +373,19 @@ def test_auto_guiding_rule():
     for term in ("direct", "indirect"):
         assert auto.choose(term, auto.MIN_LANES) == "kdtree" and auto.choose(term, auto.MIN_LANES - 1) == "none"
     assert auto.choose("primary", 1 << 30) == "none"
-    assert auto.resolve("auto", ("interior", "direct", "indirect"), 48 * 48, 64) == \
+    def resolve(guiding, terms, pixels, spp):  # the decision, for the requested terms
+        return {t: k for t, k in auto.decide(guiding, pixels, spp).items() if t in terms}
+    assert resolve("auto", ("interior", "direct", "indirect"), 48 * 48, 64) == \
         {"direct": "kdtree", "indirect": "kdtree"}
-    assert auto.resolve("auto", ("direct", "indirect"), 24 * 24, 64) == {"direct": "none", "indirect": "none"}
-    assert auto.resolve("grid", ("direct", "indirect"), 4, 1) == {"direct": "grid", "indirect": "grid"}
-    assert auto.resolve("auto", ("interior", "primary"), 4, 1) == {}
-    line = auto.describe("auto", ("direct", "indirect"), 32 * 32, 64)
+    assert resolve("auto", ("direct", "indirect"), 24 * 24, 64) == {"direct": "none", "indirect": "none"}
+    assert resolve("grid", ("direct", "indirect"), 4, 1) == {"direct": "grid", "indirect": "grid"}
+    assert resolve("auto", ("interior", "primary"), 4, 1) == {}
+    line = auto.describe("auto", resolve("auto", ("direct", "indirect"), 32 * 32, 64), 32 * 32 * 64)
     assert line == "guiding auto: direct kdtree, indirect kdtree (boundary pass of 65536 lanes)"
     # in the optimisation loop auto guides nothing; an explicit kind is kept
     assert auto.in_loop("auto") == "none" and auto.in_loop("kdtree") == "kdtree" and auto.in_loop("none") == "none"
-    assert "none in the optimisation loop" in auto.describe("auto", ("direct",), 32 * 32, 64, loop=True)
+    assert auto.decide("auto", 1 << 20, 64, loop=True) == {"direct": "none", "indirect": "none"}
+    assert "none in the optimisation loop" in auto.describe("auto", {"direct": "none"}, 32 * 32 * 64, loop=True)
 
 
 def test_kdtree_refresh_from_a_prior_guide(variant):

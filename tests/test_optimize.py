@@ -280,7 +280,7 @@ def test_auto_guiding_builds_no_guide_in_the_loop(tmp_path):
     data["estimator"].update(guiding="auto", boundary_spp=256)
     data["optimize"].update(iterations=2, guide_every=1, remesh={"method": "none"})
     exp = load_experiment(write(tmp_path, data))
-    assert auto.resolve("auto", ("direct",), 16 * 16, 256) == {"direct": "kdtree"}
+    assert auto.decide("auto", 16 * 16, 256)["direct"] == "kdtree"
     api.optimize(exp, warn=lambda m: None)
     rows = log_rows(exp.run_dir)
     assert [r["guide_bytes"] for r in rows] == ["0", "0"] and all(float(r["seconds_guiding"]) == 0 for r in rows)

@@ -106,7 +106,7 @@ def check_camera_source(exp: Experiment, scene_data, where: Where):
 def check_stages(exp: Experiment):
     """The per-stage keys of ``optimize`` (``lambda``, ``downsample``) against the remesh schedule
     and the film: one value, or one per stage; each factor divides the film's width and height.
-    Run at parse time and again by ``optimize``, for experiments changed in code after parsing."""
+    Part of :func:`check_experiment`."""
     opt, where = exp.optimize, Where(str(exp.file), "optimize")
     stages = 1 + len(opt.remesh.at)
     for name, values in (("lambda", opt.lambda_), ("downsample", opt.downsample)):
@@ -121,7 +121,9 @@ def check_stages(exp: Experiment):
 
 def check_experiment(exp: Experiment):
     """Checks that need the scene's object names, views and emitters. An XML scene or a split
-    OBJ object is checked once it has been read (:func:`psdr_cli.experiment.parse_experiment`)."""
+    OBJ object is checked once it has been read (:func:`psdr_cli.experiment.parse_experiment`);
+    ``optimize`` runs them again on the experiment it is given, which may have been changed in
+    code after loading (another remesh schedule, another film: :func:`check_stages`)."""
     where = Where(str(exp.file), "")
     if exp.parameter and exp.parameter.object:
         names = [o.name for o in exp.scene.objects]

@@ -56,6 +56,7 @@ class OptimizeConfig:
     outlier_clip: str | float = "auto"     # each gradient scaled to at most c times its running norm (outlier_clip.py)
     variants: tuple = ()                   # of Variant: one run folder each, <output>/<name>/<label>
     target_seed: int | None = None         # not a YAML key: a variant's targets use its base experiment's seed
+    target_keys: dict = field(default_factory=dict)  # optimize.target keys of other sources: {key: parsed value}
 
 
 def parse_remesh(value, where) -> RemeshConfig:
@@ -124,12 +125,31 @@ def parse_optimize(base: Path) -> Parser:
     return parse
 
 
+#: The ``optimize.target`` keys of target sources other than ``images``, ``mesh`` and
+#: ``dataset`` (which the layers below the sources read too): {key: parser factory(base folder)},
+#: each registered by its source (:attr:`psdr_cli.target_sources.source.TargetSource.keys`) when
+#: :mod:`psdr_cli.target_sources.registry` is imported, as importing :mod:`psdr_cli` does (this
+#: package reads no module above it). The value parsed goes to ``OptimizeConfig.target_keys``.
+SOURCE_KEYS: dict = {}
+
+
+def register_target_keys(keys: dict):
+    """Accept ``optimize.target.KEY`` for each ``{KEY: parser factory}`` of a target source."""
+    clash = [k for k in keys if k in ("object", "spp", "images", "mesh", "dataset")]
+    if clash:
+        raise ValueError(f"optimize.target.{clash[0]} is psdr's own key")
+    SOURCE_KEYS.update(keys)
+
+
 def read_target(t: Section, o: OptimizeConfig, base: Path):
-    """``optimize.target: {object | images | mesh | dataset, spp}`` into ``o``: one source of
-    target images (``target: {object: NAME}`` is an alias of ``optimize.object``)."""
-    given = [k for k in ("images", "mesh", "dataset") if t.has(k)]
+    """``optimize.target: {object | images | mesh | dataset | a source's own key, spp}`` into
+    ``o``: one source of target images (``target: {object: NAME}`` is an alias of
+    ``optimize.object``)."""
+    given = [k for k in ("images", "mesh", "dataset", *SOURCE_KEYS) if t.has(k)]
     if len(given) > 1:
-        raise t.where.fail(f"give one of 'images', 'mesh' and 'dataset', not {' and '.join(given)}")
+        names = ("images", "mesh", "dataset", *SOURCE_KEYS)
+        raise t.where.fail(f"give one of {', '.join(repr(k) for k in names[:-1])} and {names[-1]!r}, "
+                           f"not {' and '.join(given)}")
     if t.has("object"):
         name = t.get("object", string)
         if o.object is not None and o.object != name:
@@ -140,6 +160,7 @@ def read_target(t: Section, o: OptimizeConfig, base: Path):
         o.target_images = str(base / o.target_images)
     o.target_mesh = t.get("mesh", parse_mesh(base), None)
     o.target_dataset = t.get("dataset", parse_dataset(base), None)
+    o.target_keys = {k: t.get(k, parser(base)) for k, parser in SOURCE_KEYS.items() if t.has(k)}
     o.target_spp = t.get("spp", integer(1, MAX_SPP), o.target_spp)
     t.done()
 

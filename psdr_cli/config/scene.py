@@ -17,8 +17,11 @@ class MitsubaSource:
 
     ``params``: ``$name`` substitutions; ``film``: (width, height) replacing the XML film's size;
     ``edges``: {shape id: bool} overrides; ``up``: the scene's up axis (default of camera ``up``
-    and of rotation axes); ``up_given``: whether the file set it. ``digest`` is filled when the
-    experiment is loaded (:mod:`psdr_cli.experiment`), once the XML has been read."""
+    and of rotation axes); ``up_given``: whether the file set it. ``digest`` and ``geometry``
+    are filled when the experiment is loaded (:mod:`psdr_cli.experiment`), once the XML has been
+    read: ``geometry`` holds the world-space (V, F) of each XML mesh by id, as read then (what was
+    loaded, not what the file says: no part of a run's fingerprint or a target's key,
+    :func:`psdr_cli.run_folder.fingerprint.scene_identity`)."""
     file: Path
     params: dict = field(default_factory=dict)
     film: tuple | None = None
@@ -28,6 +31,7 @@ class MitsubaSource:
     cameras_given: bool = False
     max_depth_given: bool = False
     digest: str = ""
+    geometry: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 @dataclass

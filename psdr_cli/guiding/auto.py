@@ -40,10 +40,13 @@ def choose(term: str, lanes: int) -> str:
     return "kdtree" if term in GUIDED_TERMS and lanes >= MIN_LANES else "none"
 
 
-def resolve(guiding: str, terms, pixels: int, boundary_spp: int) -> dict:
-    """{term: guide kind} for the boundary terms among ``terms`` (``guiding`` auto or a kind)."""
-    return {t: choose(t, pixels * boundary_spp) if guiding == "auto" else guiding
-            for t in GUIDED_TERMS if t in terms}
+def decide(guiding: str, pixels: int, boundary_spp: int, loop: bool = False) -> dict:
+    """{term: guide kind} for every guidable term (``guiding`` auto or a kind) on images of
+    ``pixels`` pixels; ``loop``: in the optimisation loop (:func:`in_loop`). Made once, where the
+    settings of an estimate are made (:class:`psdr_cli.estimate.Settings`); the guides, the
+    stages and the report read it."""
+    guiding = in_loop(guiding) if loop else guiding
+    return {t: choose(t, pixels * boundary_spp) if guiding == "auto" else guiding for t in GUIDED_TERMS}
 
 
 def in_loop(guiding: str) -> str:
@@ -52,14 +55,13 @@ def in_loop(guiding: str) -> str:
     return "none" if guiding == "auto" else guiding
 
 
-def describe(guiding: str, terms, pixels: int, boundary_spp: int, loop: bool = False) -> str:
-    """One line: what each boundary term is guided with, e.g.
-    ``guiding auto: direct kdtree, indirect none (pass of 262144 lanes)``; ``loop``: in the
-    optimisation loop (:func:`in_loop`)."""
+def describe(guiding: str, kinds: dict, lanes: int, loop: bool = False) -> str:
+    """One line: what each boundary term is guided with (``kinds``, as :func:`decide` made them,
+    for the requested terms), e.g. ``guiding auto: direct kdtree, indirect none (pass of 262144
+    lanes)``; ``loop``: in the optimisation loop (:func:`in_loop`)."""
     if loop and guiding == "auto":
         return "guiding auto: none in the optimisation loop (guides did not pay there: docs/guiding.md)"
-    kinds = resolve(guiding, terms, pixels, boundary_spp)
     if not kinds:
         return f"guiding {guiding}: no boundary term requested"
     chosen = ", ".join(f"{t} {k}" for t, k in kinds.items())
-    return f"guiding {guiding}: {chosen} (boundary pass of {pixels * boundary_spp} lanes)"
+    return f"guiding {guiding}: {chosen} (boundary pass of {lanes} lanes)"

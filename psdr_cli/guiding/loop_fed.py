@@ -1,6 +1,7 @@
-"""Guides of the direct term fitted from the optimisation loop's own samples.
+"""Guides of a term fitted from the optimisation loop's own samples (the term whose
+:class:`~psdr_cli.estimators.term.GuideTarget` is ``loop_fed``: the direct term).
 
-The loop's passes of the direct term evaluate the guide target F̃ at every sample they draw
+The loop's passes of such a term evaluate the guide target F̃ at every sample they draw
 (:mod:`psdr_cli.estimators.sample_log`), so a guide can be grown from them with no evaluation of
 its own: the Kd-tree of each technique is fitted (:func:`.kdtree.fit_kdtree`) to the samples of
 the ``optimize.guide_every`` iterations since the last fit, and the techniques share their edge
@@ -14,11 +15,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..estimators import registry
 from ..estimators.sample_log import PER_PASS, SampleLog
 from .kdtree import EXPLORE, fit_kdtree, share_profiles, tree_arrays, tree_from_arrays
+from .kinds import LOOP_FED
 
 #: samples kept per window and technique (split over the window's passes)
 WINDOW_SAMPLES = 32768
+
+
+def fed_term(kinds: dict) -> str | None:
+    """The term among ``kinds`` ({term: guide kind}) whose guides the loop fits to its own
+    samples: its :class:`~psdr_cli.estimators.term.GuideTarget` is ``loop_fed`` and its guide kind
+    is (:data:`.kinds.LOOP_FED`); None when no term is. At most one (a run's state keeps one
+    sample log)."""
+    fed = [t for t, kind in kinds.items() if kind in LOOP_FED and registry.term(t).guide.loop_fed]
+    if len(fed) > 1:
+        raise ValueError(f"terms {', '.join(fed)} are all loop-fed; the loop feeds one term's guides")
+    return fed[0] if fed else None
 
 
 def per_pass_budget(passes: int) -> int:

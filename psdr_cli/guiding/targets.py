@@ -15,7 +15,6 @@ import numpy as np
 
 from ..estimators import registry
 from ..estimators.passes import make_sampler
-from . import auto
 from .kdtree import share_profiles
 from .kinds import guide_kind
 
@@ -95,14 +94,14 @@ def applied_theta(parameter):
     return theta
 
 
-def build_guides(scene, edges, views: list, terms, sampling: str, max_depth: int, estimator,
+def build_guides(scene, edges, views: list, kinds: dict, sampling: str, max_depth: int, estimator,
                  seed: int = 0, parameter=None) -> Guides:
-    """Guides for the guided terms among ``terms``, each of the kind :func:`auto.resolve` gives
-    for ``estimator.guiding``; ``parameter`` (the scalar θ of a forward-mode gradient) puts the
-    velocity into the targets of the terms that have a ``motion``."""
+    """Guides for the terms of ``kinds`` ({term: guide kind}, as :func:`.auto.decide` decided
+    them; ``none``: unguided), with the build parameters of ``estimator``; ``parameter`` (the
+    scalar θ of a forward-mode gradient) puts the velocity into the targets of the terms that have
+    a ``motion``."""
     guides = Guides()
     pixels = int(np.prod(scene.resolution))
-    kinds = auto.resolve(estimator.guiding, terms, pixels, estimator.boundary_spp)
     if edges.count == 0 or all(k == "none" for k in kinds.values()):
         return guides
     breaks = edges.breakpoints(dr.detach(edges.positions(mi.traverse(scene.mi_scene))))

@@ -37,9 +37,10 @@ def run_fingerprint(exp: Experiment) -> str:
 def scene_identity(d: dict) -> dict:
     """A scene's dict (``asdict`` or :func:`non_default`) with ``mitsuba.resolved: true``, the flag
     an XML scene's source carried once read, before experiments were loaded whole: fingerprints
-    and cached targets of runs saved then still match."""
+    and cached targets of runs saved then still match. The XML's meshes as loaded
+    (``mitsuba.geometry``) are left out: the XML file and its digest identify them."""
     if d.get("mitsuba"):
-        d["mitsuba"] = {**d["mitsuba"], "resolved": True}
+        d["mitsuba"] = {**{k: v for k, v in d["mitsuba"].items() if k != "geometry"}, "resolved": True}
     return d
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import fileio, meshes
-from ..meshes import object_mesh
+from ..meshes import object_mesh, xml_geometry
 from ..mitsuba_scene import scene_files
 from ..render import camera_header, render_view
 from ..run_folder.checkpoints import write_mesh
@@ -29,7 +29,7 @@ def ground_truth(exp):
     cfg = exp.optimize
     obj = next(o for o in exp.scene.objects if o.name == cfg.object)
     if cfg.target_mesh is None:
-        return object_mesh(obj, str(exp.file))
+        return object_mesh(obj, str(exp.file), xml_geometry(exp.scene))
     V, F = meshes.load_mesh(cfg.target_mesh, str(exp.file))
     return meshes.apply_transform(V, meshes.transform_matrix(obj.transform)), F
 

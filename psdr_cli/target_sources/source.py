@@ -13,11 +13,16 @@ it, and
                                                    ``optimize.init`` is not given (None: a sphere
                                                    around the ground truth, or ``init``)
 
+A source with experiment-file keys of its own (beyond ``optimize.target.images``, ``mesh`` and
+``dataset``) declares them in ``keys``, {key: parser factory(base folder)} (the value parsers of
+:mod:`psdr_cli.config.values`); the registry registers them with the config package, which then
+parses ``optimize.target.KEY`` into ``optimize.target_keys[KEY]``.
+
 Each source module declares its ``SOURCE``; :mod:`.registry` lists them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
 
@@ -61,3 +66,4 @@ class TargetSource:
     read: Callable[..., TargetInputs]
     load: Callable[..., list] = given_images
     initial: Callable[..., tuple | None] = no_initial
+    keys: dict = field(default_factory=dict)  # its own optimize.target keys: {key: parser factory(base)}
