@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -155,17 +156,27 @@ def bunny_path() -> Path:
 def bunny(size: float = 1.0, faces: int = 5000):
     """Stanford bunny, decimated to about ``faces`` triangles with pymeshlab's quadric edge collapse,
     turned z-up, centred on the origin in x/y, resting on z = 0, longest side ``size``."""
+    V, F = decimated_bunny(int(faces))
+    lo, hi = V.min(0), V.max(0)
+    V = (V - [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) * (size / (hi - lo).max())
+    return V, F.copy()
+
+
+@lru_cache(maxsize=8)
+def decimated_bunny(faces: int):
+    """The shipped bunny sample decimated to about ``faces`` triangles and turned z-up, unscaled
+    (read-only arrays). Remembered per process: the decimation is a pure function of ``faces``
+    and takes seconds, and one run builds the same mesh for its targets, its scene and its
+    evaluation."""
     ms = pymeshlab.MeshSet()
     ms.load_new_mesh(str(bunny_path()))
     if ms.current_mesh().face_number() > faces:
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces, preservenormal=True,
                                                     preservetopology=True, qualitythr=0.5)
     m = ms.current_mesh()
-    V = np.asarray(m.vertex_matrix(), float)
+    V = np.asarray(m.vertex_matrix(), float)[:, [2, 0, 1]]  # y-up sample made z-up (x→y, y→z, z→x)
     F = np.asarray(m.face_matrix(), np.int64)
-    V = V[:, [2, 0, 1]]  # the sample is y-up; make it z-up (x -> y, y -> z, z -> x keeps handedness)
-    lo, hi = V.min(0), V.max(0)
-    V = (V - [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) * (size / (hi - lo).max())
+    V.flags.writeable = F.flags.writeable = False
     return V, F
 
 

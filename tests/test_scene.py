@@ -148,3 +148,16 @@ def test_uv_sphere_resolution_and_seam_welding(tmp_path):
     from psdr_cli.config.objects import MeshSpec
     V2, F2 = meshes.load_mesh(MeshSpec("m", file=tmp_path / "split.ply"), "x.yaml")
     assert len(V2) == 8 and len(F2) == 12
+
+
+def test_the_bunny_is_decimated_once_per_process_and_handed_out_as_copies():
+    """meshes.bunny remembers the decimated sample (a run builds it for its targets, scene and
+    evaluation): the second call decimates nothing, and a caller's edits do not reach the next."""
+    meshes.decimated_bunny.cache_clear()
+    V, F = meshes.bunny(0.8, 300)
+    V[:] = 0.0
+    F[:] = 0
+    V2, F2 = meshes.bunny(0.8, 300)
+    info = meshes.decimated_bunny.cache_info()
+    assert info.misses == 1 and info.hits == 1
+    assert np.ptp(V2, axis=0).max() == pytest.approx(0.8) and F2.max() == len(V2) - 1
