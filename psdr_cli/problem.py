@@ -370,8 +370,8 @@ def latlong_resample(image, W: int, H: int) -> np.ndarray:
 
 
 def stage_experiment(exp, stage: int):
-    """``exp`` (an experiment or a :class:`SceneSource`) with the film of remesh stage ``stage``: W/k × H/k pixels for ``downsample`` k
-    (:func:`psdr_cli.stages.stage_value`)."""
+    """``exp`` (an experiment or a :class:`SceneSource`) with the film of remesh stage ``stage``:
+    W/k × H/k pixels for ``downsample`` k (:func:`psdr_cli.stages.stage_value`)."""
     k = stage_value(exp.optimize.downsample, stage)
     if k == 1:
         return exp
