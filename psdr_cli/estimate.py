@@ -23,7 +23,7 @@ from .config.options import parse_terms, with_estimator
 from .errors import PsdrError
 from .estimators import registry
 from .estimators.boundary_sampling import BoundaryEdges, edge_list
-from .estimators.passes import AD_LANES, pass_seed, passes_for
+from .estimators.passes import AD_LANES, pass_seed, passes_for, views_seed
 from .guiding import auto
 from .guiding.targets import Guides, build_guides
 from .parameters import Parameter
@@ -222,6 +222,29 @@ def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int
         img = img + term_image(scene, edges, view, term, spp, term_seed(settings, view, pass_index, term), settings,
                                guides=guides)
     return img * scale
+
+
+def ad_images(scene, edges, views, terms, settings: Settings, pass_index: int = 0, *, guides=None) -> list:
+    """:func:`ad_image` of each of ``views`` (one pass each, reverse mode). A term that can trace
+    several views as one wavefront (``Term.estimate_views``, unguided) does so when their lanes fit
+    in one AD pass (views · W · H · spp ≤ ``AD_LANES``), seeded by :func:`views_seed`; the other
+    terms run view by view with the seeds of :func:`ad_image`. The terms are added in the order
+    of ``terms`` for every view, as :func:`ad_image` adds them."""
+    width, height = scene.resolution
+    images = [dr.zeros(mi.Float, width * height * 3) for _ in views]
+    for term in terms:
+        spp = term_passes(term, settings, width * height)[0]
+        parts = None
+        batched = registry.term(term).estimate_views
+        if batched and len(views) > 1 and len(views) * width * height * spp <= AD_LANES and \
+                not (guides and guides.get(term)):
+            seed = views_seed(settings.seed, views, pass_index, registry.term(term).stream)
+            parts = batched(scene, edges, views, spp, seed, settings.estimator, settings.max_depth)
+        else:
+            parts = [term_image(scene, edges, v, term, spp, term_seed(settings, v, pass_index, term), settings,
+                                guides=guides) for v in views]
+        images = [image + part for image, part in zip(images, parts)]
+    return images
 
 
 # --------------------------------------------------------------------------------------------

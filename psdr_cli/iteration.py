@@ -14,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from .estimators.boundary_sampling import edge_list
-from .estimators.passes import pass_seed
+from .estimators.passes import pass_seed, views_seed
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
@@ -24,7 +24,7 @@ from .jitarray import jit_array
 from .losses.loss import ViewImages
 from .losses.registry import view_losses
 from .outlier_clip import clip_outliers
-from .render import render_view
+from .render import render_view, render_views
 
 
 @dataclass
@@ -146,9 +146,10 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     t_render = time.perf_counter()
     views = batch_views(seed, it, n_views, cfg.batch_size)
     loss = mi.Float(0.0)
-    for v in views:
-        img = engine.image(problem, edges, v, it, guides.guides)
-        adjoint = adjoint_image(problem.scene, v, cfg.adjoint_spp, seed, it) if cfg.adjoint_spp else None
+    images = engine.images(problem, edges, views, it, guides.guides)
+    adjoints = adjoint_images(problem.scene, views, cfg.adjoint_spp, seed, it) if cfg.adjoint_spp else \
+        [None] * len(views)
+    for v, img, adjoint in zip(views, images, adjoints):
         view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
                           stage.masks[v] if stage.masks is not None else None,
                           partial(engine.coverage, problem, edges, v, it))
@@ -213,6 +214,14 @@ def rebuild_guides(problem, settings, V, values: dict, n_views: int, terms):
         problem.scene.objects[cfg.object].faces = problem.F
         edges = edge_list(problem.scene, settings.estimator, settings.edge_sort)
         return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
+
+
+def adjoint_images(scene, views, spp: int, seed: int, iteration: int) -> list:
+    """:func:`adjoint_image` of each of ``views``: several traced as one wavefront per pass
+    (:func:`psdr_cli.render.render_views`, from their own random stream), one view as before."""
+    if len(views) == 1:
+        return [adjoint_image(scene, views[0], spp, seed, iteration)]
+    return render_views(scene, views, spp, seed=views_seed(seed, views, iteration, ADJOINT_STREAM))
 
 
 def adjoint_image(scene, view: int, spp: int, seed: int, iteration: int) -> mi.Float:

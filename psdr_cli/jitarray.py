@@ -17,6 +17,8 @@ keeps that buffer alive), so every load is ``align 64`` and a kernel is compiled
 """
 from __future__ import annotations
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 #: Alignment (bytes) of the buffers handed to Dr.Jit: a cache line, what its own allocator gives.
@@ -41,3 +43,22 @@ def jit_array(cls, values):
              "Int32": np.int32, "Int": np.int32, "Bool": np.bool_, "TensorXf": np.float32,
              "Float64": np.float64}[cls.__name__]
     return cls(aligned_copy(values, dtype))
+
+
+def concat(parts):
+    """The arrays ``parts`` (one Dr.Jit type: ``mi.Float``, ``mi.UInt32``, ``mi.Point2f``…, AD or
+    not) end to end. ``dr.concat`` writes part j at ``arange + offset_j`` with the offsets as literals
+    of the kernel, which is then compiled again whenever the parts' widths change (curve counts
+    change every iteration); here the offsets are opaque."""
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0]
+    if dr.depth_v(first) > 1:
+        return type(first)(*(concat([p[i] for p in parts]) for i in range(len(first))))
+    out = dr.empty(type(first), sum(dr.width(p) for p in parts))
+    offset = 0
+    for p in parts:
+        index = dr.arange(mi.UInt32, dr.width(p)) + dr.opaque(mi.UInt32, offset)
+        dr.scatter(out, p, index, mode=dr.ReduceMode.Permute)
+        offset += dr.width(p)
+    return out

@@ -19,8 +19,8 @@ from . import fileio
 from .config.cameras import CameraConfig
 from .config.experiment_file import Experiment
 from .config.options import option_spp, parse_views
-from .estimators.interior import render_pass
-from .estimators.passes import pass_seed, passes_for
+from .estimators.interior import render_pass, split_views, views_pass
+from .estimators.passes import pass_seed, passes_for, views_seed
 from .estimators.registry import RENDER_STREAM
 from .scene import build_scene
 
@@ -57,6 +57,22 @@ def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None
             if progress:
                 progress(n)
     return (total / spp).astype(np.float32)
+
+
+def render_views(scene, views, spp: int, seed: int = 0, max_depth: int | None = None) -> list:
+    """Rendered images of several cameras ``views`` traced as one wavefront per pass (flat W·H·3
+    means on the device, one per view, no AD): the estimator of :func:`render_view`, its passes
+    seeded by :func:`psdr_cli.estimators.passes.views_seed`."""
+    width, height = scene.resolution
+    max_depth = scene.config.max_depth if max_depth is None else max_depth
+    sensors = [scene.sensors[v] for v in views]
+    total = None
+    with dr.suspend_grad():
+        for p, n in enumerate(passes_for(spp, width * height * len(views))):
+            sums = views_pass(scene.mi_scene, sensors, width, height, n, max_depth,
+                              views_seed(seed, views, p, RENDER_STREAM), scene.config.hide_background)
+            total = sums if total is None else total + sums
+        return split_views(total / spp, len(views))
 
 
 @dataclass

@@ -35,6 +35,25 @@ def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int,
     return ray, weight
 
 
+def views_camera_rays(sensors, sampler: mi.Sampler, width: int, height: int, spp: int):
+    """:func:`camera_rays` of several sensors in one wavefront: lane i belongs to view
+    i // (W·H·spp) of ``sensors`` and, within it, to pixel (i mod W·H·spp) // spp at the film point
+    ((x, y) + ξ) / (W, H); each sensor's rays are computed on every lane and a lane keeps its own."""
+    per_view = width * height * spp
+    idx = dr.arange(mi.UInt32, per_view * len(sensors))
+    view = idx // dr.opaque(mi.UInt32, per_view)
+    pixel = (idx - view * dr.opaque(mi.UInt32, per_view)) // dr.opaque(mi.UInt32, spp)
+    pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
+    film_uv = pos / mi.ScalarVector2f(width, height)
+    wavelength = sampler.next_1d()
+    ray, weight = sensors[0].sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5))
+    for k, sensor in enumerate(sensors[1:], start=1):
+        mine = view == k
+        ray_k, weight_k = sensor.sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5), mine)
+        ray, weight = dr.select(mine, ray_k, ray), dr.select(mine, weight_k, weight)
+    return ray, weight
+
+
 def principal_point_offset(sensor: mi.Sensor, params=None) -> tuple:
     """Mitsuba's (``principal_point_offset_x``, ``_y``) of a perspective sensor, as Python floats."""
     params = mi.traverse(sensor) if params is None else params
@@ -87,6 +106,23 @@ def camera_ray(sensor: mi.Sensor, uv, width: int, height: int, active=True):
     """The (detached) camera ray through film position ``uv`` (pixels)."""
     ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), active)
     return ray
+
+
+class ViewRays:
+    """Camera rays through film positions for the lanes of one view or of several (a batch traced
+    as one wavefront): lane i belongs to view ``view[i]`` of ``sensors`` (``view`` None: all lanes
+    belong to ``sensors[0]``). All sensors share the film size W × H."""
+
+    def __init__(self, sensors, width: int, height: int, view=None):
+        self.sensors, self.width, self.height, self.view = list(sensors), width, height, view
+
+    def __call__(self, uv, active=True):
+        """The (detached) camera ray of each lane's view through film position ``uv`` (pixels)."""
+        ray = camera_ray(self.sensors[0], uv, self.width, self.height, active)
+        for k, sensor in enumerate(self.sensors[1:], start=1):
+            mine = self.view == k
+            ray = dr.select(mine, camera_ray(sensor, uv, self.width, self.height, active & mine), ray)
+        return ray
 
 
 def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int, height: int):

@@ -33,7 +33,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .camera import camera_rays
+from .camera import camera_rays, views_camera_rays
 from .passes import make_sampler
 from .shading_frame import bend_shading_normal
 from .term import Term
@@ -232,6 +232,24 @@ def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp
     return np.stack([np.asarray(s, np.float64) for s in sums], axis=-1).reshape(height, width, 3)
 
 
+def views_pass(scene: mi.Scene, sensors, width: int, height: int, spp: int, max_depth: int, seed: int,
+               hide_background: bool = False) -> mi.Float:
+    """One primal pass of several views in one wavefront (:func:`.camera.views_camera_rays`): the
+    sum over ``spp`` samples of every pixel, flat (views · H · W · 3) on the device, view-major."""
+    sampler = make_sampler(seed, width * height * spp * len(sensors))
+    ray, weight = views_camera_rays(sensors, sampler, width, height, spp)
+    L = weight * radiance(scene, sampler, ray, max_depth, hide_background=hide_background)
+    dr.eval(L)  # one kernel for the three channels
+    return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") for c in range(3)]))
+
+
+def split_views(image: mi.Float, count: int) -> list:
+    """The ``count`` equal view-major parts of a flat image of several views (AD gathers)."""
+    n = dr.width(image) // count
+    index = dr.arange(mi.UInt32, n)
+    return [dr.gather(mi.Float, image, index + dr.opaque(mi.UInt32, k * n)) for k in range(count)]
+
+
 def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth: int, guide=None) -> mi.Float:
     """One pass of the interior term (:class:`~.term.Term` signature): the mean of ``spp``
     material-form path samples per pixel (flat W·H·3, AD), whose primal value is the render."""
@@ -245,4 +263,18 @@ def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth:
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") / spp for c in range(3)]))
 
 
-TERM = Term("interior", samples_key="spp", stream=1, estimate=estimate)
+def estimate_views(scene, edges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
+    """One pass of the interior term for several ``views`` traced as one wavefront (the samples
+    of :func:`estimate`, drawn from one sampler seeded with ``seed``): a flat W·H·3 AD image per
+    view, whose primal value is the render."""
+    width, height = scene.resolution
+    sampler = make_sampler(seed, width * height * spp * len(views))
+    ray, weight = views_camera_rays([scene.sensors[v] for v in views], sampler, width, height, spp)
+    L = weight * radiance(scene.mi_scene, sampler, ray, max_depth, ad=True,
+                          hide_background=scene.config.hide_background)
+    dr.eval(L)  # one kernel for the three channels' primal values
+    image = dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") / spp for c in range(3)]))
+    return split_views(image, len(views))
+
+
+TERM = Term("interior", samples_key="spp", stream=1, estimate=estimate, estimate_views=estimate_views)

@@ -30,6 +30,17 @@ def pass_seed(seed: int, view: int, pass_index: int, stream: int = 0) -> int:
     return h
 
 
+def views_seed(seed: int, views, pass_index: int, stream: int = 0) -> int:
+    """The seed of a pass that traces several ``views`` in one wavefront: :func:`pass_seed` with the
+    views folded into one key (≥ 2^20, so that it names no single view; one view: its own seed)."""
+    if len(views) == 1:
+        return pass_seed(seed, views[0], pass_index, stream)
+    key = 0
+    for v in views:
+        key = (key * 0x01000193 + v + 1) & 0xFFFFFFFF
+    return pass_seed(seed, key | 0x100000, pass_index, stream)
+
+
 def make_sampler(seed: int, lanes: int) -> mi.Sampler:
     """Independent sampler for ``lanes`` parallel paths; the seed is opaque so kernels are reused."""
     sampler = mi.load_dict({"type": "independent"})

@@ -14,6 +14,13 @@ path depth and ``guide`` the term's guide (None: unguided). The result is a flat
 attached to the AD graph: the interior term's primal value is the rendered image, a boundary
 term's primal value is 0 (it only carries derivatives).
 
+A term may also trace one pass of several views as one wavefront (fewer, wider kernels and one
+trace of its Python code instead of one per view):
+
+    estimate_views(scene, edges, views, spp, seed, estimator, max_depth) -> [mi.Float per view]
+
+with the samples of ``estimate`` drawn from one sampler seeded with ``seed`` (unguided terms only).
+
 Each estimator module declares its ``TERM``; :mod:`.registry` lists them.
 """
 from __future__ import annotations
@@ -60,6 +67,8 @@ class Term:
     stream: int           # random-number stream of its passes (estimators.passes.pass_seed)
     estimate: Callable[..., mi.Float]
     guide: GuideTarget | None = None   # how a boundary guide serves it (None: no guide can)
+    #: one pass for several views traced as one wavefront (None: one view at a time), see above
+    estimate_views: Callable[..., list] | None = None
 
     @property
     def guided(self) -> bool:
@@ -67,11 +76,12 @@ class Term:
         return self.guide is not None
 
 
-def boundary_pass(scene, edges, spp: int, seed: int):
-    """(N, sampler, P) of one boundary pass: N = spp · W · H samples, their sampler and the AD
-    vertex buffer of the edge objects (None without edges)."""
+def boundary_pass(scene, edges, spp: int, seed: int, views: int = 1):
+    """(N, sampler, P) of one boundary pass: N = spp · W · H samples per view, their sampler (as
+    wide as ``views`` views' samples) and the AD vertex buffer of the edge objects (None without
+    edges)."""
     width, height = scene.resolution
     n = spp * width * height
-    sampler = make_sampler(seed, n)
+    sampler = make_sampler(seed, n * views)
     P = edges.positions(mi.traverse(scene.mi_scene)) if edges.count else None
     return n, sampler, P
