@@ -15,7 +15,7 @@ import pytest
 import psdr_cli
 from psdr_cli import backend, estimate, iteration
 from psdr_cli.estimate import Settings
-from psdr_cli.estimators import interior, registry
+from psdr_cli.estimators import registry
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.camera import Projection, views_camera_rays
 from psdr_cli.estimators.passes import make_sampler
