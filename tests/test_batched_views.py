@@ -1,7 +1,7 @@
 """Several views traced as one wavefront (issue 38): each lane's camera ray is its own view's, and
-the batched interior and primary passes and the batched primal render are the per-view
-estimators (they differ from a per-view pass no more than two independent per-view passes differ
-from each other); a batch of one view is the per-view pass bit for bit."""
+the batched interior pass and the batched primal render are the per-view estimators (they differ
+from a per-view pass no more than two independent per-view passes differ from each other); a
+batch of one view is the per-view pass bit for bit."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -19,7 +19,7 @@ from psdr_cli.estimators import registry
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.camera import Projection, views_camera_rays
 from psdr_cli.estimators.passes import make_sampler
-from psdr_cli.estimators.primary import Curves, ViewCurves, draw_curves
+from psdr_cli.jitarray import concat
 from psdr_cli.render import render_view, render_views
 from psdr_cli.scene import build_scene
 
@@ -98,38 +98,6 @@ def test_batched_interior_pass_is_the_per_view_estimator(exp):
     assert np.abs(c_img[0] - a_img[1]).mean() > 2.0 * noise_img.max()
 
 
-def test_batched_primary_pass_is_the_per_view_estimator(exp):
-    """The primary term's images carry only derivatives: compared through the vertex gradient,
-    overall and view by view (each view's own weighting of its pixels)."""
-    scene = build_scene(exp)
-    grads = {}
-    for name, seed, batched in (("a", 11, False), ("b", 23, False), ("c", 37, True)):
-        grads[name] = [term_estimate_view(scene, exp, "primary", 256, seed, batched, k) for k in range(len(VIEWS))]
-    for k in range(len(VIEWS)):
-        a, b, c = grads["a"][k], grads["b"][k], grads["c"][k]
-        noise = np.linalg.norm(a - b)
-        assert noise > 0
-        assert np.linalg.norm(c - a) < 1.5 * noise
-        # the views' gradients differ by more than the tolerance (a swapped view would fail)
-        assert np.linalg.norm(grads["a"][(k + 1) % len(VIEWS)] - a) > 2.0 * noise
-
-
-def term_estimate_view(scene, exp, term, spp, seed, batched, k):
-    """The vertex gradient of Σ w·I of view ``VIEWS[k]`` alone, from a per-view or a batched pass."""
-    V = vertex_leaf(scene)
-    settings = Settings.from_experiment(exp, spp=spp)
-    settings = settings.with_estimator(primary_spp=spp)
-    edges = edge_list(scene, exp.estimator, False)
-    t = registry.term(term)
-    if batched:
-        image = t.estimate_views(scene, edges, VIEWS, spp, seed, exp.estimator, settings.max_depth)[k]
-    else:
-        image = t.estimate(scene, edges, VIEWS[k], spp, seed, exp.estimator, settings.max_depth)
-    w = dr.sin(dr.arange(mi.Float, dr.width(image)) * 0.37)
-    dr.backward(dr.sum(w * image))
-    return np.asarray(dr.grad(V))
-
-
 def test_batched_render_is_the_per_view_render(exp):
     scene = build_scene(exp)
     per_view = [np.ravel(render_view(scene, v, 32, seed=s)) for v, s in zip(VIEWS, (1, 2, 3))]
@@ -152,20 +120,23 @@ def test_a_batch_of_one_view_is_the_per_view_pass(exp):
     assert np.array_equal(np.asarray(adjoint), np.asarray(iteration.adjoint_image(scene, 5, 4, 0, 3)))
 
 
-def test_each_lane_draws_a_curve_of_its_own_view_with_its_views_density(exp):
-    """``primary.draw_curves``: lanes of view 0 draw among its curves 0–2 ∝ mass, lanes of view 2 among
-    its curves (3–4 after view 0's), with 1/(N·p) scaled by their own view's total mass; a view
-    without curves (1) draws nothing."""
-    n = 4000
-    live = {0: ViewCurves(Curves(mi.Point3f(), mi.Point3f(), *[np.zeros(3, np.int64)] * 4, np.ones(3, bool),
-                                 np.ones(3, bool)), None, None, None, mi.Float([1.0, 0.0, 3.0]), 4.0),
-            2: ViewCurves(Curves(mi.Point3f(), mi.Point3f(), *[np.zeros(2, np.int64)] * 4, np.ones(2, bool),
-                                 np.ones(2, bool)), None, None, None, mi.Float([0.0, 2.0]), 2.0)}
-    view = dr.arange(mi.UInt32, 3 * n) // n
-    u = (mi.Float(dr.arange(mi.UInt32, 3 * n) % n) + 0.5) / n
-    k, s, scale, alive = draw_curves(live, u, view, n)
-    k, scale, alive, view = np.asarray(k), np.asarray(scale), np.asarray(alive), np.asarray(view)
-    assert set(k[view == 0]) == {0, 2} and abs(np.mean(k[view == 0] == 2) - 0.75) < 0.01
-    assert set(k[view == 2]) == {4}
-    assert np.allclose(scale[view == 0], 4.0 / n) and np.allclose(scale[view == 2], 2.0 / n)
-    assert alive[view != 1].all() and not alive[view == 1].any()
+
+def test_joined_arrays_do_not_bake_their_widths_into_kernels(exp):
+    """``jitarray.concat`` (curve lists, every iteration of another length) gives ``dr.concat``'s
+    values and gradients, and parts of other widths reuse the same kernels."""
+    hashes = []
+    for widths in ((3, 5), (6, 2)):
+        parts = [mi.Point3f(dr.arange(mi.Float, w) * (j + 1), 2.0, dr.arange(mi.Float, w)) for j, w in enumerate(widths)]
+        for p in parts:
+            dr.enable_grad(p)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        joined = concat(parts)
+        dr.eval(joined)
+        history = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        hashes.append(sorted(k["hash"] for k in history if k["type"] == dr.KernelType.JIT))
+        reference = dr.concat([p.x for p in parts])
+        assert np.array_equal(np.asarray(joined.x), np.asarray(dr.detach(reference)))
+        dr.backward(dr.sum(joined.x * dr.arange(mi.Float, sum(widths))))
+        assert np.array_equal(np.asarray(dr.grad(parts[1].x)), np.arange(widths[0], sum(widths)))
+    assert hashes[0] == hashes[1]

@@ -108,23 +108,6 @@ def camera_ray(sensor: mi.Sensor, uv, width: int, height: int, active=True):
     return ray
 
 
-class ViewRays:
-    """Camera rays through film positions for the lanes of one view or of several (a batch traced
-    as one wavefront): lane i belongs to view ``view[i]`` of ``sensors`` (``view`` None: all lanes
-    belong to ``sensors[0]``). All sensors share the film size W × H."""
-
-    def __init__(self, sensors, width: int, height: int, view=None):
-        self.sensors, self.width, self.height, self.view = list(sensors), width, height, view
-
-    def __call__(self, uv, active=True):
-        """The (detached) camera ray of each lane's view through film position ``uv`` (pixels)."""
-        ray = camera_ray(self.sensors[0], uv, self.width, self.height, active)
-        for k, sensor in enumerate(self.sensors[1:], start=1):
-            mine = self.view == k
-            ray = dr.select(mine, camera_ray(sensor, uv, self.width, self.height, active & mine), ray)
-        return ray
-
-
 def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int, height: int):
     """Project x to the film and test that the camera sees it.
 

@@ -50,7 +50,7 @@ from ..intersections import Segments, intersection_segments, segment_points
 from ..jitarray import concat, jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
-from .camera import Projection, ViewRays, film_pixel
+from .camera import Projection, camera_ray, film_pixel
 from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
@@ -341,7 +341,7 @@ def lands_on_own_face(scene, ray, own, active):
     return si.is_valid() & is_own_face(si, own)
 
 
-def crossing_offsets(scene, cameras: ViewRays, q, n_s, x, n0, n1, own, width: int, height: int, active):
+def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, active):
     """Signed image offsets (−a, +b) of the two side samples of intersection-curve points q (the
     default ±SIDE_EPS·size elsewhere: ``n0`` = 0).
 
@@ -362,11 +362,11 @@ def crossing_offsets(scene, cameras: ViewRays, q, n_s, x, n0, n1, own, width: in
     cap = CROSSING_MAX_EPS * max(width, height)
     crossing = dr.squared_norm(n0) > 0
     for sign in (-1.0, 1.0):
-        crossing &= lands_on_own_face(scene, cameras(q + sign * base * n_s, active),
+        crossing &= lands_on_own_face(scene, camera_ray(sensor, q + sign * base * n_s, width, height, active),
                                       own, active & crossing)
     out = []
     for sign in (-1.0, 1.0):
-        ray = cameras(q + sign * cap * n_s, active)  # planes: distances ∝ offset
+        ray = camera_ray(sensor, q + sign * cap * n_s, width, height, active)  # planes: distances ∝ offset
         t0 = dr.dot(n0, x - ray.o) / dr.dot(n0, ray.d)
         t1 = dr.dot(n1, x - ray.o) / dr.dot(n1, ray.d)
         first = (t0 > 0) & ((t0 <= t1) | ~(t1 > 0))  # a concave crease: the nearer plane is seen
@@ -384,7 +384,7 @@ def crossing_offsets(scene, cameras: ViewRays, q, n_s, x, n0, n1, own, width: in
     return out
 
 
-def fold_offsets(scene, cameras: ViewRays, q, n_s, x, n0, n1, own, width: int, height: int, offsets, active):
+def fold_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, offsets, active):
     """Signed image offsets of the two side samples of mesh-edge points q whose faces fold by more
     than 90° (``n0``, ``n1``: the faces' consistently oriented normals, :func:`fold_normals`; zero
     elsewhere, where ``offsets`` are kept).
@@ -405,13 +405,13 @@ def fold_offsets(scene, cameras: ViewRays, q, n_s, x, n0, n1, own, width: int, h
     c = dr.maximum(-dr.dot(n0, n1), 0.0)
     out = []
     for sign, default in zip((-1.0, 1.0), offsets):
-        si = scene.ray_intersect(cameras(q + sign * base * n_s, active), active & fold)
+        si = scene.ray_intersect(camera_ray(sensor, q + sign * base * n_s, width, height, active), active & fold)
         sid = dr.reinterpret_array(mi.UInt32, si.shape)
         on0 = si.is_valid() & (sid == own[0]) & (si.prim_index == own[1])
         on1 = si.is_valid() & (sid == own[2]) & (si.prim_index == own[3])
         n_p = dr.select(on0, n0, n1)
         n_o = dr.select(on0, n1, n0)
-        ray = cameras(q + sign * cap * n_s, active)  # distances ∝ offset
+        ray = camera_ray(sensor, q + sign * cap * n_s, width, height, active)  # distances ∝ offset
         t = dr.dot(n_p, x - ray.o) / dr.dot(n_p, ray.d)
         p = ray.o + t * ray.d
         dist = dr.abs(dr.dot(n_o, p - x))
@@ -419,68 +419,6 @@ def fold_offsets(scene, cameras: ViewRays, q, n_s, x, n0, n1, own, width: int, h
         offset = dr.minimum(dr.maximum(cap * FOLD_MARGIN * m * c / dr.maximum(dist, 1e-30), base), cap)
         out.append(dr.select(fold & (on0 | on1) & (t > 0), sign * offset, default))
     return out
-
-
-@dataclass
-class ViewCurves:
-    """One view's curves (:func:`primary_curves`) projected to its film: end points q0, q1 (AD),
-    their sampling weights w_e, the mass w_e·ℓ_e of each curve (0 behind the camera) and its sum."""
-    curves: Curves
-    q0: mi.Point2f
-    q1: mi.Point2f
-    weight: mi.Float
-    mass: mi.Float
-    total: float
-
-
-def view_curves(scene: mi.Scene, edges: BoundaryEdges, P, proj: Projection, scattering: bool,
-                sampling: str) -> ViewCurves | None:
-    """The curves of the view of ``proj`` with their sampling mass, or None when it has no mass."""
-    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
-                            scattering, sampling)
-    if len(curves) == 0:
-        return None
-    q0, z0 = proj(curves.p0)
-    q1, z1 = proj(curves.p1)
-    with dr.suspend_grad():
-        weight = jit_array(mi.Float, curves.weight)
-        front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
-        mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
-        total = float(dr.sum(mass)[0])
-    return ViewCurves(curves, q0, q1, weight, mass, total) if total > 0 else None
-
-
-def join_curves(parts) -> Curves:
-    """The curves of several views, concatenated (curve k of view j is curve k + Σ_{i<j} n_i)."""
-    if len(parts) == 1:
-        return parts[0]
-    p0, p1 = parts[0].p0, parts[0].p1
-    for c in parts[1:]:
-        p0, p1 = concat_points(p0, c.p0), concat_points(p1, c.p1)
-    return Curves(p0, p1, *(np.concatenate([getattr(c, k) for c in parts])
-                            for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1",
-                                      "weight", "fold0", "fold1")))
-
-
-def draw_curves(live, u, view, n_samples: int):
-    """(k, s, 1/(N·Σ_e w_e·ℓ_e) per lane, lane has a curve) for lanes of views ``live`` ({view:
-    ViewCurves}): each lane draws a curve of its own view ∝ w_e·ℓ_e (k indexes the views' curves
-    concatenated in the order of ``live``) and s reuses the remainder of u. One view
-    (``view`` None): the draw of that view alone, Σ w·ℓ / N an opaque scalar."""
-    if view is None:
-        (vc,) = live.values()
-        k, s = mi.DiscreteDistribution(vc.mass).sample_reuse(u)
-        return k, s, dr.opaque(mi.Float, vc.total / n_samples), mi.Bool(True)
-    k, s, scale, alive, offset = mi.UInt32(0), mi.Float(0.0), mi.Float(0.0), mi.Bool(False), 0
-    for v, vc in live.items():
-        kv, sv = mi.DiscreteDistribution(vc.mass).sample_reuse(u)
-        mine = view == v
-        k = dr.select(mine, kv + dr.opaque(mi.UInt32, offset), k)
-        s = dr.select(mine, sv, s)
-        scale = dr.select(mine, dr.opaque(mi.Float, vc.total / n_samples), scale)
-        alive |= mine
-        offset += len(vc.curves)
-    return k, s, scale, alive
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
@@ -492,40 +430,33 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
     term's camera rays do (:func:`.interior.radiance`); ``coverage``: a shape's registry id
     (:func:`shape_id`): the jump of the indicator that a camera ray's first hit is on that shape,
     instead of the radiance's (:mod:`.coverage`)."""
-    return views_primary_boundary(scene, [sensor], edges, P, n_samples, sampler, max_depth, sampling,
-                                  hide_background, coverage)[0]
-
-
-def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
-                           max_depth: int, sampling: str = "length", hide_background: bool = False,
-                           coverage: int | None = None) -> list:
-    """:func:`primary_boundary` of several views traced as one wavefront: lane i (of
-    ``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view i // n_samples of
-    ``sensors`` (one film size) and draws a point of that view's curves; one image per view."""
-    projs = [Projection(s) for s in sensors]
-    width, height, count = projs[0].width, projs[0].height, len(sensors)
-    images = [dr.zeros(mi.Float, width * height * 3) for _ in sensors]
+    proj = Projection(sensor)
+    width, height = proj.width, proj.height
+    img = dr.zeros(mi.Float, width * height * 3)
     if edges.count == 0 and not edges.meshes:
-        return images
-    live = {v: vc for v, proj in enumerate(projs)
-            if (vc := view_curves(scene, edges, P, proj, max_depth >= 2, sampling)) is not None}
-    if not live:
-        return images
-    view = None if count == 1 else dr.arange(mi.UInt32, n_samples * count) // dr.opaque(mi.UInt32, n_samples)
-    curves = join_curves([vc.curves for vc in live.values()])
-    weight = live[next(iter(live))].weight if len(live) == 1 else jit_array(mi.Float, curves.weight)
-    k, s, scale, alive = draw_curves(live, sampler.next_1d(), view, n_samples)
-    q0, q1 = concat([vc.q0 for vc in live.values()]), concat([vc.q1 for vc in live.values()])
+        return img
+    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
+                            max_depth >= 2, sampling)
+    if len(curves) == 0:
+        return img
+    q0, z0 = proj(curves.p0)
+    q1, z1 = proj(curves.p1)
+    with dr.suspend_grad():
+        weight = jit_array(mi.Float, curves.weight)
+        front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
+        mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
+        total = float(dr.sum(mass)[0])
+    if not total > 0:
+        return img
+    distr = mi.DiscreteDistribution(mass)
+    k, s = distr.sample_reuse(sampler.next_1d())
     qa, qb = gather_curve_points(q0, k), gather_curve_points(q1, k)
     q = qa + s * (qb - qa)
-    cameras = ViewRays(sensors, width, height, view)
     with dr.suspend_grad():
         qd = dr.detach(q)
         t = dr.normalize(dr.detach(qb - qa))
         n_s = mi.Vector2f(-t.y, t.x)
         ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height)
-        if view is not None:
-            ok &= alive
         eps = SIDE_EPS * max(width, height)
         own = [dr.gather(mi.UInt32, jit_array(mi.UInt32, getattr(curves, a)), k)
                for a in ("shape0", "face0", "shape1", "face1")]
@@ -533,14 +464,14 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
         if np.any(curves.normal0):  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
             normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
                                                             for i in range(3))), k) for a in ("normal0", "normal1")]
-            offsets = crossing_offsets(scene, cameras, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+            offsets = crossing_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                                        *normals, own, width, height, ok)
         if np.any(curves.fold0):  # mesh edges that fold back: clear the ray-spawn offset (see fold_offsets)
             normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
                                                             for i in range(3))), k) for a in ("fold0", "fold1")]
-            offsets = fold_offsets(scene, cameras, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+            offsets = fold_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                                    *normals, own, width, height, offsets, ok)
-        rays = [cameras(qd + o * n_s, ok) for o in offsets]
+        rays = [camera_ray(sensor, qd + o * n_s, width, height, ok) for o in offsets]
         strict = dr.gather(mi.Bool, jit_array(mi.Bool, curves.strict), k)
         inner = dr.gather(mi.Bool, jit_array(mi.Bool, curves.inner), k)
         # each side's first hit, traced once: for the visibility test and as the radiance's first vertex
@@ -553,22 +484,19 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
         if coverage is not None:  # the indicator of a first hit on the object: 1 on its side, 0 beyond it
             sides = [mi.Color3f(dr.select(ok & hits_shape(si, coverage), 1.0, 0.0)) for si in hits]
         else:
-            sides = [interior.radiance(scene, smp, ray, max_depth, ok, hide_background=hide_background, si=si)
-                     for smp, ray, si in zip((sampler, twin), rays, hits)]
+            sides = [interior.radiance(scene, s, ray, max_depth, ok, hide_background=hide_background, si=si)
+                     for s, ray, si in zip((sampler, twin), rays, hits)]
         # 1/(N·p(q)) = Σw·ℓ / (N·w_e); opaque: the sum changes with the geometry and must not be
         # baked into the kernel
-        inv_pdf = scale / dr.gather(mi.Float, weight, k)
+        inv_pdf = dr.opaque(mi.Float, total / n_samples) / dr.gather(mi.Float, weight, k)
         delta = dr.select(ok, (sides[0] - sides[1]) * inv_pdf, 0.0)
         pixel = dr.select(ok, film_pixel(qd, width), 0)
-        if view is not None:
-            pixel += view * (width * height)
         dr.eval(delta, pixel, n_s, ok)
     v = delta * dr.dot(n_s, q)
     v = v - dr.detach(v)
-    img = images[0] if count == 1 else dr.zeros(mi.Float, width * height * 3 * count)
     for c in range(3):
         dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
-    return [img] if count == 1 else interior.split_views(img, count)
+    return img
 
 
 def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
@@ -580,12 +508,4 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
                             estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
-def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
-    """One pass of the primary term for several ``views`` traced as one wavefront (the samples of
-    :func:`estimate`, drawn from one sampler seeded with ``seed``): a flat W·H·3 AD image per view."""
-    n, sampler, P = boundary_pass(scene, edges, spp, seed, len(views))
-    return views_primary_boundary(scene.mi_scene, [scene.sensors[v] for v in views], edges, P, n, sampler, max_depth,
-                                  estimator.primary_sampling, hide_background=scene.config.hide_background)
-
-
-TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate, estimate_views=estimate_views)
+TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate)
