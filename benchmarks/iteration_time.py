@@ -125,9 +125,14 @@ class DrProxy:
 def instrument(phases: Phases):
     """Time the loop's functions as phases (module attributes and registry entries patched)."""
     for name, term in list(registry._BY_NAME.items()):
-        registry._BY_NAME[name] = replace(term, estimate=phases.wrap(name, term.estimate))
+        registry._BY_NAME[name] = term = replace(term, estimate=phases.wrap(name, term.estimate))
+        if getattr(term, "estimate_views", None):  # a term that traces a batch's views as one wavefront
+            registry._BY_NAME[name] = replace(term, estimate_views=phases.wrap(name, term.estimate_views))
     iteration.edge_list = phases.wrap("edges", iteration.edge_list)
-    iteration.adjoint_image = phases.wrap("adjoint", iteration.adjoint_image)
+    if hasattr(iteration, "adjoint_images"):  # the views of a batch in one wavefront (after issue 38's batching)
+        iteration.adjoint_images = phases.wrap("adjoint", iteration.adjoint_images)
+    else:
+        iteration.adjoint_image = phases.wrap("adjoint", iteration.adjoint_image)
     loss_registry.LOSSES = tuple(replace(x, value=phases.wrap("loss", x.value)) for x in loss_registry.LOSSES)
     iteration.dr = DrProxy(phases)
 

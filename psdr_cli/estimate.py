@@ -234,7 +234,6 @@ def ad_images(scene, edges, views, terms, settings: Settings, pass_index: int = 
     images = [dr.zeros(mi.Float, width * height * 3) for _ in views]
     for term in terms:
         spp = term_passes(term, settings, width * height)[0]
-        parts = None
         batched = registry.term(term).estimate_views
         if batched and len(views) > 1 and len(views) * width * height * spp <= AD_LANES and \
                 not (guides and guides.get(term)):
