@@ -139,13 +139,13 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch):
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=3, remesh={"method": "none"})
     exp = load_experiment(write(tmp_path, data))
-    real = estimate.ad_image
+    real = estimate.ad_images  # the loop's images of a batch (iteration.iterate via Engine.images)
 
-    def poisoned(scene, edges, view, terms, settings, pass_index=0, scale=1.0, guides=None):
-        img = real(scene, edges, view, terms, settings, pass_index, scale=scale, guides=guides)
-        return img * (dr.nan if pass_index == 1 else 1.0)
+    def poisoned(scene, edges, views, terms, settings, pass_index=0, guides=None):
+        images = real(scene, edges, views, terms, settings, pass_index, guides=guides)
+        return [img * (dr.nan if pass_index == 1 else 1.0) for img in images]
 
-    monkeypatch.setattr(estimate, "ad_image", poisoned)
+    monkeypatch.setattr(estimate, "ad_images", poisoned)
     warnings = []
     res = api.optimize(exp, warn=warnings.append)
     rows = log_rows(exp.run_dir)
