@@ -1,9 +1,10 @@
 """Several views traced as one wavefront (issue 38): each lane's camera ray is its own view's, and
-the batched interior pass and the batched primal render are the per-view estimators (they differ
-from a per-view pass no more than two independent per-view passes differ from each other); a
-batch of one view is the per-view pass bit for bit."""
+the batched interior, primary and direct passes and the batched primal render are the per-view estimators
+(they differ from a per-view pass no more than two independent per-view passes differ from each
+other); a batch of one view is the per-view pass bit for bit."""
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,12 +17,16 @@ import psdr_cli
 from psdr_cli import backend, estimate, iteration
 from psdr_cli.estimate import Settings
 from psdr_cli.estimators import registry
-from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.estimators.camera import Projection, views_camera_rays
+from psdr_cli.estimators.boundary_sampling import BoundaryEdges, edge_list
+from psdr_cli.estimators.camera import LaneCameras, Projection, camera_ray, views_camera_rays
+from psdr_cli.estimators.direct import direct_boundary, views_direct_boundary
 from psdr_cli.estimators.passes import make_sampler
+from psdr_cli.estimators.primary import draw_views
 from psdr_cli.jitarray import concat
 from psdr_cli.render import render_view, render_views
+from psdr_cli.experiment import parse_experiment
 from psdr_cli.scene import build_scene
+from test_direct_boundary import KEY as SHADOW_KEY, SHADOW
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
 VIEWS = [0, 5, 9]
@@ -53,6 +58,43 @@ def test_each_lane_ray_leaves_its_own_camera_through_its_own_pixel(exp):
         x, y = np.asarray(q.x)[mine], np.asarray(q.y)[mine]
         assert np.all((x > pixel[mine] % width - 1e-3) & (x < pixel[mine] % width + 1 + 1e-3))
         assert np.all((y > pixel[mine] // width - 1e-3) & (y < pixel[mine] // width + 1 + 1e-3))
+
+
+def test_lane_rays_are_each_views_mitsuba_camera_rays(exp):
+    """``LaneCameras``: lane i's ray is Mitsuba's ``sample_ray`` of its own view's sensor through the
+    same film point (origin on the near plane, direction, far end), for views in any order."""
+    scene = build_scene(exp)
+    width, height = 20, 14
+    rng = np.random.default_rng(3)
+    order = [VIEWS[2], VIEWS[0], VIEWS[1]]
+    view = rng.integers(0, len(order), 2000)
+    uv = mi.Point2f(mi.Float(rng.uniform(0, width, 2000)), mi.Float(rng.uniform(0, height, 2000)))
+    ray = LaneCameras([scene.sensors[v] for v in order], mi.UInt32(view), width, height)(uv)
+    for k, v in enumerate(order):
+        reference = camera_ray(scene.sensors[v], uv, width, height)
+        mine = view == k
+        for a in ("o", "d"):
+            ours, theirs = np.asarray(getattr(ray, a))[:, mine], np.asarray(getattr(reference, a))[:, mine]
+            assert np.abs(ours - theirs).max() < 1e-5, (v, a)
+        assert np.allclose(np.asarray(ray.maxt)[mine], np.asarray(reference.maxt)[mine], rtol=1e-5)
+
+
+def test_each_lane_draws_a_curve_of_its_own_view_with_its_views_density(exp):
+    """``draw_views``: lanes of view 0 draw among its curves 0-3 ∝ mass (never the massless ones),
+    lanes of view 2 among its curves (4-5, after view 0's), with 1/(N·p) scaled by their own
+    view's total mass; a view without curves (1) draws nothing, and s is uniform on the curve."""
+    n = 6000
+    masses = [np.array([1.0, 0.0, 3.0, 0.0]), np.zeros(0), np.array([0.0, 2.0])]
+    view = dr.arange(mi.UInt32, 3 * n) // n
+    u = (mi.Float(dr.arange(mi.UInt32, 3 * n) % n) + 0.5) / n
+    draw = draw_views(masses, u, view, n)
+    k, s, scale, alive = (np.asarray(a) for a in (draw.k, draw.s, draw.scale, draw.alive))
+    view = np.asarray(view)
+    assert set(k[view == 0]) == {0, 2} and abs(np.mean(k[view == 0] == 2) - 0.75) < 0.01
+    assert set(k[view == 2]) == {5}
+    assert np.allclose(scale[view == 0], 4.0 / n) and np.allclose(scale[view == 2], 2.0 / n)
+    assert alive[view != 1].all() and not alive[view == 1].any()
+    assert np.all((s >= 0) & (s < 1)) and abs(s[view == 2].mean() - 0.5) < 0.01
 
 
 def vertex_leaf(scene):
@@ -96,6 +138,83 @@ def test_batched_interior_pass_is_the_per_view_estimator(exp):
     # each view's image is its own: two views differ by more than the tolerance above (else a view
     # swapped for another in the batch would pass)
     assert np.abs(c_img[0] - a_img[1]).mean() > 2.0 * noise_img.max()
+
+
+def test_batched_primary_pass_is_the_per_view_estimator(exp):
+    """The primary term's images carry only derivatives: compared through the vertex gradient of
+    each view alone (its own weighting of its pixels)."""
+    scene = build_scene(exp)
+    grads = {name: [term_estimate_view(scene, exp, "primary", 256, seed, batched, k) for k in range(len(VIEWS))]
+             for name, seed, batched in (("a", 11, False), ("b", 23, False), ("c", 37, True))}
+    a, b, c = (np.stack(grads[name]) for name in "abc")
+    noise = np.linalg.norm(a - b, axis=1)  # two independent per-view passes, per view
+    assert np.all(noise > 0)
+    assert np.all(np.linalg.norm(c - a, axis=1) < 1.5 * noise)
+    # the views' gradients differ by more than the tolerance (a view's image handed to another
+    # view would fail)
+    assert np.linalg.norm(np.roll(a, 1, axis=0) - a) > 2.0 * np.linalg.norm(noise)
+
+
+def test_batched_direct_pass_is_the_per_view_estimator(tmp_path):
+    """The direct term on the shadow scene of test_direct_boundary seen by three cameras: dI/dθ
+    (θ = the occluder's x-translation, forward mode) summed over 8 × 8-pixel tiles, per view. The
+    mean of two batched passes differs from the mean of four per-view passes by z = |Δ| / (s·√(1/4
+    + 1/2)) < 2.5, s the per-view passes' spread (tile noise is heavy-tailed: over four disjoint
+    sets of seeds z was 0.53-1.61); the views' tiles differ by far more (14-17 s), and a pass
+    whose lanes all land in the first view's image gives z = 10-17 on the views."""
+    cfg = copy.deepcopy(SHADOW)
+    cfg["scene"]["cameras"] = [{"origin": [0, -2.2, 2.2], "target": [0, 0, 0.2], "fov": 40},
+                               {"origin": [1.8, -1.2, 2.4], "target": [0.2, 0.2, 0.0], "fov": 45},
+                               {"origin": [-1.5, -1.9, 2.0], "target": [0, 0.3, 0.1], "fov": 38}]
+    e = parse_experiment(cfg, tmp_path / "shadow.yaml", cwd=tmp_path)
+    backend.activate(e)
+    scene = build_scene(e)
+    edges = BoundaryEdges.from_scene(scene)
+    a = np.stack([direct_tiles(scene, edges, seed, False) for seed in (1, 2, 3, 4)])
+    c = np.stack([direct_tiles(scene, edges, seed, True) for seed in (11, 12)])
+    spread = np.linalg.norm(a.std(axis=0, ddof=1), axis=1)
+    assert np.all(spread > 0)
+    z = np.linalg.norm(c.mean(axis=0) - a.mean(axis=0), axis=1) / (spread * np.sqrt(1 / 4 + 1 / 2))
+    assert np.all(z < 2.5), z
+    mean = a.mean(axis=0)
+    assert np.linalg.norm(np.roll(mean, 1, axis=0) - mean) > 5.0 * np.linalg.norm(spread)
+
+
+def direct_tiles(scene, edges, seed: int, batched: bool, spp: int = 16) -> np.ndarray:
+    """(views, 4·4·3): the direct term's dI/dθ of every view of ``scene`` summed over 8 × 8 tiles
+    of its 32 × 32 film, θ the x-translation of the occluder ``occ``."""
+    params = mi.traverse(scene.mi_scene)
+    V0 = mi.Float(params[SHADOW_KEY])
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    params[SHADOW_KEY] = dr.ravel(dr.unravel(mi.Point3f, V0) + theta * mi.Vector3f(1, 0, 0))
+    params.update()
+    n, P = spp * 32 * 32, params[SHADOW_KEY]
+    if batched:
+        images = views_direct_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n), "mis")
+    else:
+        images = [direct_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), "mis")
+                  for k, s in enumerate(scene.sensors)]
+    dr.set_grad(theta, 1.0)
+    dr.forward_to(*images)
+    params[SHADOW_KEY] = V0
+    params.update()
+    return np.stack([np.array(dr.grad(i)).reshape(4, 8, 4, 8, 3).sum((1, 3)).ravel() for i in images])
+
+
+def term_estimate_view(scene, exp, term, spp, seed, batched, k):
+    """The vertex gradient of Σ w·I of view ``VIEWS[k]`` alone, from a per-view or a batched pass."""
+    V = vertex_leaf(scene)
+    settings = Settings.from_experiment(exp, spp=spp)
+    edges = edge_list(scene, exp.estimator, False)
+    t = registry.term(term)
+    if batched:
+        image = t.estimate_views(scene, edges, VIEWS, spp, seed, exp.estimator, settings.max_depth)[k]
+    else:
+        image = t.estimate(scene, edges, VIEWS[k], spp, seed + 101 * k, exp.estimator, settings.max_depth)
+    w = dr.sin(dr.arange(mi.Float, dr.width(image)) * 0.37)
+    dr.backward(dr.sum(w * image))
+    return np.asarray(dr.grad(V))
 
 
 def test_batched_render_is_the_per_view_render(exp):

@@ -17,7 +17,7 @@ from conftest import experiment, run_cli
 from psdr_cli import backend
 from psdr_cli.config.cameras import CameraConfig
 from psdr_cli.errors import ConfigError
-from psdr_cli.estimators.camera import Projection, camera_connection
+from psdr_cli.estimators.camera import LaneCameras, Projection, SensorCamera, camera_connection
 from psdr_cli.experiment import parse_experiment
 from psdr_cli.pinhole import pinhole_camera
 from psdr_cli.run_folder.fingerprint import run_fingerprint
@@ -159,7 +159,7 @@ def test_projection_and_importance_with_an_offset():
     assert np.abs(np.stack([np.asarray(q.x), np.asarray(q.y)], 1) - uv)[on].max() < 1e-3
     floor = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([10, 10, 1])}
     scene = mi.load_dict({"type": "scene", "cam": sensor_dict(cam, W, H), "floor": floor})
-    imp, _, _, _, ok = camera_connection(scene, s, p, True, W, H)
+    imp, _, _, _, ok = camera_connection(scene, SensorCamera(s, W, H), p, True)
     imp, ok = np.asarray(imp[0]), np.asarray(ok)
     # W_e = 1 / (A cos³θ d²), A = (2 tan(f/2))² H/W the film's area at distance 1
     v = X - cam.origin
@@ -173,6 +173,15 @@ def test_projection_and_importance_with_an_offset():
     it.p = p
     _, mitsuba = s.sample_direction(it, mi.Point2f(0.5))
     assert (np.asarray(mitsuba[0])[ok] == 0).sum() > 20  # the strip Mitsuba's own importance misses
+    # the same camera gathered per lane (a batch's lanes, issue 38): the same connection
+    other = sensor(CameraConfig(origin=(2.0, 1.0, 3.0), target=(0.0, 0.0, 0.0), fov=50.0), W, H)
+    lanes = LaneCameras([other, s], mi.UInt32(np.ones(len(X), np.uint32)), W, H)
+    imp_l, d0_l, uv_l, _, ok_l = camera_connection(scene, lanes, p, True)
+    _, d0, uv_s, _, _ = camera_connection(scene, SensorCamera(s, W, H), p, True)
+    assert (np.asarray(ok_l) == ok).all()
+    assert np.allclose(np.asarray(imp_l[0])[ok], imp[ok], rtol=1e-4)
+    assert np.abs(np.asarray(d0_l) - np.asarray(d0))[:, ok].max() < 1e-5
+    assert np.abs(np.asarray(uv_l) - np.asarray(uv_s))[:, ok].max() < 1e-3
 
 
 def test_grad_matches_finite_differences_through_an_off_centre_camera(tmp_path):

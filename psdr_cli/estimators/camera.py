@@ -20,7 +20,9 @@ import math
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
+from ..jitarray import jit_array
 from .shading_frame import bend_shading_normal
 
 
@@ -108,36 +110,113 @@ def camera_ray(sensor: mi.Sensor, uv, width: int, height: int, active=True):
     return ray
 
 
-def camera_connection(scene: mi.Scene, sensor: mi.Sensor, x, active, width: int, height: int):
-    """Project x to the film and test that the camera sees it.
+class SensorCamera:
+    """One sensor seen as the boundary terms use a camera (W × H film, positions in pixels):
+    ``camera(uv, active)`` is the camera ray through film position uv (:func:`camera_ray`) and
+    ``camera.direction(x, active)`` Mitsuba's ``sample_direction`` towards points x, as
+    (importance W_e, unit direction d0 from x to the camera, film position, valid, distance).
+    With a principal point offset, W_e is :meth:`Projection.importance` (Mitsuba 3.9 zeroes its
+    own outside the *centred* film rectangle, whatever the offset; inside the shifted film it
+    has the same value: it depends on the angle and the distance only)."""
+
+    def __init__(self, sensor: mi.Sensor, width: int, height: int):
+        self.sensor, self.width, self.height = sensor, width, height
+
+    def __call__(self, uv, active=True):
+        return camera_ray(self.sensor, uv, self.width, self.height, active)
+
+    def direction(self, x, active):
+        it = dr.zeros(mi.Interaction3f)
+        it.p = x
+        ds, importance = self.sensor.sample_direction(it, mi.Point2f(0.5), active)
+        if any(principal_point_offset(self.sensor)):
+            importance = mi.Spectrum(dr.select(ds.pdf > 0, Projection(self.sensor).importance(x), 0.0))
+        return importance, ds.d, ds.uv, ds.pdf > 0, ds.dist
+
+
+class LaneCameras:
+    """Several perspective sensors of one film size W × H for lanes that belong to different
+    views, with :class:`SensorCamera`'s two methods: lane i uses camera ``view[i]`` of
+    ``sensors``, whose frame and intrinsics it gathers (no lane evaluates another camera).
+
+    The ray through film position (u, v) is Mitsuba's perspective ``sample_ray``: in camera
+    space x = 2t (c_x − u/W), y = 2t (c_y − v/H) / a (t = tan(fov/2), c = ½ − o the principal
+    point, a = W/H), d = normalize(x, y, 1); the world ray starts at the near plane,
+    o + R d · n / d_z, heads along R d and ends at the far plane, (f − n) / d_z further (R, o the
+    camera-to-world rotation and origin, n, f the clip distances). Towards a point x with camera
+    coordinates (x', y', z') = M⁻¹ x it is :class:`Projection` and :meth:`Projection.importance`:
+    valid for n < z' < f and a film position inside the (shifted) film."""
+
+    def __init__(self, sensors, view: mi.UInt32, width: int, height: int):
+        self.width, self.height = width, height
+        frames, inverses, intrinsics = [], [], []
+        for sensor in sensors:
+            params = mi.traverse(sensor)
+            M = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
+            frames.append(M[:3, :4].T.ravel())  # columns x, y, z (rotation) and the origin
+            inverses.append(np.linalg.inv(M)[:3, :4].T.ravel())
+            proj = Projection(sensor)
+            intrinsics.append((proj.tan_half, *proj.centre, float(params["near_clip"]), float(params["far_clip"])))
+        frames, inverses = jit_array(mi.Float, np.ravel(frames)), jit_array(mi.Float, np.ravel(inverses))
+        self.axes = [dr.gather(mi.Vector3f, frames, view * 4 + j) for j in range(4)]
+        self.local_axes = [dr.gather(mi.Vector3f, inverses, view * 4 + j) for j in range(4)]
+        intrinsics = jit_array(mi.Float, np.ravel(intrinsics))
+        self.tan_half, self.cx, self.cy, self.near, self.far = (
+            dr.gather(mi.Float, intrinsics, view * 5 + j) for j in range(5))
+
+    def __call__(self, uv, active=True):
+        """The (detached) camera ray of each lane's view through film position ``uv`` (pixels)."""
+        x = 2.0 * self.tan_half * (self.cx - uv.x / self.width)
+        y = 2.0 * self.tan_half * (self.cy - uv.y / self.height) * (self.height / self.width)
+        d = dr.normalize(mi.Vector3f(x, y, 1.0))
+        right, up, forward, origin = self.axes
+        direction = right * d.x + up * d.y + forward * d.z
+        inv_z = dr.rcp(d.z)
+        ray = mi.Ray3f(origin + direction * (self.near * inv_z), direction)
+        ray.maxt = (self.far - self.near) * inv_z
+        return ray
+
+    def direction(self, x, active):
+        """(W_e, d0, film position, valid, distance) of each lane's camera towards ``x``."""
+        a, b, c, t = self.local_axes
+        local = a * x.x + b * x.y + c * x.z + t
+        aspect = self.width / self.height
+        uv = mi.Point2f(self.width * (self.cx - 0.5 * local.x / (local.z * self.tan_half)),
+                        self.height * (self.cy - 0.5 * aspect * local.y / (local.z * self.tan_half)))
+        valid = mi.Bool(active) & (local.z > self.near) & (local.z < self.far) & \
+            (uv.x >= 0) & (uv.x <= self.width) & (uv.y >= 0) & (uv.y <= self.height)
+        dist2 = dr.squared_norm(local)
+        cos = local.z * dr.rsqrt(dist2)
+        area = (2.0 * self.tan_half) ** 2 / aspect
+        importance = dr.select(valid, dr.rcp(area * cos * cos * cos * dist2), 0.0)
+        to_camera = self.axes[3] - x
+        dist = dr.norm(to_camera)
+        return mi.Spectrum(importance), to_camera / dist, uv, valid, dist
+
+
+def camera_connection(scene: mi.Scene, camera, x, active):
+    """Project x to the film of ``camera`` (:class:`SensorCamera`, :class:`LaneCameras`) and test
+    that the camera sees it.
 
     Returns (importance W_e, direction to the camera d0, film position in pixels, camera-ray hit, mask).
-    The camera ray through the film position must land on x (scale-relative tolerance). With a
-    principal point offset, W_e is :meth:`Projection.importance` (Mitsuba's is zero on part of the
-    shifted film).
+    The camera ray through the film position must land on x (scale-relative tolerance).
     """
     active = mi.Bool(active)  # a copy: `&=` below must not narrow the caller's mask
-    it = dr.zeros(mi.Interaction3f)
-    it.p = x
-    ds, importance = sensor.sample_direction(it, mi.Point2f(0.5), active)
-    if any(principal_point_offset(sensor)):
-        # Mitsuba 3.9 zeroes the importance outside the *centred* film rectangle, whatever the
-        # offset; inside the shifted film it has the same value (it depends on θ and d only)
-        importance = mi.Spectrum(dr.select(ds.pdf > 0, Projection(sensor).importance(x), 0.0))
-    uv = ds.uv
-    active &= (ds.pdf > 0) & (dr.max(importance) > 0) & (uv.x >= 0) & (uv.x < width) & (uv.y >= 0) & (uv.y < height)
-    si = scene.ray_intersect(camera_ray(sensor, uv, width, height, active), active)
-    active &= si.is_valid() & (dr.norm(si.p - x) < 1e-3 * ds.dist)
-    return importance, ds.d, uv, si, active
+    importance, d0, uv, valid, dist = camera.direction(x, active)
+    width, height = camera.width, camera.height
+    active &= valid & (dr.max(importance) > 0) & (uv.x >= 0) & (uv.x < width) & (uv.y >= 0) & (uv.y < height)
+    si = scene.ray_intersect(camera(uv, active), active)
+    active &= si.is_valid() & (dr.norm(si.p - x) < 1e-3 * dist)
+    return importance, d0, uv, si, active
 
 
-def connect_camera(scene: mi.Scene, sensor: mi.Sensor, x, w_in, active, width: int, height: int):
+def connect_camera(scene: mi.Scene, camera, x, w_in, active):
     """Importance carried from the camera to a surface point x for light arriving from ``w_in``.
 
     Value W_e · f_s(x; w_in → d0) |n·d0| with the shading-normal correction
     |cos_sh(w_in)·(n·d0)| / |cos_sh(d0)·(n·w_in)| (light-tracing convention). Returns
     (value, film position, pixel, mask, camera-ray hit)."""
-    importance, d0, uv, siC, ok = camera_connection(scene, sensor, x, active, width, height)
+    importance, d0, uv, siC, ok = camera_connection(scene, camera, x, active)
     siC.wi = siC.to_local(d0)
     siC = bend_shading_normal(siC)  # the same shading frame the camera path sees at this point
     siC.wi = siC.to_local(w_in)
@@ -145,4 +224,4 @@ def connect_camera(scene: mi.Scene, sensor: mi.Sensor, x, w_in, active, width: i
     fs = siC.bsdf().eval(mi.BSDFContext(mi.TransportMode.Importance), siC, wo, ok)
     shading = dr.abs(siC.wi.z * dr.dot(d0, siC.n)) / dr.maximum(dr.abs(wo.z * dr.dot(w_in, siC.n)), 1e-12)
     value = dr.select(ok, importance * fs * shading, 0.0)
-    return value, uv, dr.select(ok, film_pixel(uv, width), 0), ok, siC
+    return value, uv, dr.select(ok, film_pixel(uv, camera.width), 0), ok, siC

@@ -44,8 +44,8 @@ import mitsuba as mi
 
 from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
                                 pdf_wedge, primary_sample, ray_origin, sample_edge_point, sample_wedge)
-from .camera import camera_ray, connect_camera
-from .interior import environment_motion, turn
+from .camera import LaneCameras, SensorCamera, connect_camera
+from .interior import environment_motion, split_views, turn
 from .sample_log import SampleLog
 from .term import GuideTarget, Term, boundary_pass
 
@@ -59,8 +59,7 @@ def emitter_pdf(scene: mi.Scene, xB, siS, active):
     return scene.pdf_emitter_direction(it, ds, active)
 
 
-def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point,
-                   width, height):
+def segment_weight(scene, camera, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point):
     """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D,
     env, λ) with ``env`` the lanes whose source is the environment and λ = t_S/(t_S + t_D) the
     lever of the detector end's motion (1 for the environment; see :func:`direct_motion`).
@@ -92,7 +91,7 @@ def segment_weight(scene, sensor, edge: EdgeSample, w, p_light, p_dir, mis: bool
     ok &= siD.is_valid()
     xD = dr.select(ok, siD.p, xB - w)  # finite dummy on rejected lanes keeps NaNs out of AD
     # Camera connection at x^D: light arrives along ω (from x^B), leaves towards the camera
-    importance_fs, uv, pixel, ok, _ = connect_camera(scene, sensor, xD, w, ok, width, height)
+    importance_fs, uv, pixel, ok, _ = connect_camera(scene, camera, xD, w, ok)
     G = importance_fs * Le / (edge.pdf * p_w)
     exw = dr.cross(edge.e, w)
     sin_phi = dr.norm(exw)
@@ -121,14 +120,13 @@ def sample_light(scene: mi.Scene, xB, u):
     return ds.d, ds.pdf, point
 
 
-def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
-                    mis: bool, u1, u2):
+def direct_segments(scene: mi.Scene, camera, edges: BoundaryEdges, P, distr, technique: str, mis: bool, u1, u2):
     """Detached boundary segments of one technique from primary samples (u1, u2).
 
     Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env, λ): ``coef`` is the u-space
     integrand without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps
-    its AD dependence on ``P``."""
-    width, height = sensor.film().size()
+    its AD dependence on ``P``; ``camera`` is a :class:`.camera.SensorCamera` or
+    :class:`.camera.LaneCameras`."""
     edge = sample_edge_point(edges, P, distr, u1)
     with dr.suspend_grad():
         xB = dr.detach(edge.xB)
@@ -138,8 +136,8 @@ def direct_segments(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
             p_dir = pdf_wedge(edge)
         else:
             (w, p_dir), p_light, point = sample_wedge(edge, u2), None, None
-        coef, mhat, uv, pixel, ok, xD, env, lever = segment_weight(scene, sensor, edge, w, p_light, p_dir,
-                                                                   mis, origin, point, width, height)
+        coef, mhat, uv, pixel, ok, xD, env, lever = segment_weight(scene, camera, edge, w, p_light, p_dir,
+                                                                   mis, origin, point)
     return edge, w, coef, mhat, uv, pixel, ok, xD, env, lever
 
 
@@ -149,14 +147,14 @@ def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: 
         distr = edge_distribution(edges, P)
         total = mi.Float(0.0)
         for sensor in sensors:
-            coef = direct_segments(scene, sensor, edges, P, distr, technique, mis, u.x,
-                                   mi.Point2f(u.y, u.z))[2]
+            coef = direct_segments(scene, SensorCamera(sensor, *sensor.film().size()), edges, P, distr,
+                                   technique, mis, u.x, mi.Point2f(u.y, u.z))[2]
             total += dr.max(dr.abs(coef))
         return total
 
 
-def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, distr, technique: str,
-                  mis: bool, u1, u2, weight, env_motion):
+def direct_motion(scene: mi.Scene, camera, edges: BoundaryEdges, P, distr, technique: str, mis: bool, u1, u2,
+                  weight, env_motion):
     """(v, pixel, mask, F̃) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
     and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ. F̃ = max_RGB |coef|
     (detached, 0 where masked) is the guide target at the samples (:func:`direct_target`).
@@ -165,15 +163,14 @@ def direct_motion(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, d
     the source point x^S is fixed, so a moving x^D turns the segment x^D → x^S about x^S and
     moves it at the edge by only λ ẋ^D (m̂·ω̇ = m̂·(ẋ^B − λ ẋ^D)/t_D, the static-source case of
     the indirect term's m̂·(u̇2 − ẋ^S)); λ = 1 for the environment."""
-    width, height = sensor.film().size()
-    edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, sensor, edges, P, distr,
+    edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, camera, edges, P, distr,
                                                                          technique, mis, u1, u2)
     with dr.suspend_grad():
         size = dr.select(ok, dr.max(dr.abs(coef)), 0.0)
         coef *= weight
         dr.eval(coef, mhat, uv, pixel, ok, xD, env, lever, size)  # evaluate once: forward mode would re-trace otherwise
     # x^D(θ): the camera ray through the (fixed) film position, differentiable hit
-    ray = camera_ray(sensor, uv, width, height, ok)
+    ray = camera(uv, ok)
     xD_t = dr.select(ok, scene.ray_intersect(ray, ok).p, xD)
     xD_t = dr.detach(xD_t) + lever * (xD_t - dr.detach(xD_t))
     rel = normalize(edge.xB - xD_t)
@@ -187,8 +184,8 @@ def direct_motion_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, tech
     gradient propagated, Σ_views max_RGB |dv/dθ| is the guide target including the velocity."""
     distr = edge_distribution(edges, P)
     env_motion = environment_motion(scene)
-    return [direct_motion(scene, sensor, edges, P, distr, technique, mis, u.x, mi.Point2f(u.y, u.z), 1.0,
-                          env_motion)[0] for sensor in sensors]
+    return [direct_motion(scene, SensorCamera(sensor, *sensor.film().size()), edges, P, distr, technique, mis, u.x,
+                          mi.Point2f(u.y, u.z), 1.0, env_motion)[0] for sensor in sensors]
 
 
 def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
@@ -198,7 +195,30 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
     technique (``light``/``dir``) to a guide over its primary samples (None: uniform); a
     :class:`~.sample_log.SampleLog` also keeps the samples for the next guide."""
     width, height = sensor.film().size()
-    img = dr.zeros(mi.Float, width * height * 3)
+    return direct_image(scene, SensorCamera(sensor, width, height), None, 1, edges, P, n_samples, sampler,
+                        technique, guides)
+
+
+def views_direct_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
+                          technique: str = "mis") -> list:
+    """:func:`direct_boundary` of several views (one film size, unguided) traced as one wavefront:
+    lane i (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view
+    i // n_samples of ``sensors`` and connects to that view's camera (:class:`.camera.LaneCameras`);
+    one image per view."""
+    width, height = sensors[0].film().size()
+    view = dr.arange(mi.UInt32, n_samples * len(sensors)) // dr.opaque(mi.UInt32, n_samples)
+    img = direct_image(scene, LaneCameras(sensors, view, width, height), view, len(sensors), edges, P, n_samples,
+                       sampler, technique)
+    return split_views(img, len(sensors))
+
+
+def direct_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges, P, n_samples: int,
+                 sampler: mi.Sampler, technique: str, guides=None) -> mi.Float:
+    """The direct boundary contributions of ``count`` views as one flat image, view-major (count·W·H·3),
+    each lane's sample added to its view's part (``view``: each lane's view, None for one view):
+    Σ over the techniques of v − detach(v), v from :func:`direct_motion` with weight W·H / N."""
+    width, height = camera.width, camera.height
+    img = dr.zeros(mi.Float, width * height * 3 * count)
     if edges.count == 0:
         return img
     distr = edge_distribution(edges, P)
@@ -208,10 +228,12 @@ def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P,
         u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
         if isinstance(guides, SampleLog):
             dr.eval(u1, u2, g)  # kept: read once by the kernels below and by the log
-        v, pixel, ok, size = direct_motion(scene, sensor, edges, P, distr, t, technique == "mis", u1, u2,
+        v, pixel, ok, size = direct_motion(scene, camera, edges, P, distr, t, technique == "mis", u1, u2,
                                            dr.detach(scale / g), env_motion)
         if isinstance(guides, SampleLog):
             guides.record(t, u1, u2, size, g)
+        if view is not None:
+            pixel += view * (width * height)
         v = v - dr.detach(v)
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
@@ -226,6 +248,15 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
     return direct_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, estimator.sampling, guide)
 
 
+def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
+    """One unguided pass of the direct term for several ``views`` traced as one wavefront (the
+    samples of :func:`estimate`, drawn from one sampler seeded with ``seed``): a flat W·H·3 AD
+    image per view."""
+    n, sampler, P = boundary_pass(scene, edges, spp, seed, len(views))
+    return views_direct_boundary(scene.mi_scene, [scene.sensors[v] for v in views], edges, P, n, sampler,
+                                 estimator.sampling)
+
+
 def guide_techniques(sampling: str) -> tuple:
     """The techniques with a guide each: light and dir under MIS, else the one sampled."""
     return ("light", "dir") if sampling == "mis" else (sampling,)
@@ -238,4 +269,5 @@ def guide_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: s
 
 
 TERM = Term("direct", samples_key="boundary_spp", stream=3, estimate=estimate,
-            guide=GuideTarget(guide_techniques, guide_target, motion=direct_motion_target, loop_fed=True))
+            guide=GuideTarget(guide_techniques, guide_target, motion=direct_motion_target, loop_fed=True),
+            estimate_views=estimate_views)

@@ -45,7 +45,7 @@ from . import interior
 from .interior import environment_motion, turn
 from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
                                 ray_origin, sample_edge_point, sample_wedge)
-from .camera import camera_ray, connect_camera
+from .camera import SensorCamera, camera_ray, connect_camera
 from .term import GuideTarget, Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
@@ -55,11 +55,11 @@ def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, hei
     """Light-tracing walk from x^D for light arriving from x^B along −ω (``w`` = +ω).
 
     Returns a list over j = 1..depth of (D_j, film position, pixel, mask)."""
-    out = []
+    out, camera = [], SensorCamera(sensor, width, height)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     si, w_in, beta, active = mi.SurfaceInteraction3f(siD), w, mi.Color3f(1.0), mi.Bool(active)  # copies: the caller's stay intact
     for j in range(1, depth + 1):
-        value, uv, pixel, ok, _ = connect_camera(scene, sensor, si.p, w_in, active, width, height)
+        value, uv, pixel, ok, _ = connect_camera(scene, camera, si.p, w_in, active)
         out.append((beta * value, uv, pixel, ok))
         if j == depth:
             break

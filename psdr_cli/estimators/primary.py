@@ -50,7 +50,7 @@ from ..intersections import Segments, intersection_segments, segment_points
 from ..jitarray import concat, jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
-from .camera import Projection, camera_ray, film_pixel
+from .camera import LaneCameras, Projection, SensorCamera, film_pixel
 from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
@@ -341,7 +341,7 @@ def lands_on_own_face(scene, ray, own, active):
     return si.is_valid() & is_own_face(si, own)
 
 
-def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, active):
+def crossing_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int, active):
     """Signed image offsets (−a, +b) of the two side samples of intersection-curve points q (the
     default ±SIDE_EPS·size elsewhere: ``n0`` = 0).
 
@@ -357,16 +357,16 @@ def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: 
     ``n0``/``n1`` their normals) without tracing, and at most CROSSING_MAX_EPS·size. Only where
     both sides at the default offset land on the curve's own faces (``own``): a crease hidden a
     hair behind another surface (accepted by the depth tolerance of :func:`edge_visible`) keeps
-    the default, where both sides read that surface and the jump is 0."""
+    the default, where both sides read that surface and the jump is 0. ``cameras(uv, active)``
+    gives each lane's camera ray (:class:`.camera.SensorCamera`, :class:`.camera.LaneCameras`)."""
     base = SIDE_EPS * max(width, height)
     cap = CROSSING_MAX_EPS * max(width, height)
     crossing = dr.squared_norm(n0) > 0
     for sign in (-1.0, 1.0):
-        crossing &= lands_on_own_face(scene, camera_ray(sensor, q + sign * base * n_s, width, height, active),
-                                      own, active & crossing)
+        crossing &= lands_on_own_face(scene, cameras(q + sign * base * n_s, active), own, active & crossing)
     out = []
     for sign in (-1.0, 1.0):
-        ray = camera_ray(sensor, q + sign * cap * n_s, width, height, active)  # planes: distances ∝ offset
+        ray = cameras(q + sign * cap * n_s, active)  # planes: distances ∝ offset
         t0 = dr.dot(n0, x - ray.o) / dr.dot(n0, ray.d)
         t1 = dr.dot(n1, x - ray.o) / dr.dot(n1, ray.d)
         first = (t0 > 0) & ((t0 <= t1) | ~(t1 > 0))  # a concave crease: the nearer plane is seen
@@ -384,7 +384,7 @@ def crossing_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: 
     return out
 
 
-def fold_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int, offsets, active):
+def fold_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int, offsets, active):
     """Signed image offsets of the two side samples of mesh-edge points q whose faces fold by more
     than 90° (``n0``, ``n1``: the faces' consistently oriented normals, :func:`fold_normals`; zero
     elsewhere, where ``offsets`` are kept).
@@ -405,13 +405,13 @@ def fold_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int,
     c = dr.maximum(-dr.dot(n0, n1), 0.0)
     out = []
     for sign, default in zip((-1.0, 1.0), offsets):
-        si = scene.ray_intersect(camera_ray(sensor, q + sign * base * n_s, width, height, active), active & fold)
+        si = scene.ray_intersect(cameras(q + sign * base * n_s, active), active & fold)
         sid = dr.reinterpret_array(mi.UInt32, si.shape)
         on0 = si.is_valid() & (sid == own[0]) & (si.prim_index == own[1])
         on1 = si.is_valid() & (sid == own[2]) & (si.prim_index == own[3])
         n_p = dr.select(on0, n0, n1)
         n_o = dr.select(on0, n1, n0)
-        ray = camera_ray(sensor, q + sign * cap * n_s, width, height, active)  # distances ∝ offset
+        ray = cameras(q + sign * cap * n_s, active)  # distances ∝ offset
         t = dr.dot(n_p, x - ray.o) / dr.dot(n_p, ray.d)
         p = ray.o + t * ray.d
         dist = dr.abs(dr.dot(n_o, p - x))
@@ -419,6 +419,96 @@ def fold_offsets(scene, sensor, q, n_s, x, n0, n1, own, width: int, height: int,
         offset = dr.minimum(dr.maximum(cap * FOLD_MARGIN * m * c / dr.maximum(dist, 1e-30), base), cap)
         out.append(dr.select(fold & (on0 | on1) & (t > 0), sign * offset, default))
     return out
+
+
+@dataclass
+class ViewCurves:
+    """One view's curves (:func:`primary_curves`) projected to its film: end points q0, q1 (AD)
+    and the sampling mass w_e·ℓ_e of each curve (0 unless both ends lie before the near plane)."""
+    curves: Curves
+    q0: mi.Point2f
+    q1: mi.Point2f
+    mass: mi.Float
+
+
+def view_curves(scene: mi.Scene, edges: BoundaryEdges, P, proj: Projection, scattering: bool,
+                sampling: str) -> ViewCurves | None:
+    """The curves of the view of ``proj`` with their sampling mass (None: it has none)."""
+    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
+                            scattering, sampling)
+    if len(curves) == 0:
+        return None
+    q0, z0 = proj(curves.p0)
+    q1, z1 = proj(curves.p1)
+    with dr.suspend_grad():
+        weight = jit_array(mi.Float, curves.weight)
+        front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
+        mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
+    return ViewCurves(curves, q0, q1, mass)
+
+
+def join_curves(parts) -> Curves:
+    """The curves of several views end to end (curve k of view j is curve k + Σ_{i<j} n_i)."""
+    if len(parts) == 1:
+        return parts[0]
+    return Curves(concat([c.p0 for c in parts]), concat([c.p1 for c in parts]),
+                  *(np.concatenate([getattr(c, k) for c in parts])
+                    for k in ("shape0", "face0", "shape1", "face1", "strict", "inner", "normal0", "normal1",
+                              "weight", "fold0", "fold1")))
+
+
+@dataclass
+class Draw:
+    """Each lane's curve draw: curve index k (into the joined curves), position s ∈ [0, 1) along
+    it, the scale Σ_e w_e·ℓ_e / N of its view (1/(N·p(q)) = scale / w_k) and whether it drew one."""
+    k: mi.UInt32
+    s: mi.Float
+    scale: mi.Float
+    alive: mi.Bool
+
+
+def draw_one_view(mass: mi.Float, u: mi.Float, n_samples: int) -> Draw | None:
+    """Curves drawn ∝ ``mass`` by Mitsuba's discrete distribution, s the remainder of u (None: no mass)."""
+    total = float(dr.sum(mass)[0])
+    if not total > 0:
+        return None
+    k, s = mi.DiscreteDistribution(mass).sample_reuse(u)
+    # opaque: the sum changes with the geometry and must not be baked into the kernel
+    return Draw(k, s, dr.opaque(mi.Float, total / n_samples), mi.Bool(True))
+
+
+def draw_views(masses, u: mi.Float, view: mi.UInt32, n_samples: int) -> Draw | None:
+    """Curves drawn per lane among its own view's: ``masses`` holds each view's curve masses (numpy,
+    views in batch order, curves joined in that order), lane i belongs to view ``view[i]``. With
+    C_j the cumulative mass of the view's curves up to curve j and T its total, the lane finds the
+    first j with C_j > u·T by bisection within its view's range and s = (u·T − C_{j−1}) / m_j; a
+    view without mass draws nothing (None: no view has mass)."""
+    counts = np.array([len(m) for m in masses], np.int64)
+    flat = np.concatenate(masses).astype(np.float64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    totals = np.array([m.sum(dtype=np.float64) for m in masses])
+    if not (totals > 0).any():
+        return None
+    after = np.concatenate([np.cumsum(m, dtype=np.float64) for m in masses])
+    before = after - flat
+    total = dr.gather(mi.Float, jit_array(mi.Float, totals), view)
+    x = u * total
+    lo = dr.gather(mi.UInt32, jit_array(mi.UInt32, starts), view)
+    size = dr.gather(mi.UInt32, jit_array(mi.UInt32, counts), view)
+    cumulative = jit_array(mi.Float, after)
+    for _ in range(int(counts.max()).bit_length()):  # first j in [lo, lo + size) with C_j > x
+        half = size >> 1
+        right = (size > 0) & (dr.gather(mi.Float, cumulative, lo + half, size > 0) <= x)
+        lo = dr.select(right, lo + half + 1, lo)
+        size = dr.select(right, size - half - 1, half)
+    alive = dr.gather(mi.Bool, jit_array(mi.Bool, totals > 0), view)
+    last = dr.gather(mi.UInt32, jit_array(mi.UInt32, starts + np.maximum(counts - 1, 0)), view)
+    k = dr.select(alive, dr.minimum(lo, last), 0)  # a view without mass may have no curve to index
+    m = dr.gather(mi.Float, jit_array(mi.Float, flat), k)
+    alive &= m > 0
+    s = dr.clip((x - dr.gather(mi.Float, jit_array(mi.Float, before), k)) / dr.select(m > 0, m, 1.0), 0.0,
+                dr.one_minus_epsilon(mi.Float))
+    return Draw(k, s, total / n_samples, alive)
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
@@ -430,33 +520,66 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
     term's camera rays do (:func:`.interior.radiance`); ``coverage``: a shape's registry id
     (:func:`shape_id`): the jump of the indicator that a camera ray's first hit is on that shape,
     instead of the radiance's (:mod:`.coverage`)."""
-    proj = Projection(sensor)
-    width, height = proj.width, proj.height
-    img = dr.zeros(mi.Float, width * height * 3)
+    return views_primary_boundary(scene, [sensor], edges, P, n_samples, sampler, max_depth, sampling,
+                                  hide_background, coverage)[0]
+
+
+def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
+                           max_depth: int, sampling: str = "length", hide_background: bool = False,
+                           coverage: int | None = None) -> list:
+    """:func:`primary_boundary` of several views (one film size) traced as one wavefront: lane i
+    (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view i // n_samples of
+    ``sensors``, draws a point of that view's curves (:func:`draw_views`) and casts that view's
+    camera rays (:class:`.camera.LaneCameras`); one image per view. One view is the per-view pass."""
+    projs = [Projection(s) for s in sensors]
+    width, height, count = projs[0].width, projs[0].height, len(sensors)
+    images = [dr.zeros(mi.Float, width * height * 3) for _ in sensors]
     if edges.count == 0 and not edges.meshes:
-        return img
-    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
-                            max_depth >= 2, sampling)
-    if len(curves) == 0:
-        return img
-    q0, z0 = proj(curves.p0)
-    q1, z1 = proj(curves.p1)
-    with dr.suspend_grad():
-        weight = jit_array(mi.Float, curves.weight)
-        front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
-        mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
-        total = float(dr.sum(mass)[0])
-    if not total > 0:
-        return img
-    distr = mi.DiscreteDistribution(mass)
-    k, s = distr.sample_reuse(sampler.next_1d())
+        return images
+    parts = [view_curves(scene, edges, P, proj, max_depth >= 2, sampling) for proj in projs]
+    live = [vc for vc in parts if vc is not None]
+    if not live:
+        return images
+    if count == 1:
+        view, cameras = None, SensorCamera(sensors[0], width, height)
+        draw = draw_one_view(live[0].mass, sampler.next_1d(), n_samples)
+    else:
+        view = dr.arange(mi.UInt32, n_samples * count) // dr.opaque(mi.UInt32, n_samples)
+        cameras = LaneCameras(sensors, view, width, height)
+        joined = np.asarray(concat([vc.mass for vc in live]), np.float64)  # one read for all views
+        split = iter(np.split(joined, np.cumsum([len(vc.curves) for vc in live])[:-1]))
+        masses = [next(split) if vc is not None else np.zeros(0) for vc in parts]
+        draw = draw_views(masses, sampler.next_1d(), view, n_samples)
+    if draw is None:
+        return images
+    curves = join_curves([vc.curves for vc in live])
+    q0, q1 = concat([vc.q0 for vc in live]), concat([vc.q1 for vc in live])
+    delta, pixel, n_s, q, ok = curve_samples(scene, cameras, curves, q0, q1, draw, sampler, width, height, max_depth,
+                                             hide_background, coverage)
+    if view is not None:
+        pixel += view * (width * height)
+    v = delta * dr.dot(n_s, q)
+    v = v - dr.detach(v)
+    img = images[0] if count == 1 else dr.zeros(mi.Float, width * height * 3 * count)
+    for c in range(3):
+        dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
+    return [img] if count == 1 else interior.split_views(img, count)
+
+
+def curve_samples(scene, cameras, curves: Curves, q0, q1, draw: Draw, sampler, width: int, height: int,
+                  max_depth: int, hide_background: bool, coverage):
+    """(ΔL / p(q) per lane, its pixel, screen normal n_s, film point q (AD), mask) of the points
+    ``draw`` picks on ``curves`` (projected end points q0, q1): the two sides' radiance (or
+    coverage) difference at ±offset along n_s where the camera sees the curve point (see
+    :func:`primary_boundary`)."""
+    k = draw.k
     qa, qb = gather_curve_points(q0, k), gather_curve_points(q1, k)
-    q = qa + s * (qb - qa)
+    q = qa + draw.s * (qb - qa)
     with dr.suspend_grad():
         qd = dr.detach(q)
         t = dr.normalize(dr.detach(qb - qa))
         n_s = mi.Vector2f(-t.y, t.x)
-        ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height)
+        ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height) & draw.alive
         eps = SIDE_EPS * max(width, height)
         own = [dr.gather(mi.UInt32, jit_array(mi.UInt32, getattr(curves, a)), k)
                for a in ("shape0", "face0", "shape1", "face1")]
@@ -464,14 +587,14 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         if np.any(curves.normal0):  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
             normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
                                                             for i in range(3))), k) for a in ("normal0", "normal1")]
-            offsets = crossing_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+            offsets = crossing_offsets(scene, cameras, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                                        *normals, own, width, height, ok)
         if np.any(curves.fold0):  # mesh edges that fold back: clear the ray-spawn offset (see fold_offsets)
             normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
                                                             for i in range(3))), k) for a in ("fold0", "fold1")]
-            offsets = fold_offsets(scene, sensor, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
+            offsets = fold_offsets(scene, cameras, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
                                    *normals, own, width, height, offsets, ok)
-        rays = [camera_ray(sensor, qd + o * n_s, width, height, ok) for o in offsets]
+        rays = [cameras(qd + o * n_s, ok) for o in offsets]
         strict = dr.gather(mi.Bool, jit_array(mi.Bool, curves.strict), k)
         inner = dr.gather(mi.Bool, jit_array(mi.Bool, curves.inner), k)
         # each side's first hit, traced once: for the visibility test and as the radiance's first vertex
@@ -484,19 +607,14 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
         if coverage is not None:  # the indicator of a first hit on the object: 1 on its side, 0 beyond it
             sides = [mi.Color3f(dr.select(ok & hits_shape(si, coverage), 1.0, 0.0)) for si in hits]
         else:
-            sides = [interior.radiance(scene, s, ray, max_depth, ok, hide_background=hide_background, si=si)
-                     for s, ray, si in zip((sampler, twin), rays, hits)]
-        # 1/(N·p(q)) = Σw·ℓ / (N·w_e); opaque: the sum changes with the geometry and must not be
-        # baked into the kernel
-        inv_pdf = dr.opaque(mi.Float, total / n_samples) / dr.gather(mi.Float, weight, k)
+            sides = [interior.radiance(scene, smp, ray, max_depth, ok, hide_background=hide_background, si=si)
+                     for smp, ray, si in zip((sampler, twin), rays, hits)]
+        # 1/(N·p(q)) = Σw·ℓ / (N·w_e)
+        inv_pdf = draw.scale / dr.gather(mi.Float, jit_array(mi.Float, curves.weight), k)
         delta = dr.select(ok, (sides[0] - sides[1]) * inv_pdf, 0.0)
         pixel = dr.select(ok, film_pixel(qd, width), 0)
         dr.eval(delta, pixel, n_s, ok)
-    v = delta * dr.dot(n_s, q)
-    v = v - dr.detach(v)
-    for c in range(3):
-        dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
-    return img
+    return delta, pixel, n_s, q, ok
 
 
 def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
@@ -508,4 +626,12 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
                             estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
-TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate)
+def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
+    """One pass of the primary term for several ``views`` traced as one wavefront (the samples of
+    :func:`estimate`, drawn from one sampler seeded with ``seed``): a flat W·H·3 AD image per view."""
+    n, sampler, P = boundary_pass(scene, edges, spp, seed, len(views))
+    return views_primary_boundary(scene.mi_scene, [scene.sensors[v] for v in views], edges, P, n, sampler, max_depth,
+                                  estimator.primary_sampling, hide_background=scene.config.hide_background)
+
+
+TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate, estimate_views=estimate_views)

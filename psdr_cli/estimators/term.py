@@ -76,11 +76,12 @@ class Term:
         return self.guide is not None
 
 
-def boundary_pass(scene, edges, spp: int, seed: int):
-    """(N, sampler, P) of one boundary pass: N = spp · W · H samples, their sampler and the AD
-    vertex buffer of the edge objects (None without edges)."""
+def boundary_pass(scene, edges, spp: int, seed: int, views: int = 1):
+    """(N, sampler, P) of one boundary pass: N = spp · W · H samples per view, their sampler (as
+    wide as ``views`` views' samples) and the AD vertex buffer of the edge objects (None without
+    edges)."""
     width, height = scene.resolution
     n = spp * width * height
-    sampler = make_sampler(seed, n)
+    sampler = make_sampler(seed, n * views)
     P = edges.positions(mi.traverse(scene.mi_scene)) if edges.count else None
     return n, sampler, P
