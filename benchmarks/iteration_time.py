@@ -137,10 +137,13 @@ def instrument(phases: Phases):
     iteration.dr = DrProxy(phases)
 
 
-def setup(scale: int, tmp: Path):
+def setup(scale: int, tmp: Path, initial: int | None = None):
+    """The demo's experiment at 64·scale pixels square, its initial shape remeshed to ``initial``
+    vertices (None: the experiment's ``remesh.initial``)."""
     exp = psdr_cli.load_experiment(CONFIG)
+    remesh = exp.optimize.remesh if initial is None else replace(exp.optimize.remesh, initial=initial)
     exp = replace(exp, output=tmp, scene=replace(exp.scene, width=64 * scale, height=64 * scale),
-                  optimize=replace(exp.optimize, target_spp=16))
+                  optimize=replace(exp.optimize, target_spp=16, remesh=remesh))
     backend.activate(exp)
     files = RunFiles(exp.run_dir)
     inputs = read_targets(exp, fresh=True)
@@ -153,9 +156,9 @@ def setup(scale: int, tmp: Path):
     return exp, files, problem, settings, engine, stage
 
 
-def run_scale(scale: int, warmup: int, iterations: int, phases: Phases) -> dict:
+def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial: int | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        exp, files, problem, settings, engine, stage = setup(scale, Path(tmp))
+        exp, files, problem, settings, engine, stage = setup(scale, Path(tmp), initial)
         guides = GuideCache()
         problem.apply = phases.wrap("apply", problem.apply)
         problem.opt.step = phases.wrap("update", problem.opt.step)
@@ -209,6 +212,9 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=10)
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     ap.add_argument("--label", default="")
+    ap.add_argument("--initial", type=int, default=None,
+                    help="vertices of the initial shape (default: the experiment's remesh.initial, 800; the demo "
+                         "remeshes to 1500 and 2500 later)")
     ap.add_argument("--no-blocking", action="store_true",
                     help="asynchronous launches (the loop's mode): kernel times then overlap and include queueing")
     args = ap.parse_args(argv)
@@ -219,7 +225,7 @@ def main(argv=None):
     results = {"label": args.label, "python": platform.python_version(), "drjit": dr.__version__,
                "reference_before": reference_loop(), "scales": {}}
     for s in (int(x) for x in args.scales.split(",")):
-        res = run_scale(s, args.warmup, args.iterations, phases)
+        res = run_scale(s, args.warmup, args.iterations, phases, args.initial)
         results["scales"][f"{64 * s}x{64 * s}"] = res
         print(f"\n{args.label} {64 * s}² ({res['vertices']} vertices), per iteration over {args.iterations}:")
         print("\n".join(table(res)))

@@ -8,12 +8,14 @@ agree (image sum and 4×4 tiles), and ``jump`` must have the lower variance on s
 (Agreement with finite differences, with the default ``jump``, is checked on the same dense blob
 in test_real_mesh_gradients.py.)
 """
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import api
+from psdr_cli import api, backend
 from psdr_cli.config.options import with_estimator
-from psdr_cli.estimators.primary import JUMP_ANGLE, JUMP_MIN_WEIGHT, jump_weights
+from psdr_cli.estimators.primary import JUMP_ANGLE, JUMP_MIN_WEIGHT, jump_weights, stratified
 from psdr_cli.reference import block_sums, mean_and_error
 from standins import blob_cfg, bumpy_blob, load
 from psdr_cli.topology import build_topology
@@ -72,3 +74,18 @@ def test_jump_weights_follow_the_facet_turn():
     assert (w[~inner] == 1).all()
     assert (jump_weights(topo, V, rows, inner, smooth=True) == 1).all()
     assert w[inner].min() < 1  # the blob's fine creases are sampled less densely than its silhouette
+
+
+def test_curve_draws_are_stratified_per_view():
+    """``stratified``: lane j of each view's N lanes draws in [j/N, (j + 1)/N), whatever the view,
+    and every stratum gets one lane (so the draws over a view cover the curve list evenly)."""
+    backend.select_variant("auto")
+    n, views = 500, 3
+    rng = np.random.default_rng(5)
+    u = mi.Float(rng.uniform(0, 1, n * views).astype(np.float32))
+    view = dr.arange(mi.UInt32, n * views) // n
+    x = np.asarray(stratified(u, n, view)).reshape(views, n)
+    j = np.arange(n)
+    assert np.all((x >= j / n) & (x < (j + 1) / n))
+    one = np.asarray(stratified(mi.Float(np.asarray(u)[:n]), n))
+    assert np.allclose(one, x[0]) and np.all(one < 1.0)
