@@ -4,6 +4,7 @@ import copy
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -80,13 +81,14 @@ def wait_for_state(state: Path, at_least: int, proc, timeout: float = 300) -> in
 
 
 @pytest.mark.slow
-def test_resume_after_hard_kill_continues_where_it_stopped(tmp_path):
+def test_resume_after_hard_kill_continues_where_it_stopped(tmp_path, run_psdr):
     """kill -9 in the middle, then --resume: every iteration is logged exactly once, the run ends
-    with final.ply, and the resumed iterations reproduce the uninterrupted run's losses."""
+    with final.ply, and the resumed iterations reproduce the uninterrupted run's losses (that run
+    in this process: the killed and the resumed one are real processes)."""
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     full = write(tmp_path / "a", TINY)
-    r = run_cli("optimize", full)
+    r = run_psdr("optimize", full)
     assert r.returncode == 0, r.stderr
     reference = [float(row["loss"]) for row in log_rows(tmp_path / "a" / "runs" / "tiny")]
 
@@ -180,7 +182,7 @@ def test_evaluate_identical_and_concentric_spheres():
     assert d.hausdorff == pytest.approx(gap, abs=0.02)
 
 
-def test_evaluate_bad_inputs_are_one_line_errors(tmp_path):
+def test_evaluate_bad_inputs_are_one_line_errors(tmp_path, run_psdr):
     V, F = meshes.sphere(0.5, subdivisions=2)
     meshes.write_ply(tmp_path / "s.ply", V, F)
     cases = [
@@ -194,7 +196,7 @@ def test_evaluate_bad_inputs_are_one_line_errors(tmp_path):
                                         "property float y\nproperty float z\nelement face 0\n"
                                         "property list uchar int vertex_indices\nend_header\n")
     for args, message in cases:
-        r = run_cli("evaluate", *args)
+        r = run_psdr("evaluate", *args)
         assert r.returncode == 2 and message in r.stderr, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
 
@@ -235,22 +237,22 @@ def test_albedo_and_environment_rotation_are_recovered(tmp_path):
     assert abs(np.degrees(angle)) < 8, np.degrees(angle)
 
 
-def test_targets_from_images_on_disk(tmp_path):
+def test_targets_from_images_on_disk(tmp_path, run_psdr):
     """EXR targets written by `psdr render` (cameras from their headers) drive the optimisation;
     a glob that matches nothing is a one-line error."""
     data = copy.deepcopy(TINY)
     cfg = write(tmp_path, data, "scene.yaml")
-    r = run_cli("render", cfg, "--spp", "8", "--out", tmp_path / "shots")
+    r = run_psdr("render", cfg, "--spp", "8", "--out", tmp_path / "shots")
     assert r.returncode == 0, r.stderr
     data["optimize"].update(iterations=2, remesh={"method": "none"},
                             target={"images": str(tmp_path / "shots" / "tiny" / "render" / "view_*.exr")})
-    r = run_cli("optimize", write(tmp_path, data, "from_images.yaml"))
+    r = run_psdr("optimize", write(tmp_path, data, "from_images.yaml"))
     assert r.returncode == 0, r.stderr
     run = tmp_path / "runs" / "tiny"
     assert (run / "final.ply").exists() and not (run / "reference.ply").exists()
     assert len(log_rows(run)) == 2
     data["optimize"]["target"] = {"images": str(tmp_path / "nothing_*.exr")}
-    r = run_cli("optimize", write(tmp_path, data, "bad.yaml"))
+    r = run_psdr("optimize", write(tmp_path, data, "bad.yaml"))
     assert r.returncode == 2 and "no file matches" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
@@ -306,6 +308,28 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     problem.release()
 
 
+#: TINY for 3 iterations without remeshing: the finished run that test_plain_rerun_of_a_finished_run_keeps_it and
+#: test_resume_restarts_when_the_experiment_changed continue or restart (one run, module-scoped)
+THREE = copy.deepcopy(TINY)
+THREE["optimize"].update(iterations=3, remesh={"method": "none"})
+
+
+@pytest.fixture(scope="module")
+def three_iterations(tmp_path_factory):
+    """A folder holding THREE's experiment file and its finished run (`psdr optimize`, a real
+    process); tests work on a copy (:func:`copy_run`), never on it."""
+    folder = tmp_path_factory.mktemp("three_iterations")
+    r = run_cli("optimize", write(folder, THREE))
+    assert r.returncode == 0, r.stderr
+    return folder
+
+
+def copy_run(folder: Path, tmp_path: Path) -> Path:
+    """``folder`` copied into ``tmp_path``, its experiment file's output pointed at the copy."""
+    shutil.copytree(folder, tmp_path, dirs_exist_ok=True)
+    return write(tmp_path, THREE)
+
+
 def test_fresh_run_moves_the_previous_run_aside(tmp_path):
     """A fresh start (no --resume) on a folder holding a run never deletes it: the run is moved
     aside whole, said in one line, and the new run starts from iteration 0 (its targets reused)."""
@@ -325,20 +349,18 @@ def test_fresh_run_moves_the_previous_run_aside(tmp_path):
     assert json.loads((exp.run_dir / "optimize.json").read_text())["iterations"] == 1
 
 
-def test_plain_rerun_of_a_finished_run_keeps_it(tmp_path):
+def test_plain_rerun_of_a_finished_run_keeps_it(tmp_path, three_iterations, run_psdr):
     """`psdr optimize cfg --iterations 1` (no --resume) on a finished run: exit 0, the finished
     run kept under a .previous- name with its log and state; --iterations below a saved run's
     count under --resume still refuses, and its message no longer recommends deleting."""
-    data = copy.deepcopy(TINY)
-    data["optimize"].update(iterations=3, remesh={"method": "none"})
-    cfg = write(tmp_path, data)
-    assert run_cli("optimize", cfg).returncode == 0
+    data = THREE
+    cfg = copy_run(three_iterations, tmp_path)
     run = tmp_path / "runs" / data["name"]
     rows = (run / "log.csv").read_text()
-    r = run_cli("optimize", cfg, "--iterations", "2", "--resume")
+    r = run_psdr("optimize", cfg, "--iterations", "2", "--resume")
     assert r.returncode == 2 and "moved aside, not deleted" in r.stderr, r.stderr
     assert (run / "log.csv").read_text() == rows
-    r = run_cli("optimize", cfg, "--iterations", "1")
+    r = run_psdr("optimize", cfg, "--iterations", "1")
     assert r.returncode == 0, r.stderr
     kept = sorted(run.parent.glob(f"{data['name']}.previous-*"))
     assert len(kept) == 1 and "kept in" in r.stdout + r.stderr
@@ -346,7 +368,7 @@ def test_plain_rerun_of_a_finished_run_keeps_it(tmp_path):
 
 
 @pytest.mark.slow
-def test_variants_time_budget_report_and_table2(tmp_path):
+def test_variants_time_budget_report_and_table2(tmp_path, run_psdr):
     """optimize.variants runs one folder per variant; optimize.seconds ends each run at the first
     iteration past the budget (and --resume then adds nothing); `psdr evaluate` on the experiment
     writes the side-by-side report and `psdr table2` the time split of every run."""
@@ -369,13 +391,13 @@ def test_variants_time_budget_report_and_table2(tmp_path):
         assert (root / label / "checkpoints" / f"iter_{len(rows):04d}.ply").exists()
         counts[label] = len(rows)
     assert int(log_rows(root / "grid")[0]["guide_bytes"]) > 0 == int(log_rows(root / "plain")[0]["guide_bytes"])
-    r = run_cli("optimize", cfg, "--resume", "--variant", "grid")
+    r = run_psdr("optimize", cfg, "--resume", "--variant", "grid")
     assert r.returncode == 0, r.stderr
     assert len(log_rows(root / "grid")) == counts["grid"]
-    r = run_cli("optimize", cfg, "--variant", "nope")
+    r = run_psdr("optimize", cfg, "--variant", "nope")
     assert r.returncode == 2 and "--variant" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
-    r = run_cli("evaluate", cfg, "--samples", "2000")
+    r = run_psdr("evaluate", cfg, "--samples", "2000")
     assert r.returncode == 0, r.stderr
     table = (root / "evaluate.md").read_text()
     assert "| grid |" in table and "| plain |" in table
@@ -384,22 +406,22 @@ def test_variants_time_budget_report_and_table2(tmp_path):
     report = json.loads((root / "evaluate.json").read_text())
     assert [run["iterations"] for run in report["runs"]] == [counts["grid"], counts["plain"]]
 
-    r = run_cli("table2", cfg, "--out", str(tmp_path / "table2.md"))
+    r = run_psdr("table2", cfg, "--out", str(tmp_path / "table2.md"))
     assert r.returncode == 0, r.stderr
     text = (tmp_path / "table2.md").read_text()
     assert "| tiny | grid | 3 |" in text and "| tiny | plain | 3 |" in text and "Jumpy Dumpty" in text
 
 
-def test_variant_labels_are_checked(tmp_path):
+def test_variant_labels_are_checked(tmp_path, run_psdr):
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a/b"}]
-    r = run_cli("optimize", write(tmp_path, data))
+    r = run_psdr("optimize", write(tmp_path, data))
     assert r.returncode == 2 and "optimize.variants" in r.stderr and "plain folder name" in r.stderr
     data["optimize"]["variants"] = [{"label": "a"}, {"label": "a", "sampling": "dir"}]
-    r = run_cli("optimize", write(tmp_path, data))
+    r = run_psdr("optimize", write(tmp_path, data))
     assert r.returncode == 2 and "unique" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     data["optimize"]["variants"] = [{"label": "reference"}]
-    r = run_cli("optimize", write(tmp_path, data))
+    r = run_psdr("optimize", write(tmp_path, data))
     assert r.returncode == 2 and "'reference' is taken" in r.stderr
 
 
@@ -435,20 +457,18 @@ def test_variant_experiments_share_the_targets(tmp_path):
     assert [label for label, _ in variant_experiments(exp, ["b"])] == ["b"]
 
 
-def test_resume_restarts_when_the_experiment_changed(tmp_path):
+def test_resume_restarts_when_the_experiment_changed(tmp_path, three_iterations, run_psdr):
     """--resume continues a run of the same experiment (more iterations extend it) but starts
     afresh, with a warning, when a key the result depends on has changed."""
-    data = copy.deepcopy(TINY)
-    data["optimize"].update(iterations=3, remesh={"method": "none"})
-    r = run_cli("optimize", write(tmp_path, data))
-    assert r.returncode == 0, r.stderr
+    data = copy.deepcopy(THREE)
+    copy_run(three_iterations, tmp_path)
     run = tmp_path / "runs" / "tiny"
     data["optimize"]["iterations"] = 5
-    r = run_cli("optimize", write(tmp_path, data), "--resume")
+    r = run_psdr("optimize", write(tmp_path, data), "--resume")
     assert r.returncode == 0 and "changed" not in r.stderr and "resumed from 3" in r.stdout.replace("\n", " ")
     assert len(log_rows(run)) == 5
     data["optimize"]["learning_rate"] = 0.02
-    r = run_cli("optimize", write(tmp_path, data), "--resume")
+    r = run_psdr("optimize", write(tmp_path, data), "--resume")
     assert r.returncode == 0 and "changed since" in (r.stdout + r.stderr).replace("\n", " ")
     assert len(log_rows(run)) == 5 and "resumed from 0" in r.stdout.replace("\n", " ")
 
@@ -552,16 +572,16 @@ def test_l1_adjoint_from_an_independent_render_removes_the_sign_correlation():
     assert abs(grads[1] - 1.0) < 0.02, grads
 
 
-def test_adjoint_spp_optimisation_runs_and_is_checked(tmp_path):
+def test_adjoint_spp_optimisation_runs_and_is_checked(tmp_path, run_psdr):
     """optimize.adjoint_spp > 0 runs (the loss logged is the adjoint render's L1) and a negative
     value is a one-line error naming the key."""
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=3, adjoint_spp=4, remesh={"method": "none"})
-    r = run_cli("optimize", write(tmp_path, data), timeout=240)
+    r = run_psdr("optimize", write(tmp_path, data))
     assert r.returncode == 0, r.stderr
     assert len(log_rows(tmp_path / "runs" / "tiny")) == 3
     data["optimize"]["adjoint_spp"] = -1
-    r = run_cli("optimize", write(tmp_path, data, "bad.yaml"), timeout=60)
+    r = run_psdr("optimize", write(tmp_path, data, "bad.yaml"))
     assert r.returncode != 0 and "optimize.adjoint_spp" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -579,7 +599,7 @@ def test_learning_rate_final_decays_geometrically_after_the_last_remesh():
     assert learning_rate_at(OptimizeConfig(object="x", learning_rate=0.1), 299, 300) == 0.1
 
 
-def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path):
+def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path, run_psdr):
     """A run with learning_rate_final takes smaller late steps than one without (its vertices move
     less over the last three iterations), and a non-positive value is a one-line error."""
     from psdr_cli import api
@@ -596,7 +616,7 @@ def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path):
     (mid_c, end_c), (mid_d, end_d) = finals["const"], finals["decay"]
     assert np.abs(end_d[0] - mid_d[0]).max() < 0.5 * np.abs(end_c[0] - mid_c[0]).max()
     data["optimize"]["learning_rate_final"] = 0
-    r = run_cli("optimize", write(tmp_path, data, "bad.yaml"), timeout=60)
+    r = run_psdr("optimize", write(tmp_path, data, "bad.yaml"))
     assert r.returncode != 0 and "optimize.learning_rate_final" in r.stderr and "Traceback" not in r.stderr
 
 
