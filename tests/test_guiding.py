@@ -294,8 +294,9 @@ def test_check_detects_a_biased_guide(tmp_path):
     assert np.abs(m1 - m0).max() > 4.5 * np.hypot(s0, s1)[np.argmax(np.abs(m1 - m0))], sums
 
 
-def test_grad_and_guide_stats_cli(tmp_path, write_cfg):
-    """`psdr grad` takes the guiding options; `psdr guide-stats` writes its table, JSON and plots."""
+def test_grad_and_guide_stats_cli(tmp_path, write_cfg, run_psdr):
+    """`psdr grad` takes the guiding options; `psdr guide-stats` writes its table, JSON and plots
+    (`psdr grad` a real process, the others in this process)."""
     import json
     from conftest import run_cli
     data = copy.deepcopy(SHADOW)
@@ -308,9 +309,9 @@ def test_grad_and_guide_stats_cli(tmp_path, write_cfg):
     assert summary["guiding"] == "kdtree" and summary["edge_sort"] is True
     assert "guiding" in summary["views"][0]["seconds"]
     assert r.stdout.count("guiding kdtree: direct kdtree") == 1  # said once, before the work
-    r = run_cli("grad", cfg, "--guiding", "octree")
+    r = run_psdr("grad", cfg, "--guiding", "octree")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--guiding" in r.stderr
-    r = run_cli("guide-stats", cfg, "--guides", "grid,kdtree")
+    r = run_psdr("guide-stats", cfg, "--guides", "grid,kdtree")
     assert r.returncode == 0, r.stderr
     folder = tmp_path / "runs" / "shadow" / "guide_stats"
     stats = json.loads((folder / "guide_stats.json").read_text())
@@ -323,17 +324,16 @@ def test_grad_and_guide_stats_cli(tmp_path, write_cfg):
     assert "kdtree/light" in r.stdout
 
 
-def test_compare_cli_equal_samples(tmp_path, write_cfg):
+def test_compare_cli_equal_samples(tmp_path, write_cfg, run_psdr):
     """`psdr compare` runs its variants (equal samples here), writes table, JSON, grid and EXRs;
     a guided variant's error is finite and a missing section is a one-line error."""
     import json
-    from conftest import run_cli
     data = copy.deepcopy(SHADOW)
     data["output"] = str(tmp_path / "runs")
     data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct"], "kdtree": {"initial_samples": 4096}}
     data["compare"] = {"terms": ["direct"], "trials": 1, "reference_passes": 16, "variants": [
         {"label": "none", "passes": 4}, {"label": "kdtree", "guiding": "kdtree", "passes": 4}]}
-    r = run_cli("compare", write_cfg(data))
+    r = run_psdr("compare", write_cfg(data))
     assert r.returncode == 0, r.stderr
     folder = tmp_path / "runs" / "shadow" / "compare"
     out = json.loads((folder / "compare.json").read_text())
@@ -341,7 +341,7 @@ def test_compare_cli_equal_samples(tmp_path, write_cfg):
     assert all(np.isfinite(v["rel_mse"]) and v["passes"] == [4] for v in out["variants"])
     assert out["variants"][1]["guides"] and (folder / "grid.png").exists() and (folder / "kdtree.exr").exists()
     del data["compare"]
-    r = run_cli("compare", write_cfg(data, "no_compare.yaml"))
+    r = run_psdr("compare", write_cfg(data, "no_compare.yaml"))
     assert r.returncode == 2 and "compare: missing" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 

@@ -58,15 +58,16 @@ def moved_blender_dataset(src: Path, dst: Path, scale: float, shift) -> Path:
     return dst
 
 
-def test_the_example_dataset_reconstructs_and_is_scored_on_held_out_views(tmp_path):
-    """`psdr optimize` then `psdr evaluate` on the shipped example: meshes in the dataset's own
-    coordinates (the first one, the visual hull, already close to the ground truth), held-out
-    scores for the initial and the last mesh, a strip per held-out view."""
+def test_the_example_dataset_reconstructs_and_is_scored_on_held_out_views(tmp_path, run_psdr):
+    """`psdr optimize` (a real process) then `psdr evaluate` (in this process) on the shipped
+    example: meshes in the dataset's own coordinates (the first one, the visual hull, already
+    close to the ground truth), held-out scores for the initial and the last mesh, a strip per
+    held-out view."""
     config = write(tmp_path, experiment_data(DATA / "blender", iterations=12, checkpoint_every=6))
     r = run_cli("optimize", config, timeout=400)
     assert r.returncode == 0, r.stdout + r.stderr
     run = tmp_path / "runs" / "photos_bunny_blender"
-    r = run_cli("evaluate", config, "--reference", DATA / "ground_truth.ply", timeout=400)
+    r = run_psdr("evaluate", config, "--reference", DATA / "ground_truth.ply")
     assert r.returncode == 0, r.stdout + r.stderr
     rows = json.loads((run / "held_out" / "held_out.json").read_text())["meshes"]
     assert [row["iteration"] for row in rows] == [0, 12]
@@ -252,10 +253,10 @@ def test_bad_dataset_experiments_are_one_line(tmp_path, edit, message):
     assert not (tmp_path / "runs").exists()
 
 
-def test_a_bad_dataset_experiment_is_one_line_from_the_command_line(tmp_path):
+def test_a_bad_dataset_experiment_is_one_line_from_the_command_line(tmp_path, run_psdr):
     data = experiment_data(DATA / "blender")
     data["scene"]["film"] = {"width": 32, "height": 32}
-    r = run_cli("optimize", write(tmp_path, data), timeout=120)
+    r = run_psdr("optimize", write(tmp_path, data))
     assert r.returncode == 2, r.stdout + r.stderr
     lines = [line for line in r.stderr.strip().splitlines() if line]
     assert len(lines) == 1 and "scene.film: not allowed with optimize.target.dataset" in lines[0], r.stderr
@@ -344,7 +345,7 @@ def distorted_transforms_dataset(src: Path, dst: Path, k1=-0.35, k2=0.0) -> Path
     return dst
 
 
-def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path):
+def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path, run_psdr):
     """A nerfstudio dataset with OPENCV distortion (k1 = −0.35): the photographs are undistorted
     into ``targets/undistorted/`` once (a second load reuses the files), and the undistorted
     masks agree with psdr's render of the ground truth through the new pinhole cameras (mask IoU
@@ -358,7 +359,7 @@ def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path):
     data = experiment_data(dataset, iterations=1)
     data["optimize"]["target"]["dataset"]["holdout_every"] = 4
     config = write(tmp_path, data)
-    r = run_cli("optimize", config, timeout=300)
+    r = run_psdr("optimize", config)
     assert r.returncode == 0, r.stdout + r.stderr
     cache = tmp_path / "runs" / "photos_bunny_blender" / "targets" / "undistorted"
     files = sorted(cache.glob("*.exr"))
