@@ -89,13 +89,13 @@ def test_xml_scene_is_read_like_its_yaml_twin(tmp_path):
     assert np.abs(ix - iy).mean() < 0.01 * iy.mean() * 3 and np.abs(ix - iy).max() < 0.05
 
 
-def test_xml_grad_agrees_with_finite_differences_like_its_yaml_twin(tmp_path):
-    """``psdr grad --fd`` through the CLI on both: the same verdict and compatible estimates."""
+def test_xml_grad_agrees_with_finite_differences_like_its_yaml_twin(tmp_path, run_psdr):
+    """``psdr grad --fd`` through the CLI (in this process) on both: the same verdict and compatible
+    estimates."""
     xml_cfg, yaml_cfg = write_twins(tmp_path)
     views = {}
     for name, cfg in (("xml", xml_cfg), ("yaml", yaml_cfg)):
-        proc = run_cli("grad", cfg, "--fd", 0.003, "--spp", 128, "--fd-spp", 16384, "--out", tmp_path / "out",
-                       timeout=900)
+        proc = run_psdr("grad", cfg, "--fd", 0.003, "--spp", 128, "--fd-spp", 16384, "--out", tmp_path / "out")
         assert proc.returncode == 0, proc.stderr
         assert "agrees" in proc.stdout and "DISAGREES" not in proc.stdout
         views[name] = json.loads((tmp_path / "out" / name / "grad" / "summary.json").read_text())["views"][0]
@@ -106,7 +106,7 @@ def test_xml_grad_agrees_with_finite_differences_like_its_yaml_twin(tmp_path):
     assert views["xml"]["sums"]["interior"] == pytest.approx(views["yaml"]["sums"]["interior"], rel=0.05, abs=0.05)
 
 
-def test_analytic_shapes_warn_and_delta_lights_are_refused(tmp_path):
+def test_analytic_shapes_warn_and_delta_lights_are_refused(tmp_path, run_psdr):
     sphere = '<shape type="sphere" id="orb"><point name="center" value="-0.8,0.4,0.3"/><float name="radius" value="0.3"/></shape>'
     xml_cfg, _ = write_twins(tmp_path, sphere)
     warnings = []
@@ -114,12 +114,14 @@ def test_analytic_shapes_warn_and_delta_lights_are_refused(tmp_path):
     assert len(warnings) == 1 and "shape 'orb' is an analytic 'sphere'" in warnings[0]
     assert "orb" not in [o.name for o in exp.scene.objects]
     write_twins(tmp_path, '<emitter type="point"><point name="position" value="0,0,3"/></emitter>')
-    proc = run_cli("render", xml_cfg, cwd=tmp_path)
+    proc = run_psdr("render", xml_cfg, cwd=tmp_path)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1
     assert "scene.xml: emitter PointLight: 'point' lights are not supported" in proc.stderr
 
 
-def test_bad_xml_is_one_line_naming_file_and_line(tmp_path):
+def test_bad_xml_is_one_line_naming_file_and_line(tmp_path, run_psdr):
+    """Through the real entry point (Mitsuba's XML parser takes part), then a key XML does not use
+    (in this process)."""
     xml_cfg, _ = write_twins(tmp_path)
     text = (tmp_path / "scene.xml").read_text().replace("</shape>\n  <shape type=\"rectangle\" id=\"floor\">",
                                                        "</shap>\n  <shape type=\"rectangle\" id=\"floor\">")
@@ -129,7 +131,7 @@ def test_bad_xml_is_one_line_naming_file_and_line(tmp_path):
     line = text[:text.index("</shap>")].count("\n") + 1
     assert f"scene.xml: line {line}, column" in proc.stderr and "mismatch" in proc.stderr
     write_twins(tmp_path, scene_keys={"params": {"rez": 16}})
-    proc = run_cli("render", xml_cfg, cwd=tmp_path)
+    proc = run_psdr("render", xml_cfg, cwd=tmp_path)
     assert "xml.yaml: scene.params.rez: scene.xml does not use $rez" in proc.stderr
 
 

@@ -107,7 +107,8 @@ def test_depth_changes_the_image(tmp_path):
     assert abs(block_means(a).mean() - block_means(ref).mean()) > 0.02 * ref.mean()
 
 
-def test_cli_render_writes_exr_png_and_summary(tmp_path, write_cfg):
+def test_cli_render_writes_exr_png_and_summary(tmp_path, write_cfg, run_psdr):
+    """`psdr render` (a real process, then --out in this process) writes EXR, PNG and its line."""
     cfg = write_cfg(experiment())
     proc = run_cli("render", cfg, "--spp", "4", "--views", "0", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
@@ -119,7 +120,7 @@ def test_cli_render_writes_exr_png_and_summary(tmp_path, write_cfg):
     assert not list(folder.glob(".*tmp*")), "temporary files left behind"
     assert "psdr render: t" in proc.stdout and "24×16" in proc.stdout
 
-    proc = run_cli("render", cfg, "--spp", "2", "--out", tmp_path / "elsewhere", cwd=tmp_path)
+    proc = run_psdr("render", cfg, "--spp", "2", "--out", tmp_path / "elsewhere", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "elsewhere" / "t" / "render" / "view_000.exr").exists()
 

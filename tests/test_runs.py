@@ -9,7 +9,7 @@ from dataclasses import field, make_dataclass, replace
 
 import pytest
 
-from conftest import REPO, run_cli
+from conftest import REPO
 from psdr_cli.errors import ConfigError
 from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.optimize import optimize
@@ -74,14 +74,14 @@ def log_losses(run):
         return [row["loss"] for row in csv.DictReader(f)]
 
 
-def test_a_run_with_a_version_1_fingerprint_resumes(tmp_path):
+def test_a_run_with_a_version_1_fingerprint_resumes(tmp_path, run_psdr):
     """The saved run continues (resumed from 2, its log kept) and gets a version-2 run.json; the
     same run under a changed experiment starts afresh."""
     shutil.copytree(SAVED_V1, tmp_path / "a")
     run = tmp_path / "a" / "output" / "tiny"
     assert "fingerprint_version" not in json.loads((run / "run.json").read_text())
     saved = log_losses(run)
-    r = run_cli("optimize", "tiny.yaml", "--resume", "--iterations", "3", cwd=tmp_path / "a")  # output: output
+    r = run_psdr("optimize", "tiny.yaml", "--resume", "--iterations", "3", cwd=tmp_path / "a")  # output: output
     out = (r.stdout + r.stderr).replace("\n", " ")
     assert r.returncode == 0 and "changed" not in out and "resumed from 2" in out, out
     losses = log_losses(run)
@@ -93,7 +93,7 @@ def test_a_run_with_a_version_1_fingerprint_resumes(tmp_path):
     shutil.copytree(SAVED_V1, tmp_path / "b")
     cfg = tmp_path / "b" / "tiny.yaml"
     cfg.write_text(cfg.read_text().replace("batch_size: 1", "batch_size: 2"))
-    r = run_cli("optimize", cfg, "--resume", "--iterations", "3", cwd=tmp_path / "b")
+    r = run_psdr("optimize", cfg, "--resume", "--iterations", "3", cwd=tmp_path / "b")
     out = (r.stdout + r.stderr).replace("\n", " ")
     assert r.returncode == 0 and "changed since" in out and "resumed from 0" in out, out
 
@@ -160,7 +160,7 @@ def test_a_fresh_run_of_a_changed_target_keeps_the_old_runs_reference_and_target
     assert not (kept / "render").exists() and (kept / "log.csv").exists()
 
 
-def test_a_changed_experiment_with_a_bad_input_moves_nothing(tmp_path):
+def test_a_changed_experiment_with_a_bad_input_moves_nothing(tmp_path, run_psdr):
     """--resume after an edit that also breaks an input: one line, and the old run is neither
     moved nor touched (the move happened before the inputs were read)."""
     data = copy.deepcopy(TINY)
@@ -170,7 +170,7 @@ def test_a_changed_experiment_with_a_bad_input_moves_nothing(tmp_path):
     optimize(exp, warn=lambda m: None)
     before = {p.relative_to(exp.run_dir): p.read_bytes() for p in exp.run_dir.rglob("*") if p.is_file()}
     data["optimize"]["target"] = {"images": "no_such_folder/*.exr"}   # found missing only when read
-    r = run_cli("optimize", write(tmp_path, data), "--resume")
+    r = run_psdr("optimize", write(tmp_path, data), "--resume")
     assert r.returncode == 2 and "optimize.target.images: no file matches" in r.stderr, r.stderr
     assert not kept_runs(exp.run_dir)
     assert {p.relative_to(exp.run_dir): p.read_bytes() for p in exp.run_dir.rglob("*") if p.is_file()} == before
