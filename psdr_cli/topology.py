@@ -83,20 +83,21 @@ class Topology:
         """(n0, n1) per row (:func:`row_normals`)."""
         return row_normals(np.asarray(V, float), (self.v0, self.v1, self.v2, self.v3), self.open)
 
-    def facing(self, V, camera_origin):
-        """Whether n0 and n1 point towards ``camera_origin``."""
-        n0, n1 = self.normals(V)
+    def facing(self, V, camera_origin, normals=None):
+        """Whether n0 and n1 point towards ``camera_origin`` (``normals``: :meth:`normals` of V if
+        already computed)."""
+        n0, n1 = self.normals(V) if normals is None else normals
         to_cam = np.asarray(camera_origin, float) - np.asarray(V, float)[self.v0]
         return np.einsum("ij,ij->i", n0, to_cam) > 0, np.einsum("ij,ij->i", n1, to_cam) > 0
 
-    def primary(self, V, camera_origin) -> np.ndarray:
+    def primary(self, V, camera_origin, normals=None) -> np.ndarray:
         """Indices of silhouette edges seen from ``camera_origin``: open edges, and edges where
         exactly one of n0, n1 faces the camera (on a sector row, only the sector wider than π:
         a narrower one never holds a line through the edge)."""
-        s0, s1 = self.facing(V, camera_origin)
+        s0, s1 = self.facing(V, camera_origin, normals)
         return np.nonzero(self.open | ((s0 != s1) & ~(self.sector & self.concave)))[0]
 
-    def creases(self, V, camera_origin) -> np.ndarray:
+    def creases(self, V, camera_origin, normals=None) -> np.ndarray:
         """Indices of the edges of a flat-shaded mesh that can show as image discontinuities from
         ``camera_origin``: open edges, and non-flat edges or edges between a turned and an
         unturned face, of which at least one face shows its front (by its winding) to the camera:
@@ -104,7 +105,7 @@ class Topology:
         closed mesh is never seen (near a silhouette it projects just behind a grazing front
         face). On a sector row the camera must also lie inside the sector: in front of both of
         n0, n1 when the sector is narrower than π, of either otherwise."""
-        s0, s1 = self.facing(V, camera_origin)
+        s0, s1 = self.facing(V, camera_origin, normals)
         front = (s0 != self.turned0) | (s1 != self.turned1)
         inside = np.where(self.concave, s0 & s1, s0 | s1)
         seen = front & (~self.sector | inside)

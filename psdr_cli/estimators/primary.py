@@ -71,14 +71,14 @@ JUMP_ANGLE = 0.25
 JUMP_MIN_WEIGHT = 0.1
 
 
-def jump_weights(topo, V, rows, inner, smooth: bool) -> np.ndarray:
+def jump_weights(topo, V, rows, inner, smooth: bool, normals=None) -> np.ndarray:
     """Sampling weight w_e per edge row (``primary_sampling: jump``, see the module docstring):
     clamp(φ_e / JUMP_ANGLE, JUMP_MIN_WEIGHT, 1) on the inner edges of a flat-shaded mesh whose
     faces are both unturned (φ_e = angle between n0 and n1), 1 elsewhere."""
     w = np.ones(len(rows))
     if smooth or not len(rows):
         return w
-    n0, n1 = topo.normals(V)
+    n0, n1 = topo.normals(V) if normals is None else normals
     n0, n1 = n0[rows], n1[rows]
     phi = np.arctan2(np.linalg.norm(np.cross(n0, n1), axis=1), np.einsum("ij,ij->i", n0, n1))
     crease = inner & ~topo.turned0[rows] & ~topo.turned1[rows] & ~topo.open[rows]
@@ -87,7 +87,7 @@ def jump_weights(topo, V, rows, inner, smooth: bool) -> np.ndarray:
 
 
 def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scattering: bool = True,
-                     sampling: str = "length"):
+                     sampling: str = "length", normals=None):
     """(v0, v1, face0, face1, mesh index, strict, inner, weight) of the edges that can carry an
     image discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on
     open edges): the rows of :meth:`psdr_cli.topology.Topology.creases` (non-flat edges, and flat
@@ -101,19 +101,21 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
     from face to face, so near the terminator the image jumps across every edge. ``strict`` (both sides must see the edge)
     holds for all but smooth silhouettes (see docs/gradients.md); ``inner`` marks edges whose two
     faces both face the camera; ``weight`` is the edge's sampling weight w_e (:func:`jump_weights`,
-    all 1 with ``sampling`` = ``length``)."""
+    all 1 with ``sampling`` = ``length``). ``normals``: each mesh's row normals (:func:`mesh_normals`)
+    when already computed for these vertices."""
+    normals = mesh_normals(edges, V) if normals is None else normals
     cols = [[] for _ in range(10)]
     for m, (topo, offset, smooth) in enumerate(edges.meshes):
         Vo = V[offset: offset + int(topo.faces.max()) + 1]
-        sel = topo.creases(Vo, camera_origin)
-        silhouette = topo.primary(Vo, camera_origin)
+        sel = topo.creases(Vo, camera_origin, normals[m])
+        silhouette = topo.primary(Vo, camera_origin, normals[m])
         if smooth and not scattering:
             sel = silhouette
         inner = ~np.isin(sel, silhouette)
         strict = inner if smooth else np.ones(len(sel), bool)
         f1 = np.where(topo.open, topo.face0, topo.face1)
-        weight = jump_weights(topo, Vo, sel, inner, smooth) if sampling == "jump" else np.ones(len(sel))
-        n0, n1 = fold_normals(topo, Vo, sel)
+        weight = jump_weights(topo, Vo, sel, inner, smooth, normals[m]) if sampling == "jump" else np.ones(len(sel))
+        n0, n1 = fold_normals(topo, Vo, sel, normals[m])
         for c, arr in zip(cols, (topo.v0[sel] + offset, topo.v1[sel] + offset, topo.face0[sel], f1[sel],
                                  np.full(len(sel), m), strict, inner, weight, n0, n1)):
             c.append(arr)
@@ -122,11 +124,17 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
     return [np.concatenate(c).astype(np.int64) for c in cols[:7]] + [np.concatenate(c) for c in cols[7:]]
 
 
-def fold_normals(topo, V, rows):
+def mesh_normals(edges: BoundaryEdges, V: np.ndarray) -> list:
+    """(n0, n1) of every edge row of each edge object (:meth:`psdr_cli.topology.Topology.normals`),
+    its vertices in ``V``: they depend on the vertices only, not on the camera."""
+    return [topo.normals(V[offset: offset + int(topo.faces.max()) + 1]) for topo, offset, _ in edges.meshes]
+
+
+def fold_normals(topo, V, rows, normals=None):
     """(n0, n1) per edge row: the row's consistently oriented face normals where they are more
     than 90° apart (n0·n1 < 0: the faces fold back, as at a thin ear or a sharp brow), zero on
     every other row and on open edges (:func:`fold_offsets` moves side samples only there)."""
-    n0, n1 = (x[rows] for x in topo.normals(V))
+    n0, n1 = (x[rows] for x in (topo.normals(V) if normals is None else normals))
     fold = ~topo.open[rows] & (np.einsum("ij,ij->i", n0, n1) < 0)
     return np.where(fold[:, None], n0, 0.0), np.where(fold[:, None], n1, 0.0)
 
@@ -181,8 +189,9 @@ def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, sc
                      sampling: str = "length") -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
     V = edges.remembered("vertices", [P], lambda: np.asarray(dr.detach(P), np.float64).reshape(-1, 3))
+    normals = edges.remembered("normals", [P], lambda: mesh_normals(edges, V))  # once for the views of a pass
     v0, v1, f0, f1, m, strict, inner, weight, n0, n1 = primary_edge_ids(edges, V, camera_origin, scattering,
-                                                                        sampling)
+                                                                        sampling, normals)
     shapes = {s.id(): s for s in scene.shapes()}
     ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
     gather = lambda i: dr.gather(mi.Point3f, P, jit_array(mi.UInt32, i))  # noqa: E731
