@@ -184,6 +184,17 @@ def winding_numbers(V, F, points) -> np.ndarray:
     return np.array(out).reshape(-1, len(F))
 
 
+def boxed_points(corners, points) -> np.ndarray:
+    """The ``points`` (n, 3) inside the axis-aligned bounding box of ``corners`` (boundary
+    included): outside it a closed surface through those corners has winding number 0, so only
+    these can be enclosed (:func:`oriented_parts` computes no winding numbers for the others)."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    if not len(corners):
+        return points[:0]
+    lo, hi = corners.min(0), corners.max(0)
+    return points[np.all((points >= lo) & (points <= hi), axis=1)]
+
+
 def oriented_parts(V, F, viewpoints=()):
     """(flipped, solid) per face of a welded mesh (V, F): whether its winding must be reversed so
     that every connected part (faces joined through edges with two faces) is consistently
@@ -192,7 +203,7 @@ def oriented_parts(V, F, viewpoints=()):
 
     A closed part's free space is its outside (signed volume Σ det(p0, p1, p2)/6 > 0), unless it
     encloses one of the ``viewpoints`` (camera origins; winding number ≥ ½): a room seen from
-    inside. flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the
+    inside (only viewpoints inside the solid faces' bounding box are tested: :func:`boxed_points`). flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the
     parts (scipy.sparse.csgraph), accumulated to the roots by pointer doubling."""
     n = len(F)
     f, g, same = face_graph(F)
@@ -219,8 +230,9 @@ def oriented_parts(V, F, viewpoints=()):
     det = np.einsum("ij,ij->i", V[G[:, 0]], np.cross(V[G[:, 1]], V[G[:, 2]]))
     inward = np.bincount(label, weights=det) < 0
     room = np.zeros(len(inward), bool)
-    if len(viewpoints) and solid.any():
-        w = winding_numbers(V, G[solid], viewpoints)
+    inside = boxed_points(V[G[solid]].reshape(-1, 3), viewpoints)
+    if len(inside):
+        w = winding_numbers(V, G[solid], inside)
         enclosed = np.abs(np.stack([np.bincount(label[solid], weights=x, minlength=len(room)) for x in w])) >= 0.5
         room = enclosed.any(0)
     return parity ^ (solid & (inward != room)[label]), solid

@@ -1,7 +1,7 @@
 """Edge tables: counts, classes (open, flat, concave), welding, silhouettes."""
 import numpy as np
 
-from psdr_cli import meshes
+from psdr_cli import meshes, topology
 from psdr_cli.topology import build_topology, face_normals, weld, winding_numbers
 
 
@@ -162,3 +162,18 @@ def test_closed_mesh_around_a_camera_is_a_room():
         box = build_topology(V, G, viewpoints=[[9, 9, 9]])
         assert len(box.secondary()) == 12 and not box.concave.any()
     assert np.allclose(winding_numbers(V, F, [[0.1, 0.2, 0.3], [5, 0, 0]]).sum(1), [1, 0])
+
+
+def test_viewpoints_outside_the_bounding_box_are_not_tested(monkeypatch):
+    """Only camera origins inside a closed part's bounding box can be enclosed by it: the others
+    get no winding numbers (at every iteration of an optimisation the edge table is rebuilt with
+    the cameras around the object), and the table is the one built without viewpoints. A camera
+    inside the box (on its boundary too) is still tested."""
+    V, F = meshes.cube((4, 4, 4))
+    tested = []
+    real = topology.winding_numbers
+    monkeypatch.setattr(topology, "winding_numbers", lambda V, F, p: tested.append(len(p)) or real(V, F, p))
+    outside = build_topology(V, F, viewpoints=[[9, 9, 9], [0, 0, 2.5], [-2.01, 0, 0]])
+    assert tested == [] and np.array_equal(outside.concave, build_topology(V, F).concave)
+    room = build_topology(V, F, viewpoints=[[9, 9, 9], [2, 2, 2], [0.3, -0.5, 0.2]])
+    assert tested == [2] and room.concave.sum() == 12
