@@ -2,7 +2,7 @@
 import numpy as np
 
 from psdr_cli import meshes
-from psdr_cli.intersections import intersection_segments, overlapping_pairs
+from psdr_cli.intersections import intersection_segments, overlapping_pairs, sorted_unique
 
 
 def all_pairs(lo, hi):
@@ -25,6 +25,12 @@ def test_grid_broad_phase_finds_every_overlapping_pair():
     found = overlapping_pairs(lo, hi)
     assert len(expected[0]) > 1500
     assert np.array_equal(found[0], expected[0]) and np.array_equal(found[1], expected[1])
+
+
+def test_sorted_unique_is_numpys_unique():
+    rng = np.random.default_rng(5)
+    for a in (rng.integers(0, 50, 400), np.zeros(0, np.int64), np.array([7]), np.array([3, 3, 3])):
+        assert np.array_equal(sorted_unique(a), np.unique(a))
 
 
 def test_no_pairs_for_separate_boxes_and_tiny_inputs():
