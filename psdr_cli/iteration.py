@@ -18,6 +18,7 @@ from .estimators.passes import pass_seed, views_seed
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
+from .geometry_ahead import GeometryAhead
 from .guiding.loop_fed import fed_term, fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
 from .jitarray import jit_array
@@ -138,17 +139,23 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     problem.apply()
     problem.scene.objects[cfg.object].vertices = problem.vertices()
     problem.scene.objects[cfg.object].faces = problem.F
-    edges = edge_list(problem.scene, settings.estimator, settings.edge_sort) if engine.needs_edges else None
+    ahead = GeometryAhead(problem.scene, settings.estimator, settings.edge_sort, "primary" in engine.terms) \
+        if engine.needs_edges else None  # the edge table on the worker thread (geometry_ahead.py)
+    edges = None
     t_guide = time.perf_counter()
     anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
     if stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0):
+        edges = ahead.edges() if ahead is not None else None
         guides.refresh(problem, edges, stage, loop)
     t_render = time.perf_counter()
     views = batch_views(seed, it, n_views, cfg.batch_size)
     loss = mi.Float(0.0)
-    images = engine.images(problem, edges, views, it, guides.guides)
+    # the adjoint render first: its kernels run while the worker builds the edge table
     adjoints = adjoint_images(problem.scene, views, cfg.adjoint_spp, seed, it) if cfg.adjoint_spp else \
         [None] * len(views)
+    if edges is None and ahead is not None:
+        edges = ahead.edges()
+    images = engine.images(problem, edges, views, it, guides.guides)
     for v, img, adjoint in zip(views, images, adjoints):
         view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
                           stage.masks[v] if stage.masks is not None else None,

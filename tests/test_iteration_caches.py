@@ -10,7 +10,9 @@ import numpy as np
 
 import psdr_cli
 from psdr_cli import backend, meshes
+from psdr_cli.estimators import primary
 from psdr_cli.estimators.boundary_sampling import camera_origins, edge_distribution, edge_list
+from psdr_cli.geometry_ahead import GeometryAhead
 from psdr_cli.problem import Problem, Shape
 from psdr_cli.scene import build_scene
 
@@ -72,4 +74,36 @@ def test_apply_after_a_backward_pass_rebuilds_the_ad_graph():
         dr.set_grad(problem.opt["u"], 0.0)
     assert np.abs(grads[0]).sum() > 0
     assert np.array_equal(grads[0], grads[1])
+    problem.release()
+
+
+def test_geometry_computed_ahead_is_the_iterations_own(monkeypatch):
+    """The loop builds the edge table and runs the intersection search on a worker thread while the
+    adjoint render's kernels run (geometry_ahead.py): the table is edge_list's, column for column
+    (with edge sorting: chains and flips), and the primary term finds the search under its digest
+    and does not run it again; its curves are those of a search of its own."""
+    exp = experiment()
+    a, F = meshes.sphere(0.25, 2)
+    V = np.concatenate([a + [0, 0, 0.3], a + [0.2, 0, 0.5]])  # one mesh crossing itself
+    F = np.concatenate([F, F + len(a)])
+    problem = Problem(exp, Shape(V, F), None, {})
+    problem.apply()
+    problem.scene.objects["bunny"].vertices, problem.scene.objects["bunny"].faces = problem.vertices(), F
+    ahead = GeometryAhead(problem.scene, exp.estimator, True, True).edges()
+    own = edge_list(problem.scene, exp.estimator, True)
+    assert ahead.count == own.count > 0 and ahead.names == own.names
+    for x, y in zip(ahead.ids + [ahead.open, ahead.flip], own.ids + [own.open, own.flip]):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+    assert np.array_equal(ahead.chains.order, own.chains.order) and np.asarray(own.flip).any()
+    scene = problem.scene.mi_scene
+    P = ahead.positions(mi.traverse(scene))
+    reference = primary.intersection_curves(scene, own, P)  # a search of its own
+    assert len(reference) > 20
+
+    def searched_again(*args):
+        raise AssertionError("the intersection search ran again")
+    monkeypatch.setattr(primary, "intersection_segments", searched_again)
+    curves = primary.intersection_curves(scene, ahead, P)
+    assert np.array_equal(np.asarray(curves.p0), np.asarray(reference.p0))
+    assert np.array_equal(curves.face0, reference.face0) and np.array_equal(curves.face1, reference.face1)
     problem.release()

@@ -104,38 +104,16 @@ class BoundaryEdges:
     def from_scene(scene, sort: bool = False, max_turn: float = 60.0, max_length: int = 1024) -> "BoundaryEdges":
         """Secondary edges of the scene's edge objects, ordered into chains when ``sort`` (chains
         stop at turns sharper than ``max_turn`` degrees and at ``max_length`` edges)."""
-        cols = [[] for _ in range(6)]
-        opens, names, meshes, verts, offset = [], [], [], [], 0
-        cameras = camera_origins(scene.mi_scene)
-        for name, om in scene.objects.items():
-            if not om.edges:
-                continue
-            topo = build_topology(om.vertices, om.faces, viewpoints=cameras)
-            meshes.append((topo, offset, bool(om.config.smooth)))
-            sel = topo.secondary(transmissive=om.config.bsdf.type in TRANSMISSIVE)
-            o = topo.open[sel]
-            face1 = (np.where(o, topo.v0[sel], topo.v1[sel]), np.where(o, topo.v1[sel], topo.v0[sel]),
-                     np.where(o, topo.v2[sel], topo.v3[sel]))
-            for c, arr in zip(cols, (topo.v0[sel], topo.v1[sel], topo.v2[sel], *face1)):
-                c.append(arr + offset)
-            opens.append(topo.open[sel])
-            names.append(name)
-            verts.append(np.asarray(om.vertices, float))
-            offset += len(om.vertices)
-        if not names:
+        return BoundaryEdges.from_rows(edge_rows(scene.objects, camera_origins(scene.mi_scene), sort, max_turn,
+                                                 max_length))
+
+    @staticmethod
+    def from_rows(rows: "EdgeRows") -> "BoundaryEdges":
+        """The edge table ``rows`` as Dr.Jit arrays."""
+        if not rows.names:
             return BoundaryEdges([], [], mi.Bool(), 0, [], mi.Bool(), Chains.unsorted(0))
-        cols = [np.concatenate(c).astype(np.uint32) for c in cols]
-        opens = np.concatenate(opens)
-        n = len(opens)
-        chains = Chains.unsorted(n)
-        if sort and n:
-            wid, rep = weld(np.concatenate(verts))
-            V = np.concatenate(verts)[rep]
-            chains = sort_edges(V, wid[cols[0]], wid[cols[1]], max_turn, max_length)
-            cols = [c[chains.order] for c in cols]
-            opens = opens[chains.order]
-        return BoundaryEdges(names, [jit_array(mi.UInt32, c) for c in cols], jit_array(mi.Bool, opens), n, meshes,
-                             jit_array(mi.Bool, chains.flip), chains)
+        return BoundaryEdges(rows.names, [jit_array(mi.UInt32, c) for c in rows.cols], jit_array(mi.Bool, rows.open),
+                             len(rows.open), rows.meshes, jit_array(mi.Bool, rows.chains.flip), rows.chains)
 
     def breakpoints(self, P) -> np.ndarray:
         """u1 values where chains start (and 1.0): x^B(u1) is continuous between two of them."""
@@ -150,6 +128,54 @@ class BoundaryEdges:
         """Flat (AD) buffer of the vertex positions of all edge objects."""
         bufs = [params[f"{n}.vertex_positions"] for n in self.names]
         return bufs[0] if len(bufs) == 1 else dr.concat(bufs)
+
+
+@dataclass
+class EdgeRows:
+    """The edge table of :class:`BoundaryEdges` in numpy (:func:`edge_rows`): its six vertex-id
+    columns (uint32), open flags, ``meshes`` (topology, vertex offset, smooth shading) and chains."""
+    names: list
+    cols: list
+    open: np.ndarray
+    meshes: list
+    chains: Chains
+
+
+def edge_rows(objects: dict, cameras: np.ndarray, sort: bool = False, max_turn: float = 60.0,
+              max_length: int = 1024) -> EdgeRows:
+    """Secondary edges of the objects with ``edges: true`` among ``objects`` (name → scene object
+    with numpy ``vertices``, ``faces`` and its ``config``), ``cameras`` the sensors' positions
+    (:func:`camera_origins`), in chains when ``sort``. numpy only: it may run on a thread of its own
+    while Dr.Jit kernels run (:mod:`psdr_cli.geometry_ahead`)."""
+    cols = [[] for _ in range(6)]
+    opens, names, meshes, verts, offset = [], [], [], [], 0
+    for name, om in objects.items():
+        if not om.edges:
+            continue
+        topo = build_topology(om.vertices, om.faces, viewpoints=cameras)
+        meshes.append((topo, offset, bool(om.config.smooth)))
+        sel = topo.secondary(transmissive=om.config.bsdf.type in TRANSMISSIVE)
+        o = topo.open[sel]
+        face1 = (np.where(o, topo.v0[sel], topo.v1[sel]), np.where(o, topo.v1[sel], topo.v0[sel]),
+                 np.where(o, topo.v2[sel], topo.v3[sel]))
+        for c, arr in zip(cols, (topo.v0[sel], topo.v1[sel], topo.v2[sel], *face1)):
+            c.append(arr + offset)
+        opens.append(topo.open[sel])
+        names.append(name)
+        verts.append(np.asarray(om.vertices, float))
+        offset += len(om.vertices)
+    if not names:
+        return EdgeRows([], [], np.zeros(0, bool), [], Chains.unsorted(0))
+    cols = [np.concatenate(c).astype(np.uint32) for c in cols]
+    opens = np.concatenate(opens)
+    chains = Chains.unsorted(len(opens))
+    if sort and len(opens):
+        wid, rep = weld(np.concatenate(verts))
+        V = np.concatenate(verts)[rep]
+        chains = sort_edges(V, wid[cols[0]], wid[cols[1]], max_turn, max_length)
+        cols = [c[chains.order] for c in cols]
+        opens = opens[chains.order]
+    return EdgeRows(names, cols, opens, meshes, chains)
 
 
 def edge_list(scene, estimator, sort: bool) -> BoundaryEdges:

@@ -199,34 +199,46 @@ def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, sc
                   fold0=n0, fold1=n1)
 
 
-def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
-    """Every triangle mesh of the scene as (shape, V, F) plus one flat vertex buffer of all of
-    them: the edge objects' part is ``P`` (AD), the others are constants."""
+def mesh_shapes(scene: mi.Scene, names) -> list:
+    """Every triangle mesh of the scene: the edge objects ``names`` first, in that order."""
     shapes = {s.id(): s for s in scene.shapes() if isinstance(s, mi.Mesh)}
-    order = [n for n in edges.names if n in shapes] + [n for n in shapes if n not in edges.names]
-    positions = [dr.detach(shapes[n].vertex_positions_buffer()) for n in order]
-    faces = [shapes[n].faces_buffer() for n in order]
-    arrays = edges.remembered("meshes", positions + faces, lambda: [
-        (np.asarray(p, np.float64).reshape(-1, 3), np.asarray(f, np.int64).reshape(-1, 3))
-        for p, f in zip(positions, faces)])  # read once for the views of one geometry
-    bufs, out = [], []
-    for n, p, (V, F) in zip(order, positions, arrays):
-        out.append((shapes[n], V, F))
-        if n not in edges.names:
-            bufs.append(mi.Float(p))
+    return [shapes[n] for n in names if n in shapes] + [s for n, s in shapes.items() if n not in names]
+
+
+def mesh_arrays(positions, faces) -> list:
+    """(V, F) as float64 (n, 3) and int64 (m, 3) numpy arrays of flat vertex and face buffers."""
+    return [(np.asarray(p, np.float64).reshape(-1, 3), np.asarray(f, np.int64).reshape(-1, 3))
+            for p, f in zip(positions, faces)]
+
+
+def scene_meshes(scene: mi.Scene, edges: BoundaryEdges, P):
+    """Every triangle mesh of the scene as (shape, V, F) (:func:`mesh_shapes`) plus one flat
+    vertex buffer of all of them: the edge objects' part is ``P`` (AD), the others are constants."""
+    shapes = mesh_shapes(scene, edges.names)
+    positions = [dr.detach(s.vertex_positions_buffer()) for s in shapes]
+    faces = [s.faces_buffer() for s in shapes]
+    arrays = edges.remembered("meshes", positions + faces, lambda: mesh_arrays(positions, faces))
+    moving = sum(s.id() in edges.names for s in shapes)
+    bufs = [mi.Float(p) for p in positions[moving:]]
     buf = P if not bufs else dr.concat([P] + bufs)
-    return out, buf, len([n for n in order if n in edges.names])
+    return [(s, V, F) for s, (V, F) in zip(shapes, arrays)], buf, moving
+
+
+def segments_key(arrays) -> str:
+    """Digest of every (V, F) of ``arrays``: the geometry an intersection search was run on."""
+    digest = hashlib.blake2b(digest_size=16)
+    for V, F in arrays:
+        digest.update(np.ascontiguousarray(V).tobytes())
+        digest.update(np.ascontiguousarray(F).tobytes())
+    return digest.hexdigest()
 
 
 def scene_segments(edges: BoundaryEdges, meshes) -> Segments:
     """Intersection segments of ``meshes`` ((shape, V, F) each), searched once per geometry: the
-    result is kept in ``edges.segments`` under a digest of every V and F, so the views of one
-    iteration (same vertices) share one search."""
-    digest = hashlib.blake2b(digest_size=16)
-    for _, V, F in meshes:
-        digest.update(np.ascontiguousarray(V).tobytes())
-        digest.update(np.ascontiguousarray(F).tobytes())
-    key = digest.hexdigest()
+    result is kept in ``edges.segments`` under :func:`segments_key`, so the views of one
+    iteration (same vertices) share one search, and a search run ahead
+    (:mod:`psdr_cli.geometry_ahead`) is found there."""
+    key = segments_key([(V, F) for _, V, F in meshes])
     if key not in edges.segments:
         edges.segments.clear()
         edges.segments[key] = intersection_segments([V for _, V, _ in meshes], [F for _, _, F in meshes])
