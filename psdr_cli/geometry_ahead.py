@@ -5,12 +5,14 @@ Both are numpy work on the current vertices (:func:`psdr_cli.estimators.boundary
 :func:`psdr_cli.intersections.intersection_segments`), rebuilt every iteration; the optimisation
 loop runs Dr.Jit on one thread (for bit-reproducible runs), and Dr.Jit releases Python's GIL while
 a kernel runs, so the worker's numpy and the adjoint render's kernels share the two halves of the
-time they took one after the other. The worker touches no Dr.Jit or Mitsuba object (Dr.Jit holds
-its own lock while a kernel runs, so a second thread calling it would only wait): the main thread
-reads the meshes' buffers and the cameras before, and uploads the table after
-(:meth:`GeometryAhead.edges`). The results are those of :func:`~.estimators.boundary_sampling.edge_list`
-and of the primary term's own search (:func:`~.estimators.primary.scene_segments` finds the search
-under its digest and does not run it again).
+time they took one after the other. The worker's own code calls no Dr.Jit or Mitsuba function
+(Dr.Jit holds its own lock while a kernel runs, so a second thread calling it would only wait;
+Python's garbage collector may still free a Dr.Jit object there, which Dr.Jit's locked reference
+counts allow): the main thread reads the meshes' buffers and the cameras before, and uploads the
+table after (:meth:`GeometryAhead.edges`). The results are those of
+:func:`~.estimators.boundary_sampling.edge_list` and of the primary term's own search
+(:func:`~.estimators.primary.scene_segments` finds the search under its digest and does not run
+it again).
 """
 from __future__ import annotations
 
@@ -22,15 +24,17 @@ from .estimators.boundary_sampling import BoundaryEdges, camera_origins, edge_ro
 from .estimators.primary import mesh_arrays, mesh_shapes, segments_key
 from .intersections import intersection_segments
 
+
 class GeometryAhead:
     """The edge table (``estimator.edge_sort``, ``estimator.chains``) of ``scene`` and, when
-    ``segments``, the intersection search among its meshes, started on the worker thread."""
+    ``segments`` (the primary term runs) and some object has edges, the intersection search among
+    its meshes (the primary term searches only then), started on the worker thread."""
 
     def __init__(self, scene, estimator, sort: bool, segments: bool):
         cameras = camera_origins(scene.mi_scene)
         arrays = None
-        if segments:
-            names = [n for n, om in scene.objects.items() if om.edges]
+        names = [n for n, om in scene.objects.items() if om.edges]
+        if segments and names:
             shapes = mesh_shapes(scene.mi_scene, names)
             arrays = mesh_arrays([dr.detach(s.vertex_positions_buffer()) for s in shapes],
                                  [s.faces_buffer() for s in shapes])

@@ -203,8 +203,9 @@ def oriented_parts(V, F, viewpoints=()):
 
     A closed part's free space is its outside (signed volume Σ det(p0, p1, p2)/6 > 0), unless it
     encloses one of the ``viewpoints`` (camera origins; winding number ≥ ½): a room seen from
-    inside (only viewpoints inside the solid faces' bounding box are tested: :func:`boxed_points`). flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the
-    parts (scipy.sparse.csgraph), accumulated to the roots by pointer doubling."""
+    inside (only viewpoints inside the solid faces' bounding box are tested: :func:`boxed_points`).
+    flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the parts
+    (scipy.sparse.csgraph), accumulated to the roots by pointer doubling."""
     n = len(F)
     f, g, same = face_graph(F)
     # 1 for opposite traversals, 4 for the same; two faces sharing two edges add up (2, 5 or 8)

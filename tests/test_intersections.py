@@ -30,7 +30,7 @@ def test_grid_broad_phase_finds_every_overlapping_pair():
 def test_sorted_unique_is_numpys_unique():
     rng = np.random.default_rng(5)
     for a in (rng.integers(0, 50, 400), np.zeros(0, np.int64), np.array([7]), np.array([3, 3, 3])):
-        assert np.array_equal(sorted_unique(a), np.unique(a))
+        assert np.array_equal(sorted_unique(a), np.unique(a)) and sorted_unique(a).dtype == np.unique(a).dtype
 
 
 def test_no_pairs_for_separate_boxes_and_tiny_inputs():

@@ -9,12 +9,15 @@ import mitsuba as mi
 import numpy as np
 
 import psdr_cli
-from psdr_cli import backend, meshes
+from psdr_cli import backend, iteration, meshes
+from psdr_cli.engines import Engine
+from psdr_cli.estimate import Settings
 from psdr_cli.estimators import primary
 from psdr_cli.estimators.boundary_sampling import camera_origins, edge_distribution, edge_list
 from psdr_cli.geometry_ahead import GeometryAhead
 from psdr_cli.problem import Problem, Shape
 from psdr_cli.scene import build_scene
+from psdr_cli.stages import stage_of
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
 
@@ -106,4 +109,28 @@ def test_geometry_computed_ahead_is_the_iterations_own(monkeypatch):
     curves = primary.intersection_curves(scene, ahead, P)
     assert np.array_equal(np.asarray(curves.p0), np.asarray(reference.p0))
     assert np.array_equal(curves.face0, reference.face0) and np.array_equal(curves.face1, reference.face1)
+    problem.release()
+
+
+def test_an_iteration_searches_intersections_on_the_worker_only(monkeypatch):
+    """One loop iteration on a mesh that crosses itself: the primary term's intersection search
+    is the worker's (a search on the main thread would call primary.intersection_segments, made
+    to fail here; the worker calls the intersections module's own), and the step is finite."""
+    exp = experiment()
+    a, F = meshes.sphere(0.25, 2)
+    V = np.concatenate([a + [0, 0, 0.3], a + [0.2, 0, 0.5]])
+    F = np.concatenate([F, F + len(a)])
+    problem = Problem(exp, Shape(V, F), None, {})
+    engine = Engine(Settings.from_experiment(exp, loop=True))
+    W, H = exp.scene.width, exp.scene.height
+    targets = [np.full((H, W, 3), 0.2, np.float32) for _ in exp.scene.cameras]
+    stage = stage_of(problem, targets, engine.settings, engine.terms)
+    loop = iteration.Loop(exp.optimize, engine, 10, print)
+
+    def searched_again(*args):
+        raise AssertionError("the intersection search ran on the main thread")
+    monkeypatch.setattr(primary, "intersection_segments", searched_again)
+    with backend.optimization_threads():
+        step = iteration.iterate(problem, loop, stage, iteration.GuideCache(), 0)
+    assert np.isfinite(step.loss) and not step.skipped
     problem.release()
