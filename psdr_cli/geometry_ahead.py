@@ -32,12 +32,14 @@ class GeometryAhead:
 
     def __init__(self, scene, estimator, sort: bool, segments: bool):
         cameras = camera_origins(scene.mi_scene)
-        arrays = None
+        self.buffers, arrays = [], None
         names = [n for n, om in scene.objects.items() if om.edges]
         if segments and names:
             shapes = mesh_shapes(scene.mi_scene, names)
-            arrays = mesh_arrays([dr.detach(s.vertex_positions_buffer()) for s in shapes],
-                                 [s.faces_buffer() for s in shapes])
+            positions = [dr.detach(s.vertex_positions_buffer()) for s in shapes]
+            faces = [s.faces_buffer() for s in shapes]
+            self.buffers, arrays = positions + faces, mesh_arrays(positions, faces)
+        self.arrays = arrays
         # a thread of its own per iteration (~0.1 ms to start): nothing outlives the iteration, and a
         # process forked meanwhile inherits no pool whose thread it lacks
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psdr-geometry")
@@ -52,6 +54,8 @@ class GeometryAhead:
         edges = BoundaryEdges.from_rows(rows)
         if key is not None:
             edges.segments[key] = segments
+            # the buffers read here, kept as primary.scene_meshes would read them again
+            edges.remembered("meshes", self.buffers, lambda: self.arrays)
         return edges
 
 

@@ -92,7 +92,8 @@ def test_geometry_computed_ahead_is_the_iterations_own(monkeypatch):
     problem = Problem(exp, Shape(V, F), None, {})
     problem.apply()
     problem.scene.objects["bunny"].vertices, problem.scene.objects["bunny"].faces = problem.vertices(), F
-    ahead = GeometryAhead(problem.scene, exp.estimator, True, True).edges()
+    started = GeometryAhead(problem.scene, exp.estimator, True, True)
+    ahead = started.edges()
     own = edge_list(problem.scene, exp.estimator, True)
     assert ahead.count == own.count > 0 and ahead.names == own.names
     for x, y in zip(ahead.ids + [ahead.open, ahead.flip], own.ids + [own.open, own.flip]):
@@ -109,6 +110,7 @@ def test_geometry_computed_ahead_is_the_iterations_own(monkeypatch):
     curves = primary.intersection_curves(scene, ahead, P)
     assert np.array_equal(np.asarray(curves.p0), np.asarray(reference.p0))
     assert np.array_equal(curves.face0, reference.face0) and np.array_equal(curves.face1, reference.face1)
+    assert primary.scene_meshes(scene, ahead, P)[0][0][1] is started.arrays[0][0]  # buffers not read again
     problem.release()
 
 
