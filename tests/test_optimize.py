@@ -497,16 +497,31 @@ def test_a_failing_remesher_never_ends_a_run(tmp_path, monkeypatch):
 
 
 def test_redirected_output_gets_progress_lines_and_the_budget_stop_is_announced(tmp_path):
-    """Not on a terminal: one plain progress line every --log-every iterations (iteration, loss,
-    elapsed, ETA); a run ended by optimize.seconds says so."""
+    """Not on a terminal: plain progress lines (iteration, loss, elapsed, ETA); a run ended by
+    optimize.seconds says so. However slow the machine, the budget lets the first iteration run."""
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=400, seconds=2.0, remesh={"method": "none"}, checkpoint_every=100)
-    r = run_cli("optimize", write(tmp_path, data), "--log-every", "3")
+    r = run_cli("optimize", write(tmp_path, data), "--log-every", "1")
     assert r.returncode == 0, r.stderr
     lines = [l for l in r.stderr.splitlines() if ": iteration " in l]
     assert lines and all("/400, loss " in l and "elapsed" in l and "ETA" in l for l in lines)
-    assert lines[0].startswith("optimize: iteration 3/400")
-    assert "the time budget (optimize.seconds) ended the run after" in r.stdout
+    assert [l.split("/")[0] for l in lines] == [f"optimize: iteration {i + 1}" for i in range(len(lines))]
+    assert f"the time budget (optimize.seconds) ended the run after {len(lines)} iterations" in r.stdout
+
+
+def test_plain_progress_lines_come_every_n_iterations_and_at_the_end():
+    """LossBar off a terminal: a line at every multiple of ``every`` and one at the last iteration."""
+    from psdr_cli import cli
+    bar = cli.LossBar("optimize", every=3)
+    bar.lines = True
+    with cli.console.capture() as captured:
+        bar.start(7)
+        for i in range(7):
+            bar.advance(1, 0.5 / (i + 1))
+    lines = [l for l in captured.get().splitlines() if ": iteration " in l]
+    assert [l.split(",")[0] for l in lines] == ["optimize: iteration 3/7", "optimize: iteration 6/7",
+                                                 "optimize: iteration 7/7"]
+    assert lines[0].startswith("optimize: iteration 3/7, loss 0.16667, elapsed 0 s, ETA ")
 
 
 def test_optimize_under_an_exr_environment_map_does_not_hang(tmp_path):
