@@ -61,10 +61,15 @@ def find_libllvm(min_version: int = MIN_LLVM) -> str | None:
     return max(found)[2] if found else None
 
 
+def cache_root() -> str:
+    """psdr's folder of on-disk caches: ``$XDG_CACHE_HOME/psdr``, else ``~/.cache/psdr``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "psdr")
+
+
 def default_cache_dir() -> str:
     """Stable folder for Dr.Jit's on-disk kernel cache."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "psdr", "drjit")
+    return os.path.join(cache_root(), "drjit")
 
 
 def configure_environment() -> None:

@@ -7,15 +7,18 @@ from __future__ import annotations
 
 import math
 import os
+import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import pymeshlab
 import trimesh
 
-from . import obj_parts
+from . import fileio, obj_parts
+from .backend import cache_root
 from .config.experiment_file import Experiment
 from .config.limits import MAX_COORD
 from .config.objects import BitmapConfig, MeshSpec, ObjectConfig, TransformConfig
@@ -165,19 +168,63 @@ def bunny(size: float = 1.0, faces: int = 5000):
 @lru_cache(maxsize=8)
 def decimated_bunny(faces: int):
     """The shipped bunny sample decimated to about ``faces`` triangles and turned z-up, unscaled
-    (read-only arrays). Remembered per process: the decimation is a pure function of ``faces``
-    and takes seconds, and one run builds the same mesh for its targets, its scene and its
-    evaluation."""
+    (read-only arrays). The decimation is a pure function of ``faces`` (and of pymeshlab and its
+    sample) and takes seconds, while one run builds the same mesh for its targets, its scene and
+    its evaluation: it is remembered per process and on disk (:func:`cached_bunny_path`)."""
+    path = cached_bunny_path(faces)
+    mesh = read_cached_bunny(path)
+    if mesh is None:
+        mesh = decimate_bunny(faces)
+        write_cached_bunny(path, *mesh)
+    V, F = mesh
+    V.flags.writeable = F.flags.writeable = False
+    return V, F
+
+
+def decimate_bunny(faces: int):
+    """(V, F) of the bunny sample after pymeshlab's quadric edge collapse to ``faces`` triangles
+    (none when it has fewer), y-up turned z-up (x→y, y→z, z→x)."""
     ms = pymeshlab.MeshSet()
     ms.load_new_mesh(str(bunny_path()))
     if ms.current_mesh().face_number() > faces:
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces, preservenormal=True,
                                                     preservetopology=True, qualitythr=0.5)
     m = ms.current_mesh()
-    V = np.asarray(m.vertex_matrix(), float)[:, [2, 0, 1]]  # y-up sample made z-up (x→y, y→z, z→x)
+    V = np.asarray(m.vertex_matrix(), float)[:, [2, 0, 1]]
     F = np.asarray(m.face_matrix(), np.int64)
-    V.flags.writeable = F.flags.writeable = False
     return V, F
+
+
+def cached_bunny_path(faces: int) -> Path:
+    """``<cache root>/meshes/bunny-<faces>-<pymeshlab version>-<sample size>.npz``: a new
+    pymeshlab or sample gives a new file (:func:`psdr_cli.backend.cache_root`)."""
+    size = bunny_path().stat().st_size
+    return Path(cache_root()) / "meshes" / f"bunny-{faces}-{version('pymeshlab')}-{size}.npz"
+
+
+def read_cached_bunny(path: Path):
+    """(V, F) from ``path``, or None when it is missing or not a valid mesh (damaged, truncated,
+    non-finite, indices out of range): the bunny is then decimated again."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            V, F = np.array(data["V"]), np.array(data["F"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    ok = (V.dtype == np.float64 and V.ndim == 2 and V.shape[1] == 3 and len(V) >= 3 and np.isfinite(V).all()
+          and F.dtype == np.int64 and F.ndim == 2 and F.shape[1] == 3 and len(F) > 0
+          and F.min() >= 0 and F.max() < len(V))
+    return (V, F) if ok else None
+
+
+def write_cached_bunny(path: Path, V, F) -> None:
+    """Leave (V, F) in ``path`` (atomically: a reader sees the whole file or none); a cache that
+    cannot be written is skipped, the mesh is still returned."""
+    try:
+        with fileio.atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, V=V, F=F)
+    except PsdrError:
+        pass
 
 
 #: A plane's UVs: the texture upright seen from +z (v = 0, its top row, at +y).

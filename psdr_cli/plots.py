@@ -1,26 +1,33 @@
-"""PNG plots (matplotlib, headless), each written atomically."""
+"""PNG plots (matplotlib, headless), each written atomically.
+
+matplotlib is imported when the first plot is drawn (:func:`pyplot`): importing it takes about a
+second (with pyparsing, fonttools and PIL), longer than most commands need before their first
+output, and ``psdr --help`` or a rejected input draws nothing."""
 from __future__ import annotations
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.collections import PatchCollection  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
-import numpy as np  # noqa: E402
+from .fileio import atomic_path
 
-from .fileio import atomic_path  # noqa: E402
+
+def pyplot():
+    """matplotlib.pyplot on the headless Agg backend, imported on first use."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
 
 
 def save(fig, path):
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
+    pyplot().close(fig)
 
 
 def target_along_u1(path, curves: dict, title: str = ""):
     """Fig. 5 of the paper: per edge order, x^B(u1) (three coordinates, top) and the mean target
     over u2 along u1 (bottom). ``curves``: {label: (u1, xB (N,3), target (N,), breaks)}."""
+    plt = pyplot()
     labels = list(curves)
     fig, axes = plt.subplots(2, len(labels), figsize=(5.5 * len(labels), 5.5), squeeze=False, sharex=True)
     for col, label in enumerate(labels):
@@ -43,7 +50,10 @@ def target_along_u1(path, curves: dict, title: str = ""):
 def leaf_slice(path, lo, hi, density, u3: float = 0.5, u1_range=(0.0, 1.0), title: str = ""):
     """Leaves of a guide cut by the plane u2.y = ``u3``, drawn in (u1, u2.x), coloured by log
     density, for u1 in ``u1_range``."""
+    plt = pyplot()
     sel = (lo[:, 2] <= u3) & (hi[:, 2] > u3) & (hi[:, 0] > u1_range[0]) & (lo[:, 0] < u1_range[1])
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
     fig, ax = plt.subplots(figsize=(9, 4))
     rects = [Rectangle((a[0], a[1]), b[0] - a[0], b[1] - a[1]) for a, b in zip(lo[sel], hi[sel])]
     d = np.log10(np.maximum(density[sel], 1e-6))
@@ -61,6 +71,7 @@ def leaf_slice(path, lo, hi, density, u3: float = 0.5, u1_range=(0.0, 1.0), titl
 
 def lines(path, series: dict, xlabel: str, ylabel: str, title: str = "", logy: bool = False):
     """Simple line plot: ``series`` = {label: (x, y)}."""
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, (x, y) in series.items():
         ax.plot(x, y, label=label)
@@ -78,6 +89,7 @@ def lines(path, series: dict, xlabel: str, ylabel: str, title: str = "", logy: b
 def chamfer(path, iterations, values, seconds, timed_values, floor: float):
     """Chamfer distance against iteration (left) and optimisation time (right), log scale, with
     the sampling noise floor."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for ax, x, y, label in ((axes[0], iterations, values, "iteration"), (axes[1], seconds, timed_values, "seconds")):
         ax.plot(x, y, "o-", ms=3)
@@ -92,6 +104,7 @@ def chamfer(path, iterations, values, seconds, timed_values, floor: float):
 def gradient_grid(path, reference, images, title: str, columns: int = 6):
     """Reference and variants' gradient images (sum over RGB) with a shared diverging scale and
     each variant's relMSE under its label. ``images``: [(label, (H, W, 3), relMSE)]."""
+    plt = pyplot()
     n = len(images) + 1
     rows = (n + columns - 1) // columns
     fig, axes = plt.subplots(rows, columns, figsize=(2.2 * columns, 2.4 * rows), squeeze=False)
@@ -109,6 +122,7 @@ def gradient_grid(path, reference, images, title: str, columns: int = 6):
 def chamfer_runs(path, runs: dict, floor: float, title: str = ""):
     """Chamfer distance of several runs against iteration (left) and optimisation time (right),
     log scale; ``runs`` = {label: (iterations, seconds, values)} (seconds may hold None)."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     colours = plt.cm.tab10.colors if len(runs) <= 10 else plt.cm.tab20.colors
     for k, (label, (its, secs, vals)) in enumerate(runs.items()):
@@ -129,6 +143,7 @@ def chamfer_runs(path, runs: dict, floor: float, title: str = ""):
 
 def image_grid(path, panels: list, title: str = "", columns: int = 4):
     """sRGB pictures in a grid with a caption under each; ``panels`` = [(caption, (H, W, 3) in [0, 1])]."""
+    plt = pyplot()
     rows = (len(panels) + columns - 1) // columns
     fig, axes = plt.subplots(rows, columns, figsize=(2.6 * columns, 2.9 * rows), squeeze=False)
     for ax in axes.ravel():

@@ -149,7 +149,6 @@ def test_missing_config_file(tmp_path):
 
 
 def test_repair_drops_degenerate_faces(tmp_path):
-    from psdr_cli.config.objects import MeshSpec
     from psdr_cli.config.values import Where
     from psdr_cli.meshes import validate_mesh
     V = np.array(TETRA_V + [[2, 0, 0]], float)

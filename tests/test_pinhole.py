@@ -2,10 +2,8 @@
 (``principal_point_offset_x/y``), ``scene.cameras[].principal_point``, :func:`pinhole_camera`
 from OpenCV poses and intrinsics, psdr's film projection and camera connections with an offset,
 and ``psdr grad --fd`` through such a camera."""
-import copy
 import json
 import math
-from dataclasses import replace
 
 import drjit as dr
 import mitsuba as mi

@@ -29,7 +29,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
 from .frames import DatasetError, Frame, check_same_size, distortion_tuple, rigid_matrix
 from .images import has_alpha, image_dimensions
@@ -60,9 +59,11 @@ def is_model(folder: Path) -> bool:
     return Path(folder).is_dir() and model_format(Path(folder)) is not None
 
 
-def read_reconstruction(model: Path) -> pycolmap.Reconstruction:
+def read_reconstruction(model: Path):
     """The pycolmap reconstruction of ``model``; a model without points3D is completed with an
-    empty one in a temporary copy. Unreadable files are a :class:`DatasetError`."""
+    empty one in a temporary copy. Unreadable files are a :class:`DatasetError`. pycolmap is
+    imported here, for the COLMAP datasets only (it adds a third of a second to every start)."""
+    import pycolmap
     ext = model_format(model)
     if ext is None:
         raise DatasetError(model, "", "no cameras.bin and images.bin, nor cameras.txt and images.txt "

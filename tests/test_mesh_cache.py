@@ -1,0 +1,57 @@
+"""The decimated bunny is remembered on disk (``<cache root>/meshes``): what is read back is the
+decimation bit for bit, a damaged file is decimated again, and a cache that cannot be written
+costs nothing but the time."""
+import numpy as np
+import pytest
+
+from psdr_cli import meshes
+
+
+@pytest.fixture
+def cache_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    meshes.decimated_bunny.cache_clear()
+    yield tmp_path / "cache"
+    meshes.decimated_bunny.cache_clear()
+
+
+def test_a_cached_bunny_is_the_decimation_and_is_not_decimated_again(cache_home, monkeypatch):
+    V, F = meshes.decimated_bunny(300)
+    fresh = meshes.decimate_bunny(300)
+    assert np.array_equal(V, fresh[0]) and np.array_equal(F, fresh[1]) and V.dtype == np.float64 and F.dtype == np.int64
+    assert meshes.cached_bunny_path(300).is_relative_to(cache_home / "psdr" / "meshes")
+    meshes.decimated_bunny.cache_clear()  # as a new process
+
+    def decimate(faces):
+        raise AssertionError("decimated again although the cache holds the mesh")
+
+    monkeypatch.setattr(meshes, "decimate_bunny", decimate)
+    V2, F2 = meshes.decimated_bunny(300)
+    assert np.array_equal(V, V2) and np.array_equal(F, F2) and not V2.flags.writeable
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "bad-index"])
+def test_a_damaged_cached_bunny_is_decimated_again(cache_home, damage):
+    V, F = meshes.decimated_bunny(300)
+    path = meshes.cached_bunny_path(300)
+    if damage == "truncated":
+        path.write_bytes(path.read_bytes()[:200])
+    elif damage == "garbage":
+        path.write_bytes(b"not a mesh")
+    else:
+        np.savez(path, V=np.array(V), F=np.array(F) + len(V))
+    meshes.decimated_bunny.cache_clear()
+    V2, F2 = meshes.decimated_bunny(300)
+    assert np.array_equal(V, V2) and np.array_equal(F, F2)
+    assert meshes.read_cached_bunny(path) is not None  # written again
+
+
+def test_an_unwritable_cache_still_gives_the_bunny(tmp_path, monkeypatch):
+    (tmp_path / "file").write_text("a file, not a folder")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file"))
+    meshes.decimated_bunny.cache_clear()
+    try:
+        V, F = meshes.decimated_bunny(300)
+    finally:
+        meshes.decimated_bunny.cache_clear()
+    assert len(F) > 0 and F.max() < len(V)
