@@ -5,13 +5,16 @@ second (with pyparsing, fonttools and PIL), longer than most commands need befor
 output, and ``psdr --help`` or a rejected input draws nothing."""
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from .fileio import atomic_path
 
 
+@lru_cache(maxsize=None)
 def pyplot():
-    """matplotlib.pyplot on the headless Agg backend, imported on first use."""
+    """matplotlib.pyplot on the headless Agg backend, imported and set up on first use."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
