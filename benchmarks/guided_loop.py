@@ -48,7 +48,7 @@ sys.path.insert(0, str(REPO))
 import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
 from psdr_cli import evaluate as ev  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.plots import plt, save  # noqa: E402
+from psdr_cli.plots import pyplot, save  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
 from psdr_cli.run_folder.log import read_log  # noqa: E402
 
@@ -200,6 +200,7 @@ def report(args, scores: dict, best: dict, cross: dict, wall: float) -> str:
 def plot(path: Path, args, scores: dict, cross: dict):
     """Left: sweep score against learning rate per λ and estimator. Right: the equal-time ratio
     Kd-tree / unguided against the scale, at the three times."""
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
     for g, style in (("unguided", "o-"), ("kdtree", "s--")):
         for lam in args.lam:

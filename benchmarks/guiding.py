@@ -46,7 +46,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
-import matplotlib.pyplot as plt  # noqa: E402
 from psdr_cli import fileio, plots  # noqa: E402
 from psdr_cli.compare import Comparison, rel_mse  # noqa: E402
 from psdr_cli.config.variants import Variant  # noqa: E402
@@ -163,6 +162,7 @@ def write_markdown(path: Path, text: str):
 def image_grid(path, name, images, ref, rows):
     err = {r["config"]: r["rel_mse"] for r in rows}
     cols = [(s, o) for o in (False, True) for s in SAMPLINGS]
+    plt = plots.pyplot()
     fig, axes = plt.subplots(4, 6, figsize=(13, 9))
     scale = float(np.percentile(np.abs(ref.sum(-1)), 99)) or 1.0
     for ax in axes.ravel():

@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.plots import plt, save  # noqa: E402
+from psdr_cli.plots import pyplot, save  # noqa: E402
 
 BASE = REPO / "configs" / "paper" / "cpu" / "fig10_shadow.yaml"
 #: name -> (learning rate, boundary spp, guiding, scale: vertices ×4 ("v4") or film ×2 ("f2") or None)
@@ -104,6 +104,7 @@ def plot(path: Path, curves: dict):
     """Mean Chamfer-L1 of the last three checkpoints (one run's last value jumps with its steps)
     against boundary spp (unguided at lr 0.1, the loop-fed Kd-tree at 0.05: each one's best; both
     mesh resolutions) and against the learning rate (unguided 8 and 32 spp, Kd-tree 8 spp)."""
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     last = {n: sum(c for _, c in curve[-3:]) / len(curve[-3:]) for n, curve in curves.items()}
     for scale, style, colour, said in ((None, "o-", "tab:blue", ""), ("v4", "s--", "tab:orange", ", vertices ×4"),

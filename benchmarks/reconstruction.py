@@ -74,7 +74,7 @@ from psdr_cli.config.options import with_estimator  # noqa: E402
 from psdr_cli.experiment import load_experiment  # noqa: E402
 from psdr_cli.fileio import atomic_path  # noqa: E402
 from psdr_cli.optimize import optimize  # noqa: E402
-from psdr_cli.plots import plt, save  # noqa: E402
+from psdr_cli.plots import pyplot, save  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
 from psdr_cli.run_folder.log import read_log  # noqa: E402
 
@@ -194,6 +194,7 @@ def table(results: dict, times: list, engines) -> str:
 
 def plot(path: Path, results: dict):
     """Chamfer-L1 (top) and Hausdorff (bottom) against optimisation seconds, a column per scene."""
+    plt = pyplot()
     fig, axes = plt.subplots(2, len(results), figsize=(4.2 * len(results), 6.5), squeeze=False)
     for col, (scene, runs) in enumerate(results.items()):
         for (engine, seed), curve in runs.items():

@@ -62,8 +62,11 @@ def find_libllvm(min_version: int = MIN_LLVM) -> str | None:
 
 
 def cache_root() -> str:
-    """psdr's folder of on-disk caches: ``$XDG_CACHE_HOME/psdr``, else ``~/.cache/psdr``."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    """psdr's folder of on-disk caches: ``$XDG_CACHE_HOME/psdr`` when that is an absolute path
+    (the XDG rule: a relative one is ignored), else ``~/.cache/psdr``."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        base = os.path.join(os.path.expanduser("~"), ".cache")
     return os.path.join(base, "psdr")
 
 

@@ -5,12 +5,12 @@ Everything here is numpy: a mesh is ``(V, F)`` with ``V`` float64 (n, 3) and ``F
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import os
-import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib.metadata import version
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
@@ -181,34 +181,52 @@ def decimated_bunny(faces: int):
     return V, F
 
 
+#: pymeshlab's quadric edge collapse as the bunny is decimated (part of the cache key).
+BUNNY_DECIMATION = {"preservenormal": True, "preservetopology": True, "qualitythr": 0.5}
+#: The sample's y-up axes made z-up: x→y, y→z, z→x (part of the cache key).
+BUNNY_Z_UP = (2, 0, 1)
+#: Cached files larger than this are not read (the full sample is about 2 MB).
+MAX_CACHED_BUNNY_BYTES = 64 << 20
+
+
 def decimate_bunny(faces: int):
     """(V, F) of the bunny sample after pymeshlab's quadric edge collapse to ``faces`` triangles
-    (none when it has fewer), y-up turned z-up (x→y, y→z, z→x)."""
+    (none when it has fewer), turned z-up."""
     ms = pymeshlab.MeshSet()
     ms.load_new_mesh(str(bunny_path()))
     if ms.current_mesh().face_number() > faces:
-        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces, preservenormal=True,
-                                                    preservetopology=True, qualitythr=0.5)
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces, **BUNNY_DECIMATION)
     m = ms.current_mesh()
-    V = np.asarray(m.vertex_matrix(), float)[:, [2, 0, 1]]
+    V = np.asarray(m.vertex_matrix(), float)[:, list(BUNNY_Z_UP)]
     F = np.asarray(m.face_matrix(), np.int64)
     return V, F
 
 
-def cached_bunny_path(faces: int) -> Path:
-    """``<cache root>/meshes/bunny-<faces>-<pymeshlab version>-<sample size>.npz``: a new
-    pymeshlab or sample gives a new file (:func:`psdr_cli.backend.cache_root`)."""
-    size = bunny_path().stat().st_size
-    return Path(cache_root()) / "meshes" / f"bunny-{faces}-{version('pymeshlab')}-{size}.npz"
-
-
-def read_cached_bunny(path: Path):
-    """(V, F) from ``path``, or None when it is missing or not a valid mesh (damaged, truncated,
-    non-finite, indices out of range): the bunny is then decimated again."""
+def cached_bunny_path(faces: int) -> Path | None:
+    """``<cache root>/meshes/bunny-<faces>-<key>.npz``, the key a digest of pymeshlab's version,
+    the sample's size and the decimation's settings, so that a change of any gives a new file
+    (:func:`psdr_cli.backend.cache_root`); None (no cache) when pymeshlab's version is unknown."""
     try:
+        pymeshlab_version = version("pymeshlab")
+    except PackageNotFoundError:
+        return None
+    what = repr((pymeshlab_version, bunny_path().stat().st_size, sorted(BUNNY_DECIMATION.items()), BUNNY_Z_UP))
+    key = hashlib.sha1(what.encode()).hexdigest()[:12]
+    return Path(cache_root()) / "meshes" / f"bunny-{faces}-{key}.npz"
+
+
+def read_cached_bunny(path: Path | None):
+    """(V, F) from ``path``, or None when there is no cache or the file is not a valid mesh
+    (damaged in any way, too large, non-finite, indices out of range): the bunny is then
+    decimated again. Reading a cache never fails a command."""
+    if path is None:
+        return None
+    try:
+        if path.stat().st_size > MAX_CACHED_BUNNY_BYTES:
+            return None
         with np.load(path, allow_pickle=False) as data:
             V, F = np.array(data["V"]), np.array(data["F"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+    except Exception:  # noqa: BLE001 (missing, truncated, not an .npz, bad compression, ...)
         return None
     ok = (V.dtype == np.float64 and V.ndim == 2 and V.shape[1] == 3 and len(V) >= 3 and np.isfinite(V).all()
           and F.dtype == np.int64 and F.ndim == 2 and F.shape[1] == 3 and len(F) > 0
@@ -216,9 +234,11 @@ def read_cached_bunny(path: Path):
     return (V, F) if ok else None
 
 
-def write_cached_bunny(path: Path, V, F) -> None:
+def write_cached_bunny(path: Path | None, V, F) -> None:
     """Leave (V, F) in ``path`` (atomically: a reader sees the whole file or none); a cache that
     cannot be written is skipped, the mesh is still returned."""
+    if path is None:
+        return
     try:
         with fileio.atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:

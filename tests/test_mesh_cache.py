@@ -30,7 +30,10 @@ def test_a_cached_bunny_is_the_decimation_and_is_not_decimated_again(cache_home,
     assert np.array_equal(V, V2) and np.array_equal(F, F2) and not V2.flags.writeable
 
 
-@pytest.mark.parametrize("damage", ["truncated", "garbage", "bad-index"])
+DAMAGES = ["truncated", "garbage", "bad-index", "npy-not-npz", "bad-compressed-data", "non-finite"]
+
+
+@pytest.mark.parametrize("damage", DAMAGES)
 def test_a_damaged_cached_bunny_is_decimated_again(cache_home, damage):
     V, F = meshes.decimated_bunny(300)
     path = meshes.cached_bunny_path(300)
@@ -38,12 +41,42 @@ def test_a_damaged_cached_bunny_is_decimated_again(cache_home, damage):
         path.write_bytes(path.read_bytes()[:200])
     elif damage == "garbage":
         path.write_bytes(b"not a mesh")
-    else:
+    elif damage == "bad-index":
         np.savez(path, V=np.array(V), F=np.array(F) + len(V))
+    elif damage == "npy-not-npz":
+        with open(path, "wb") as fh:
+            np.save(fh, np.array(V))
+    elif damage == "bad-compressed-data":
+        with open(path, "wb") as fh:
+            np.savez_compressed(fh, V=np.array(V), F=np.array(F))
+        data = bytearray(path.read_bytes())
+        data[len(data) // 3: len(data) // 3 + 64] = bytes(64)
+        path.write_bytes(bytes(data))
+    else:
+        bad = np.array(V)
+        bad[3, 1] = np.nan
+        np.savez(path, V=bad, F=np.array(F))
     meshes.decimated_bunny.cache_clear()
     V2, F2 = meshes.decimated_bunny(300)
     assert np.array_equal(V, V2) and np.array_equal(F, F2)
     assert meshes.read_cached_bunny(path) is not None  # written again
+
+
+def test_the_cache_key_follows_the_decimation_settings(cache_home, monkeypatch):
+    """A change of how the bunny is decimated gives another file: no stale mesh is served."""
+    before = meshes.cached_bunny_path(300)
+    monkeypatch.setitem(meshes.BUNNY_DECIMATION, "qualitythr", 0.3)
+    assert meshes.cached_bunny_path(300) != before
+    assert meshes.cached_bunny_path(400) != meshes.cached_bunny_path(300)
+
+
+def test_no_cache_without_pymeshlabs_version(cache_home, monkeypatch):
+    def unknown(name):
+        raise meshes.PackageNotFoundError(name)
+
+    monkeypatch.setattr(meshes, "version", unknown)
+    V, F = meshes.decimated_bunny(300)
+    assert len(F) > 0 and not (cache_home / "psdr" / "meshes").exists()
 
 
 def test_an_unwritable_cache_still_gives_the_bunny(tmp_path, monkeypatch):
