@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib.metadata import PackageNotFoundError, version
@@ -187,6 +188,8 @@ BUNNY_DECIMATION = {"preservenormal": True, "preservetopology": True, "qualityth
 BUNNY_Z_UP = (2, 0, 1)
 #: Cached files larger than this are not read (the full sample is about 2 MB).
 MAX_CACHED_BUNNY_BYTES = 64 << 20
+#: A temporary of the cache folder this old is a killed writer's (:func:`write_cached_bunny`).
+STALE_TEMPORARY_SECONDS = 600
 
 
 def decimate_bunny(faces: int):
@@ -236,9 +239,18 @@ def read_cached_bunny(path: Path | None):
 
 def write_cached_bunny(path: Path | None, V, F) -> None:
     """Leave (V, F) in ``path`` (atomically: a reader sees the whole file or none); a cache that
-    cannot be written is skipped, the mesh is still returned."""
+    cannot be written is skipped, the mesh is still returned. Temporaries of writers killed
+    mid-write, older than :data:`STALE_TEMPORARY_SECONDS`, are removed first (another process may
+    be writing its own right now: a write takes milliseconds)."""
     if path is None:
         return
+    now = time.time()
+    for tmp in fileio.temporaries(path.parent):
+        try:
+            if now - tmp.stat().st_mtime > STALE_TEMPORARY_SECONDS:
+                tmp.unlink()
+        except OSError:
+            pass
     try:
         with fileio.atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:

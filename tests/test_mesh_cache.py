@@ -1,6 +1,9 @@
 """The decimated bunny is remembered on disk (``<cache root>/meshes``): what is read back is the
 decimation bit for bit, a damaged file is decimated again, and a cache that cannot be written
 costs nothing but the time."""
+import os
+import time
+
 import numpy as np
 import pytest
 
@@ -77,6 +80,20 @@ def test_no_cache_without_pymeshlabs_version(cache_home, monkeypatch):
     monkeypatch.setattr(meshes, "version", unknown)
     V, F = meshes.decimated_bunny(300)
     assert len(F) > 0 and not (cache_home / "psdr" / "meshes").exists()
+
+
+def test_a_killed_writers_old_temporary_is_removed_a_fresh_one_kept(cache_home):
+    """A writer killed mid-write leaves ``.bunny-….tmp.npz``; the next write removes it once it is
+    older than a write could take, and leaves another process's fresh one alone."""
+    folder = cache_home / "psdr" / "meshes"
+    folder.mkdir(parents=True)
+    stale, fresh = folder / ".bunny-300-x.abc.tmp.npz", folder / ".bunny-300-x.def.tmp.npz"
+    stale.write_bytes(b"half")
+    fresh.write_bytes(b"half")
+    old = time.time() - meshes.STALE_TEMPORARY_SECONDS - 5
+    os.utime(stale, (old, old))
+    meshes.decimated_bunny(300)
+    assert not stale.exists() and fresh.exists()
 
 
 def test_an_unwritable_cache_still_gives_the_bunny(tmp_path, monkeypatch):
