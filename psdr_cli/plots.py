@@ -54,9 +54,9 @@ def leaf_slice(path, lo, hi, density, u3: float = 0.5, u1_range=(0.0, 1.0), titl
     """Leaves of a guide cut by the plane u2.y = ``u3``, drawn in (u1, u2.x), coloured by log
     density, for u1 in ``u1_range``."""
     plt = pyplot()
-    sel = (lo[:, 2] <= u3) & (hi[:, 2] > u3) & (hi[:, 0] > u1_range[0]) & (lo[:, 0] < u1_range[1])
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
+    sel = (lo[:, 2] <= u3) & (hi[:, 2] > u3) & (hi[:, 0] > u1_range[0]) & (lo[:, 0] < u1_range[1])
     fig, ax = plt.subplots(figsize=(9, 4))
     rects = [Rectangle((a[0], a[1]), b[0] - a[0], b[1] - a[1]) for a, b in zip(lo[sel], hi[sel])]
     d = np.log10(np.maximum(density[sel], 1e-6))
