@@ -1,31 +1,47 @@
-"""Kernels are compiled once: an optimisation's reverse passes reuse the kernels of the first.
+"""Kernels are compiled once: an optimisation's reverse passes reuse the kernels of the first,
+and building guides again reuses the kernels of the first build.
 
 Dr.Jit maps numpy arrays instead of copying them, and a load from memory that is not 64-byte
 aligned is a different kernel (``psdr_cli.jitarray``); arrays rebuilt every iteration (edge
-lists, curve ids, adjoint images) used to recompile kernels in most iterations."""
+lists, curve ids, adjoint images) used to recompile kernels in most iterations, and the guides'
+arrays (their trees, cells and target points) recompiled 1-2 kernels in some builds, about a
+second each (``psdr grad`` builds them once per call)."""
 import copy
+import re
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import pytest
 
 from psdr_cli import backend
-from psdr_cli.experiment import load_experiment
+from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.engines import Engine
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.estimate import Settings
+from psdr_cli.estimate import Settings, make_guides, prepare
 from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
 from psdr_cli.iteration import adjoint_image
 from psdr_cli.losses.l1 import l1_loss
 from psdr_cli.problem import Problem, Shape
 from psdr_cli.target_sources.rendered_mesh import ground_truth
 from psdr_cli.targets import initial_shape
+from test_guiding import SHADOW
 from test_optimize import TINY, write
+
+#: A vector load that LLVM may not assume aligned: its array is mapped numpy memory off a
+#: 32-byte boundary (Dr.Jit's own buffers are aligned, and so are ``jit_array``'s).
+UNALIGNED_LOAD = re.compile(r"load <\d+ x \w+>, ptr %[\w.]+, align 1,")
 
 
 def jit_kernels() -> set:
     """Hashes of the kernels launched since the last call."""
     return {str(h.get("hash")) for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT}
+
+
+def kernel_source(entry) -> str:
+    """The LLVM IR of a kernel history entry."""
+    ir = entry.get("ir")
+    return ir.getvalue() if hasattr(ir, "getvalue") else str(ir)
 
 
 def test_aligned_copy_starts_on_a_cache_line_and_keeps_the_values():
@@ -72,3 +88,35 @@ def test_reverse_passes_after_the_first_compile_nothing_new(tmp_path):
         problem.release()
     new = [len(launched[it] - launched[it % 3]) for it in range(3, 9)]
     assert not any(new), f"kernels not launched by the view's first iteration, iterations 3-8: {new}"
+
+
+@pytest.mark.parametrize("kind", ["grid", "kdtree"])
+def test_guides_built_again_read_aligned_memory_and_compile_nothing_new(tmp_path, kind):
+    """The direct term's guides of the shadow scene, built three times as ``psdr grad`` builds
+    them (the target with θ's velocity), then evaluated (``pdf_batch``) and sampled
+    (``sample_np``) from numpy points: no kernel loads unaligned memory, and the second and
+    third builds launch only kernels of the first."""
+    data = copy.deepcopy(SHADOW)
+    data["estimator"].update(guiding=kind, boundary_spp=16)
+    data["estimator"]["kdtree"] = {"initial_samples": 4096}
+    exp = parse_experiment(data, tmp_path / "shadow.yaml", cwd=tmp_path)
+    scene, parameter, edges, settings = prepare(exp)
+    rng = np.random.default_rng(1)
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        builds, unaligned = [], 0
+        for _ in range(3):
+            guide = make_guides(scene, edges, [0], ("direct",), settings, parameter).get("direct")
+            guide = next(iter(guide.values())) if isinstance(guide, dict) else guide
+            guide.pdf_batch(rng.random((1000, 3)))
+            guide.sample_np(1000, rng)
+            dr.sync_thread()
+            history = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+            unaligned += sum(bool(UNALIGNED_LOAD.search(kernel_source(h))) for h in history)
+            builds.append({str(h.get("hash")) for h in history})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    assert builds[0] and unaligned == 0, f"{unaligned} kernels loaded unaligned numpy memory"
+    assert builds[1] <= builds[0] and builds[2] <= builds[0], "a build compiled kernels the first did not launch"

@@ -26,6 +26,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..jitarray import jit_array
+
 #: corner index c = i + 2j + 4k ↔ offsets (i, j, k)
 CORNERS = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.float64)
 #: largest float32 below 1 (samples stay inside [0,1))
@@ -78,10 +80,10 @@ class Guide:
         scale = 1.0 / self.total if self.total > 0 else 0.0
         self.density_corners = self.epsilon + (1.0 - self.epsilon) * self.corners * scale
         self.probability = vol * self.density_corners.mean(axis=1)  # sums to 1
-        self._lo = mi.Float(self.lo.astype(np.float32).ravel())
-        self._ext = mi.Float((self.hi - self.lo).astype(np.float32).ravel())
-        self._c = mi.Float(self.density_corners.astype(np.float32).ravel())
-        self._distr = mi.DiscreteDistribution(mi.Float(self.probability.astype(np.float32)))
+        self._lo = jit_array(mi.Float, self.lo.ravel())
+        self._ext = jit_array(mi.Float, (self.hi - self.lo).ravel())
+        self._c = jit_array(mi.Float, self.density_corners.ravel())
+        self._distr = mi.DiscreteDistribution(jit_array(mi.Float, self.probability))
 
     # -- lookups -------------------------------------------------------------------------------
     def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
@@ -114,7 +116,7 @@ class Guide:
 
     def pdf_batch(self, u: np.ndarray) -> np.ndarray:
         """g(u) at numpy points u (N,3), evaluated by :meth:`pdf` (Dr.Jit)."""
-        pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(u[:, i], np.float32)) for i in range(3)))
+        pt = mi.Point3f(*(jit_array(mi.Float, u[:, i]) for i in range(3)))
         return np.asarray(self.pdf(pt), np.float64)
 
     def pdf_np(self, u: np.ndarray) -> np.ndarray:
@@ -142,8 +144,8 @@ class Guide:
 
     def sample_np(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n samples u ~ g (numpy reference sampler used by tests)."""
-        u = mi.Float(rng.random(n).astype(np.float32))
-        xi = mi.Point3f(*(mi.Float(rng.random(n).astype(np.float32)) for _ in range(3)))
+        u = jit_array(mi.Float, rng.random(n))
+        xi = mi.Point3f(*(jit_array(mi.Float, rng.random(n)) for _ in range(3)))
         s, p = self.sample(u, xi)
         return np.stack([np.asarray(s[i]) for i in range(3)], 1), np.asarray(p)
 

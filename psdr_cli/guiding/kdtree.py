@@ -50,6 +50,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..jitarray import jit_array
 from .guide import CORNERS, Guide, GuideKind, GuideStats
 
 #: relative ridge keeping the small least-squares systems well posed
@@ -64,10 +65,10 @@ class KdTreeGuide(Guide):
     def __init__(self, lo, hi, corners, epsilon, stats, axis, split, child, leaf):
         super().__init__(lo, hi, corners, epsilon, stats)
         self.axis, self.split, self.child, self.node_leaf = axis, split, child, leaf
-        self._axis = mi.Int32(axis.astype(np.int32))
-        self._split = mi.Float(split.astype(np.float32))
-        self._child = mi.UInt32(np.maximum(child, 0).astype(np.uint32))
-        self._leaf = mi.UInt32(np.maximum(leaf, 0).astype(np.uint32))
+        self._axis = jit_array(mi.Int32, axis)
+        self._split = jit_array(mi.Float, split)
+        self._child = jit_array(mi.UInt32, np.maximum(child, 0))
+        self._leaf = jit_array(mi.UInt32, np.maximum(leaf, 0))
 
     def leaf_of(self, u: mi.Point3f) -> mi.UInt32:
         def body(node):

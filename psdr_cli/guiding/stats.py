@@ -16,6 +16,7 @@ from ..errors import PsdrError
 from ..estimators.boundary_sampling import edge_distribution, edge_list, sample_edge_point
 from ..estimators import registry
 from ..estimators.registry import GUIDED
+from ..jitarray import jit_array
 from ..scene import build_scene
 from .kinds import NAMES as GUIDE_KINDS, guide_kind
 from .targets import target_function
@@ -37,7 +38,7 @@ def target_curve(scene, edges, views, term: str, technique: str, max_depth: int,
     mean = f(u).reshape(n_u1, n_u2).mean(1)
     P = dr.detach(edges.positions(mi.traverse(scene.mi_scene)))
     with dr.suspend_grad():
-        e = sample_edge_point(edges, P, edge_distribution(edges, P), mi.Float(u1.astype(np.float32)))
+        e = sample_edge_point(edges, P, edge_distribution(edges, P), jit_array(mi.Float, u1))
         xB = np.stack([np.asarray(e.xB[i], np.float64) for i in range(3)], 1)
     return u1, xB, mean, edges.breakpoints(P)
 

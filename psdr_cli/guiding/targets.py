@@ -15,6 +15,7 @@ import numpy as np
 
 from ..estimators import registry
 from ..estimators.passes import make_sampler
+from ..jitarray import jit_array
 from .kdtree import share_profiles
 from .kinds import guide_kind
 
@@ -53,7 +54,7 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
         P = dr.detach(edges.positions(mi.traverse(mi_scene)))
         for a in range(0, len(u), CHUNK):
             chunk = u[a:a + CHUNK].astype(np.float32)
-            pt = mi.Point3f(*(mi.Float(np.ascontiguousarray(chunk[:, i])) for i in range(3)))
+            pt = mi.Point3f(*(jit_array(mi.Float, chunk[:, i]) for i in range(3)))
             if theta is not None and target.motion is not None:
                 val = motion_target(scene, sensors, edges, theta, target.motion, technique, mis, pt)
             else:
