@@ -185,29 +185,59 @@ class TermEstimate:
 
 def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Settings,
                      min_passes: int = 1, *, progress=None, guides=None) -> TermEstimate:
-    """dI/dθ of one term (forward mode), as the sample-weighted mean over its passes."""
+    """dI/dθ of one term (forward mode), as the sample-weighted mean over its passes.
+
+    Passes of equal samples per pixel that fit in one AD pass together are traced as one
+    wavefront (:func:`pass_groups`): a term that traces several views at once
+    (``Term.estimate_views``, unguided) is given the view once per pass, so that each pass is its
+    own independent estimate from its own lanes of one sampler (seeded by :func:`views_seed` of the
+    group's first pass) with one trace, one set of kernels and one forward sweep for the group. A
+    group of one pass is the pass as traced alone (its seed :func:`term_seed`)."""
     width, height = scene.resolution
     counts = term_passes(term, settings, width * height, min_passes)
     total = sum(counts)
+    batched = None if guides and guides.get(term) else registry.term(term).estimate_views
     images, primal = [], np.zeros((height, width, 3))
     t0 = time.perf_counter()
-    for p, spp in enumerate(counts):
+    for group in pass_groups(counts, width * height, batched is not None):
+        spp = counts[group[0]]
         theta = mi.Float(0.0)
         dr.enable_grad(theta)
         parameter.apply(theta)
-        img = term_image(scene, edges, view, term, spp, term_seed(settings, view, p, term), settings,
-                         guides=guides)
+        if len(group) == 1:
+            parts = [term_image(scene, edges, view, term, spp, term_seed(settings, view, group[0], term), settings,
+                                guides=guides)]
+        else:
+            seed = views_seed(settings.seed, [view] * len(group), group[0], registry.term(term).stream)
+            parts = batched(scene, edges, [view] * len(group), spp, seed, settings.estimator, settings.max_depth)
         dr.forward(theta)
-        images.append(np.asarray(dr.grad(img), np.float64).reshape(height, width, 3))
-        primal += np.asarray(dr.detach(img), np.float64).reshape(height, width, 3) * spp / total
-        del img
+        grads, values = [dr.grad(img) for img in parts], [dr.detach(img) for img in parts]
+        dr.eval(grads, values)  # one kernel for the group's images
+        for grad, value in zip(grads, values):
+            images.append(np.asarray(grad, np.float64).reshape(height, width, 3))
+            primal += np.asarray(value, np.float64).reshape(height, width, 3) * spp / total
+        del parts, grads, values
         parameter.reset()
         if progress:
-            progress(spp)
+            progress(spp * len(group))
     weights = [c / total for c in counts]
     mean = sum(w * g for w, g in zip(weights, images))
     return TermEstimate(term, mean, images, weights, time.perf_counter() - t0,
                         primal if term == "interior" else None)
+
+
+def pass_groups(counts, pixels: int, batched: bool) -> list:
+    """The passes (indices into ``counts``, their samples per pixel) traced together: runs of
+    consecutive passes with equal samples per pixel whose lanes (passes · ``pixels`` · spp) fit in
+    ``AD_LANES``; one pass per group when the term cannot trace several views at once."""
+    groups = []
+    for p, spp in enumerate(counts):
+        last = groups[-1] if groups else None
+        if batched and last and counts[last[0]] == spp and (len(last) + 1) * pixels * spp <= AD_LANES:
+            last.append(p)
+        else:
+            groups.append([p])
+    return groups
 
 
 def ad_image(scene, edges, view: int, terms, settings: Settings, pass_index: int = 0, *,

@@ -40,7 +40,8 @@ def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int,
 def views_camera_rays(sensors, sampler: mi.Sampler, width: int, height: int, spp: int):
     """:func:`camera_rays` of several sensors in one wavefront: lane i belongs to view
     i // (W·H·spp) of ``sensors`` and, within it, to pixel (i mod W·H·spp) // spp at the film point
-    ((x, y) + ξ) / (W, H); each sensor's rays are computed on every lane and a lane keeps its own."""
+    ((x, y) + ξ) / (W, H); each distinct sensor's rays are computed on every lane and a lane keeps
+    its own (a sensor listed several times, as for independent passes of one view, once)."""
     per_view = width * height * spp
     idx = dr.arange(mi.UInt32, per_view * len(sensors))
     view = idx // dr.opaque(mi.UInt32, per_view)
@@ -48,12 +49,23 @@ def views_camera_rays(sensors, sampler: mi.Sampler, width: int, height: int, spp
     pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
     film_uv = pos / mi.ScalarVector2f(width, height)
     wavelength = sampler.next_1d()
-    ray, weight = sensors[0].sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5))
-    for k, sensor in enumerate(sensors[1:], start=1):
-        mine = view == k
-        ray_k, weight_k = sensor.sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5), mine)
+    first, *others = sensor_groups(sensors)
+    ray, weight = sensors[first[0]].sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5))
+    for group in others:
+        mine = view == group[0]
+        for k in group[1:]:
+            mine |= view == k
+        ray_k, weight_k = sensors[group[0]].sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5), mine)
         ray, weight = dr.select(mine, ray_k, ray), dr.select(mine, weight_k, weight)
     return ray, weight
+
+
+def sensor_groups(sensors) -> list:
+    """The positions in ``sensors`` of each distinct sensor (by identity), in order of first appearance."""
+    groups = {}
+    for k, sensor in enumerate(sensors):
+        groups.setdefault(id(sensor), []).append(k)
+    return list(groups.values())
 
 
 def principal_point_offset(sensor: mi.Sensor, params=None) -> tuple:

@@ -51,7 +51,7 @@ from ..intersections import Segments, intersection_segments, segment_points
 from ..jitarray import concat, jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
-from .camera import LaneCameras, Projection, SensorCamera, film_pixel
+from .camera import LaneCameras, Projection, SensorCamera, film_pixel, sensor_groups
 from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
@@ -569,7 +569,11 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
     images = [dr.zeros(mi.Float, width * height * 3) for _ in sensors]
     if edges.count == 0 and not edges.meshes:
         return images
-    parts = [view_curves(scene, edges, P, proj, max_depth >= 2, sampling) for proj in projs]
+    parts = [None] * count  # a sensor listed several times (passes of one view) selects its curves once
+    for group in sensor_groups(sensors):
+        curves = view_curves(scene, edges, P, projs[group[0]], max_depth >= 2, sampling)
+        for k in group:
+            parts[k] = curves
     live = [vc for vc in parts if vc is not None]
     if not live:
         return images
