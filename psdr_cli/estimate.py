@@ -155,6 +155,13 @@ def guiding_line(settings: Settings, terms=None) -> str:
     return auto.describe(settings.guiding, kinds, settings.pixels * settings.boundary_spp, settings.loop)
 
 
+def has_guide(guides, term: str) -> bool:
+    """Whether ``guides`` hold a guide of ``term``. A loop-fed term's sample log counts even
+    before its first fit: empty (no fitted guide yet) its passes draw uniformly and keep their
+    samples for the fit, so they must run as guided passes (view by view), not batched."""
+    return guides is not None and guides.get(term) is not None
+
+
 def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed: int,
                settings: Settings, *, guides=None):
     """One pass of ``term`` for camera ``view`` with ``spp`` samples per pixel (flat W·H·3, AD).
@@ -192,11 +199,14 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
     (``Term.estimate_views``, unguided) is given the view once per pass, so that each pass is its
     own independent estimate from its own lanes of one sampler (seeded by :func:`views_seed` of the
     group's first pass) with one trace, one set of kernels and one forward sweep for the group. A
-    group of one pass is the pass as traced alone (its seed :func:`term_seed`)."""
+    group of one pass is the pass as traced alone (its seed :func:`term_seed`); a guided term's
+    passes and those of a θ that moves the camera run one by one."""
     width, height = scene.resolution
     counts = term_passes(term, settings, width * height, min_passes)
     total = sum(counts)
-    batched = None if guides and guides.get(term) else registry.term(term).estimate_views
+    # grouped passes gather each lane's camera as constants (estimators/camera.py, LaneCameras):
+    # passes of a moving camera run one by one, as do a guided term's
+    batched = None if has_guide(guides, term) or parameter.moves_camera else registry.term(term).estimate_views
     images, primal = [], np.zeros((height, width, 3))
     t0 = time.perf_counter()
     for group in pass_groups(counts, width * height, batched is not None):
@@ -266,7 +276,7 @@ def ad_images(scene, edges, views, terms, settings: Settings, pass_index: int = 
         spp = term_passes(term, settings, width * height)[0]
         batched = registry.term(term).estimate_views
         if batched and len(views) > 1 and len(views) * width * height * spp <= AD_LANES and \
-                not (guides and guides.get(term)):
+                not has_guide(guides, term):
             seed = views_seed(settings.seed, views, pass_index, registry.term(term).stream)
             parts = batched(scene, edges, views, spp, seed, settings.estimator, settings.max_depth)
         else:

@@ -87,6 +87,11 @@ class Parameter:
         rot = mi.AffineTransform4f().rotate(a, theta * (180.0 / math.pi))
         return mi.AffineTransform4f().translate(o) @ rot @ mi.AffineTransform4f().translate(-o) @ T0
 
+    @property
+    def moves_camera(self) -> bool:
+        """Whether θ moves a camera (``parameter.camera``)."""
+        return self.config.camera is not None
+
     def apply(self, theta):
         theta = mi.Float(theta)
         if self.config.camera is not None:

@@ -449,6 +449,22 @@ def test_stopped_and_resumed_guided_run_reproduces_the_uninterrupted_one(tmp_pat
     assert (tmp_path / "part" / "runs" / "small" / "final.ply").read_bytes() == a
 
 
+def test_loop_fed_guides_are_fitted_when_a_batch_traces_its_views_together(tmp_path):
+    """With two views per batch the unguided terms trace the batch as one wavefront; the loop-fed
+    direct term must still run its passes view by view while its sample log is empty (before the
+    first fit), keep their samples and fit its Kd-trees at the first refresh: the log reports no
+    guide memory before iteration 3 and some from there on. (An empty log once counted as no
+    guide, so the term was batched, kept nothing and stayed unguided for the whole run.)"""
+    data = copy.deepcopy(LOOP_FED)
+    data["optimize"].update(iterations=5, batch_size=2)
+    data["optimize"].pop("albedo")
+    run = write_small(tmp_path, data)
+    assert cli.run(["optimize", str(run)]) == 0
+    rows = read_log(tmp_path / "runs" / "small" / "log.csv")
+    memory = [float(r["guide_bytes"]) for r in rows]
+    assert memory[:3] == [0, 0, 0] and all(m > 0 for m in memory[3:]), memory
+
+
 def test_taking_the_lock_clears_a_killed_writers_temporaries(tmp_path):
     """kill -9 between an atomic write's temporary and its rename leaves ``.<stem>.<random>.tmp<ext>``;
     the next holder of the run's lock deletes it and keeps every named file."""
