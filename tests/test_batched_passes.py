@@ -6,6 +6,8 @@ by one, and a single pass is the pass traced alone bit for bit."""
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -16,8 +18,12 @@ from scipy.stats import chi2, f
 from psdr_cli import backend
 from psdr_cli.estimate import forward_gradient, pass_groups, prepare, term_image, term_passes, term_seed
 from psdr_cli.estimators.passes import AD_LANES
-from psdr_cli.experiment import parse_experiment
+from psdr_cli.experiment import load_experiment, parse_experiment
+from psdr_cli.config.options import with_estimator
 from test_direct_boundary import SHADOW
+
+#: light reaches the floor the camera sees only by way of a wall: the indirect term's scene
+INDIRECT = Path(__file__).resolve().parents[1] / "configs" / "validation" / "indirect.yaml"
 
 R = 24
 PASSES = 16
@@ -35,6 +41,16 @@ def shadow_setup(tmp_path, **estimator):
     data["estimator"] = {"spp": 64, "primary_spp": 64, "boundary_spp": 64, "guiding": "none", **estimator}
     exp = parse_experiment(data, tmp_path / "shadow.yaml", cwd=tmp_path)
     return prepare(exp)
+
+
+def indirect_setup(tmp_path):
+    """configs/validation/indirect.yaml at R × R (θ: the black ball moves up; max_depth 3)."""
+    exp = load_experiment(INDIRECT)
+    exp = replace(exp, scene=replace(exp.scene, width=R, height=R))
+    return prepare(with_estimator(exp, spp=64, primary_spp=64, boundary_spp=1024, guiding="none"))
+
+
+SETUPS = {"interior": shadow_setup, "primary": shadow_setup, "direct": shadow_setup, "indirect": indirect_setup}
 
 
 def passes_one_by_one(scene, edges, parameter, term, settings, min_passes):
@@ -66,7 +82,7 @@ def test_pass_groups_join_equal_passes_that_fit_in_one_ad_pass():
     assert pass_groups([5], AD_LANES, True) == [[0]]  # more lanes than one AD pass holds: alone
 
 
-@pytest.mark.parametrize("term", ["interior", "primary", "direct"])
+@pytest.mark.parametrize("term", list(SETUPS))
 def test_grouped_passes_are_independent_passes_of_the_estimator(tmp_path, term):
     """Tile sums of dI/dθ per pass (6 × 6 tiles, 16 passes of 4 spp): the grouped passes' mean
     agrees with the one-by-one passes' mean (|z| < 4.5 per tile with signal, and Σz² below the
@@ -74,8 +90,9 @@ def test_grouped_passes_are_independent_passes_of_the_estimator(tmp_path, term):
     the F distribution's central 0.999 for 15 and 15 degrees of freedom, [0.19, 5.3]: a few tiles
     carry most of the variance, 0.33-2.19 over six seeds); passes that shared their random
     numbers would have no spread, passes written into one image or given every pass's samples a
-    far larger or smaller one."""
-    scene, parameter, edges, settings = shadow_setup(tmp_path)
+    far larger or smaller one. Interior, primary and direct on the shadow scene, indirect on the
+    scene lit by way of a wall."""
+    scene, parameter, edges, settings = SETUPS[term](tmp_path)
     grouped = forward_gradient(scene, edges, parameter, 0, term, settings, PASSES)
     counts, single = passes_one_by_one(scene, edges, parameter, term, settings, PASSES)
     assert len(grouped.passes) == len(single) == PASSES and grouped.weights == [c / sum(counts) for c in counts]
@@ -95,9 +112,9 @@ def test_grouped_passes_are_independent_passes_of_the_estimator(tmp_path, term):
 
 def test_a_single_pass_is_the_pass_traced_alone(tmp_path):
     """With one Dr.Jit thread (scatter-adds then add in one order, as in the optimisation loop)."""
-    scene, parameter, edges, settings = shadow_setup(tmp_path)
     with backend.optimization_threads():
-        for term in ("interior", "primary", "direct"):
+        for term, setup in SETUPS.items():
+            scene, parameter, edges, settings = setup(tmp_path)
             one = forward_gradient(scene, edges, parameter, 0, term, settings, 1)
             _, alone = passes_one_by_one(scene, edges, parameter, term, settings, 1)
             assert len(one.passes) == 1 and np.array_equal(one.passes[0], alone[0]), term

@@ -42,20 +42,21 @@ import drjit as dr
 import mitsuba as mi
 
 from . import interior
-from .interior import environment_motion, turn
+from .interior import environment_motion, split_views, turn
 from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
                                 ray_origin, sample_edge_point, sample_wedge)
-from .camera import SensorCamera, camera_ray, connect_camera
+from .camera import LaneCameras, SensorCamera, connect_camera
 from .term import GuideTarget, Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
 
 
-def detector_walk(scene, sensor, siD, w, depth: int, sampler, active, width, height):
-    """Light-tracing walk from x^D for light arriving from x^B along −ω (``w`` = +ω).
+def detector_walk(scene, camera, siD, w, depth: int, sampler, active):
+    """Light-tracing walk from x^D for light arriving from x^B along −ω (``w`` = +ω), connected to
+    ``camera`` (:class:`.camera.SensorCamera`, or :class:`.camera.LaneCameras`: each lane's own).
 
     Returns a list over j = 1..depth of (D_j, film position, pixel, mask)."""
-    out, camera = [], SensorCamera(sensor, width, height)
+    out = []
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     si, w_in, beta, active = mi.SurfaceInteraction3f(siD), w, mi.Color3f(1.0), mi.Bool(active)  # copies: the caller's stay intact
     for j in range(1, depth + 1):
@@ -94,12 +95,12 @@ def boundary_motion(env_motion, xB, xD, siS_ad, source_surface, coef_geometry, m
     return dr.select(source_surface, surface, env)
 
 
-def indirect_segments(scene, sensor, edges: BoundaryEdges, P, distr, u1, u2, sampler, max_depth: int):
-    """Detached segments from primary samples (u1, u2) with both subpaths.
+def indirect_segments(scene, camera, edges: BoundaryEdges, P, distr, u1, u2, sampler, max_depth: int):
+    """Detached segments from primary samples (u1, u2) with both subpaths, the detector's walk
+    connected to ``camera`` (:func:`detector_walk`).
 
     Returns (edge, ω, geometry, m̂, S, walk, siS, siD, mask): ``geometry`` = sinφ·σ·t_D/(p(x^B)p(ω)),
     ``S[k]`` the source radiances, ``walk`` the detector terms (see :func:`detector_walk`)."""
-    width, height = sensor.film().size()
     edge = sample_edge_point(edges, P, distr, u1)
     with dr.suspend_grad():
         xB = dr.detach(edge.xB)
@@ -117,7 +118,7 @@ def indirect_segments(scene, sensor, edges: BoundaryEdges, P, distr, u1, u2, sam
         sigma = dr.sign(dr.dot(exw, edge.p2 - edge.p0))
         tD = dr.norm(xB - siD.p)
         geometry = dr.select(ok, sin_phi * sigma * tD / (edge.pdf * p_dir), 0.0)
-        walk = detector_walk(scene, sensor, siD, w, max_depth - 1, sampler, ok, width, height)
+        walk = detector_walk(scene, camera, siD, w, max_depth - 1, sampler, ok)
     return edge, w, geometry, mhat, S, walk, siS, siD, ok
 
 
@@ -137,7 +138,8 @@ def indirect_target(scene, sensors, edges: BoundaryEdges, P, sampler, max_depth:
         total = mi.Float(0.0)
         for sensor in sensors:
             _, _, geometry, _, S, walk, _, _, _ = indirect_segments(
-                scene, sensor, edges, P, distr, u.x, mi.Point2f(u.y, u.z), sampler, max_depth)
+                scene, SensorCamera(sensor, *sensor.film().size()), edges, P, distr, u.x, mi.Point2f(u.y, u.z),
+                sampler, max_depth)
             for j, (D, _, _, ok_j) in enumerate(walk, start=1):
                 if max_depth - 1 - j < 0:
                     break
@@ -150,13 +152,36 @@ def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, 
     """Indirect boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` segments,
     with primary samples from ``guide`` when given (divided by its density)."""
     width, height = sensor.film().size()
-    img = dr.zeros(mi.Float, width * height * 3)
+    return indirect_image(scene, SensorCamera(sensor, width, height), None, 1, edges, P, n_samples, sampler,
+                          max_depth, guide)
+
+
+def views_indirect_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
+                            max_depth: int) -> list:
+    """:func:`indirect_boundary` of several views (one film size, unguided) traced as one wavefront:
+    lane i (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view
+    i // n_samples of ``sensors`` and its detector walk connects to that view's camera
+    (:class:`.camera.LaneCameras`); one image per view."""
+    width, height = sensors[0].film().size()
+    view = dr.arange(mi.UInt32, n_samples * len(sensors)) // dr.opaque(mi.UInt32, n_samples)
+    img = indirect_image(scene, LaneCameras(sensors, view, width, height), view, len(sensors), edges, P, n_samples,
+                         sampler, max_depth)
+    return split_views(img, len(sensors))
+
+
+def indirect_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges, P, n_samples: int,
+                   sampler: mi.Sampler, max_depth: int, guide=None) -> mi.Float:
+    """The indirect boundary contributions of ``count`` views as one flat image, view-major
+    (count·W·H·3), each lane's segment added to its view's part (``view``: each lane's view, None
+    for one view), from ``n_samples`` segments per view."""
+    width, height = camera.width, camera.height
+    img = dr.zeros(mi.Float, width * height * 3 * count)
     if edges.count == 0 or max_depth < 3:
         return img  # paths with a boundary segment and ≥ 3 segments are needed
     distr = edge_distribution(edges, P)
     u1, u2, g = primary_sample(sampler, guide)
     edge, w, geometry, mhat, S, walk, siS, siD, ok = indirect_segments(
-        scene, sensor, edges, P, distr, u1, u2, sampler, max_depth)
+        scene, camera, edges, P, distr, u1, u2, sampler, max_depth)
     with dr.suspend_grad():
         geometry *= dr.opaque(mi.Float, (width * height) / n_samples) / g
         dr.eval(S, walk, geometry, mhat, siS, siD)
@@ -173,12 +198,13 @@ def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, 
             F = path_weight(S, D, ok_j, j, max_depth)
             live = ok_j & (dr.max(F) > 0)
         if j == 1:  # camera vertex: x^D slides along the camera ray through its film position
-            ray = camera_ray(sensor, uv, width, height, live)
-            xD_t = dr.select(live, scene.ray_intersect(ray, live).p, siD.p)
+            xD_t = dr.select(live, scene.ray_intersect(camera(uv, live), live).p, siD.p)
         else:
             xD_t = siD_ad.p
         v = F * boundary_motion(env_motion, edge.xB, xD_t, siS_ad, surface, geometry, mhat, w)
         v = dr.select(live, v - dr.detach(v), 0.0)
+        if view is not None:
+            pixel = pixel + view * (width * height)
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, live)
     return img
@@ -189,6 +215,14 @@ def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estima
     """One pass of the indirect term (:class:`~.term.Term` signature)."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed)
     return indirect_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth, guide)
+
+
+def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
+    """One unguided pass of the indirect term for several ``views`` traced as one wavefront (the
+    samples of :func:`estimate`, drawn from one sampler seeded with ``seed``): a flat W·H·3 AD
+    image per view."""
+    n, sampler, P = boundary_pass(scene, edges, spp, seed, len(views))
+    return views_indirect_boundary(scene.mi_scene, [scene.sensors[v] for v in views], edges, P, n, sampler, max_depth)
 
 
 def guide_techniques(sampling: str) -> tuple:
@@ -206,4 +240,5 @@ def guide_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: s
 
 TERM = Term("indirect", samples_key="boundary_spp", stream=4, estimate=estimate,
             guide=GuideTarget(guide_techniques, guide_target, seed_offset=2, min_depth=3, random=True,
-                              per_technique=False))
+                              per_technique=False),
+            estimate_views=estimate_views)
