@@ -20,7 +20,9 @@ from psdr_cli.reference import block_sums, mean_and_error
 from standins import blob_cfg, bumpy_blob, load
 from psdr_cli.topology import build_topology
 
-PASSES = 24
+#: passes of one sample per pixel each: the variance ratio below is heavy-tailed (rare large
+#: 1/w_e draws), so it needs many (16 passes gave 1.16-2.58 over five seeds, 128 give 1.46-1.85)
+PASSES = 128
 
 
 def primary_passes(exp, sampling: str) -> np.ndarray:
@@ -32,8 +34,8 @@ def primary_passes(exp, sampling: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def dense_blob_passes(tmp_path_factory):
-    """The flat bumpy blob at 2562 vertices (32², 16 spp per pass) under both densities."""
-    exp = load(blob_cfg(False, spp=(16, 16, 16)), tmp_path_factory.mktemp("blob"), {"blob": bumpy_blob(4)})
+    """The flat bumpy blob at 2562 vertices (32², 128 passes of 1 spp) under both densities."""
+    exp = load(blob_cfg(False, spp=(16, PASSES, 16)), tmp_path_factory.mktemp("blob"), {"blob": bumpy_blob(4)})
     return {s: primary_passes(exp, s) for s in ("length", "jump")}
 
 
@@ -53,10 +55,10 @@ def test_jump_and_length_densities_agree(dense_blob_passes):
 
 
 def test_jump_density_lowers_the_variance_on_a_dense_flat_mesh(dense_blob_passes):
-    """Summed per-pixel variance at least 1.4× lower with ``jump`` (measured 1.9×; uniform
-    length sampling is 1×)."""
+    """Summed per-pixel variance at least 1.3× lower with ``jump`` (1.46-1.85× over five seeds;
+    uniform length sampling is 1×)."""
     var = {s: p.var(0, ddof=1).sum() for s, p in dense_blob_passes.items()}
-    assert var["length"] > 1.4 * var["jump"], var
+    assert var["length"] > 1.3 * var["jump"], var
 
 
 def test_jump_weights_follow_the_facet_turn():
