@@ -9,7 +9,10 @@ one warm-up call, so that the kernels come from the cache):
   demo's reconstruction), all views at ``--render-spp`` (default its targets' 128);
 - ``grad``: :func:`psdr_cli.estimate.gradient_images` of ``--grad-config`` (default
   ``configs/demo.yaml``, the first example of the README), view 0, every term at its configured
-  sample counts (``--grad-spp``: the interior's, as ``psdr grad --spp``).
+  sample counts (``--grad-spp``: the interior's, as ``psdr grad --spp``);
+- ``grad_passes``: the same in ``--grad-passes`` passes per term (default 16; ``psdr grad``
+  with ``estimator.passes``, ``psdr compare``'s equal-sample variants and the tests' gradient
+  checks split their samples so, for per-pass images and standard errors).
 
     .venv/bin/python benchmarks/command_overhead.py [--json docs/benchmarks/command_overhead.json]
 """
@@ -65,6 +68,7 @@ def main(argv=None):
     ap.add_argument("--grad-config", type=Path, default=REPO / "configs" / "demo.yaml")
     ap.add_argument("--render-spp", type=int, default=128, help="samples per pixel of the render (the demo's targets)")
     ap.add_argument("--grad-spp", type=int, default=None, help="the interior term's samples per pixel (psdr grad --spp)")
+    ap.add_argument("--grad-passes", type=int, default=16, help="passes per term of the grad_passes measurement")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     render_exp = psdr_cli.load_experiment(args.render_config)
@@ -74,11 +78,13 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         render = lambda: render_experiment(render_exp, spp=args.render_spp, out=Path(tmp))  # noqa: E731
         grad = lambda: gradient_images(grad_exp, view=0, spp=args.grad_spp)  # noqa: E731
-        for name, fn in (("render", render), ("grad", grad)):
+        grad_passes = lambda: gradient_images(grad_exp, view=0, spp=args.grad_spp, min_passes=args.grad_passes)  # noqa: E731
+        for name, fn in (("render", render), ("grad", grad), ("grad_passes", grad_passes)):
             fn()  # warm-up: kernels compiled or loaded from the cache
             out[name] = measured(fn)
     out["reference_after"] = reference_loop_seconds()
-    for name in ("render", "grad"):
+    out["grad_passes_count"] = args.grad_passes
+    for name in ("render", "grad", "grad_passes"):
         r = out[name]
         print(f"{name}: wall {r['wall']:.3f} s; blocking, with the history: wall {r['wall_blocking']:.3f} s, kernel "
               f"execution {r['execution']:.3f} s, codegen {r['codegen']:.3f} s, Python/other {r['python_blocking']:.3f} s, "
