@@ -171,34 +171,36 @@ def test_batched_direct_pass_is_the_per_view_estimator(tmp_path):
     backend.activate(e)
     scene = build_scene(e)
     edges = BoundaryEdges.from_scene(scene)
-    a = np.stack([direct_tiles(scene, edges, seed, False) for seed in (1, 2, 3, 4)])
-    c = np.stack([direct_tiles(scene, edges, seed, True) for seed in (11, 12)])
-    spread = np.linalg.norm(a.std(axis=0, ddof=1), axis=1)
-    assert np.all(spread > 0)
-    z = np.linalg.norm(c.mean(axis=0) - a.mean(axis=0), axis=1) / (spread * np.sqrt(1 / 4 + 1 / 2))
-    assert np.all(z < 2.5), z
-    mean = a.mean(axis=0)
-    assert np.linalg.norm(np.roll(mean, 1, axis=0) - mean) > 5.0 * np.linalg.norm(spread)
+    assert_batched_tiles_match(lambda seed, batched: direct_tiles(scene, edges, seed, batched), views_apart=5.0)
 
 
 def direct_tiles(scene, edges, seed: int, batched: bool, spp: int = 16) -> np.ndarray:
     """(views, 4·4·3): the direct term's dI/dθ of every view of ``scene`` summed over 8 × 8 tiles
     of its 32 × 32 film, θ the x-translation of the occluder ``occ``."""
+    n = spp * 32 * 32
+
+    def trace(P):
+        if batched:
+            return views_direct_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n), "mis")
+        return [direct_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), "mis")
+                for k, s in enumerate(scene.sensors)]
+    return translation_tiles(scene, SHADOW_KEY, (1, 0, 0), trace)
+
+
+def translation_tiles(scene, key: str, axis, trace) -> np.ndarray:
+    """(views, 4·4·3): dI/dθ of the images ``trace(P)`` returns (one per view, 32 × 32, from the
+    AD vertex buffer P of ``key``) summed over 8 × 8 tiles, θ the translation of ``key`` along
+    ``axis`` (forward mode)."""
     params = mi.traverse(scene.mi_scene)
-    V0 = mi.Float(params[SHADOW_KEY])
+    V0 = mi.Float(params[key])
     theta = mi.Float(0.0)
     dr.enable_grad(theta)
-    params[SHADOW_KEY] = dr.ravel(dr.unravel(mi.Point3f, V0) + theta * mi.Vector3f(1, 0, 0))
+    params[key] = dr.ravel(dr.unravel(mi.Point3f, V0) + theta * mi.Vector3f(*axis))
     params.update()
-    n, P = spp * 32 * 32, params[SHADOW_KEY]
-    if batched:
-        images = views_direct_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n), "mis")
-    else:
-        images = [direct_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), "mis")
-                  for k, s in enumerate(scene.sensors)]
+    images = trace(params[key])
     dr.set_grad(theta, 1.0)
     dr.forward_to(*images)
-    params[SHADOW_KEY] = V0
+    params[key] = V0
     params.update()
     return np.stack([np.array(dr.grad(i)).reshape(4, 8, 4, 8, 3).sum((1, 3)).ravel() for i in images])
 
@@ -221,36 +223,34 @@ def test_batched_indirect_pass_is_the_per_view_estimator():
     backend.activate(exp)
     scene = build_scene(exp)
     edges = BoundaryEdges.from_scene(scene)
-    a = np.stack([indirect_tiles(scene, edges, seed, False) for seed in (1, 2, 3, 4)])
-    c = np.stack([indirect_tiles(scene, edges, seed, True) for seed in (11, 12)])
+    assert_batched_tiles_match(lambda seed, batched: indirect_tiles(scene, edges, seed, batched), views_apart=3.0)
+
+
+def assert_batched_tiles_match(tiles, views_apart: float):
+    """``tiles(seed, batched)`` → (views, tiles): the mean of two batched passes differs from the
+    mean of four per-view passes by z = |Δ| / (s·√(1/4 + 1/2)) < 2.5 per view, s the per-view
+    passes' spread, and the views' mean tiles differ by more than ``views_apart`` spreads."""
+    a = np.stack([tiles(seed, False) for seed in (1, 2, 3, 4)])
+    c = np.stack([tiles(seed, True) for seed in (11, 12)])
     spread = np.linalg.norm(a.std(axis=0, ddof=1), axis=1)
     assert np.all(spread > 0)
     z = np.linalg.norm(c.mean(axis=0) - a.mean(axis=0), axis=1) / (spread * np.sqrt(1 / 4 + 1 / 2))
     assert np.all(z < 2.5), z
     mean = a.mean(axis=0)
-    assert np.linalg.norm(np.roll(mean, 1, axis=0) - mean) > 3.0 * np.linalg.norm(spread)
+    assert np.linalg.norm(np.roll(mean, 1, axis=0) - mean) > views_apart * np.linalg.norm(spread)
 
 
 def indirect_tiles(scene, edges, seed: int, batched: bool, spp: int = 256) -> np.ndarray:
     """(views, 4·4·3): the indirect term's dI/dθ of every view of ``scene`` summed over 8 × 8
     tiles of its 32 × 32 film, θ the z-translation of the ball."""
-    params = mi.traverse(scene.mi_scene)
-    V0 = mi.Float(params[INDIRECT_KEY])
-    theta = mi.Float(0.0)
-    dr.enable_grad(theta)
-    params[INDIRECT_KEY] = dr.ravel(dr.unravel(mi.Point3f, V0) + theta * mi.Vector3f(0, 0, 1))
-    params.update()
-    n, P, depth = spp * 32 * 32, params[INDIRECT_KEY], scene.config.max_depth
-    if batched:
-        images = views_indirect_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n), depth)
-    else:
-        images = [indirect_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), depth)
-                  for k, s in enumerate(scene.sensors)]
-    dr.set_grad(theta, 1.0)
-    dr.forward_to(*images)
-    params[INDIRECT_KEY] = V0
-    params.update()
-    return np.stack([np.array(dr.grad(i)).reshape(4, 8, 4, 8, 3).sum((1, 3)).ravel() for i in images])
+    n, depth = spp * 32 * 32, scene.config.max_depth
+
+    def trace(P):
+        if batched:
+            return views_indirect_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n), depth)
+        return [indirect_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), depth)
+                for k, s in enumerate(scene.sensors)]
+    return translation_tiles(scene, INDIRECT_KEY, (0, 0, 1), trace)
 
 
 def term_estimate_view(scene, exp, term, spp, seed, batched, k):

@@ -206,6 +206,15 @@ class LaneCameras:
         return mi.Spectrum(importance), to_camera / dist, uv, valid, dist
 
 
+def lane_views(sensors, n_samples: int) -> tuple:
+    """(view, cameras) of ``n_samples`` lanes per view of ``sensors`` (one film size) traced as one
+    wavefront, view-major: lane i belongs to view i // n_samples and sees it through
+    :class:`LaneCameras`."""
+    width, height = sensors[0].film().size()
+    view = dr.arange(mi.UInt32, n_samples * len(sensors)) // dr.opaque(mi.UInt32, n_samples)
+    return view, LaneCameras(sensors, view, width, height)
+
+
 def camera_connection(scene: mi.Scene, camera, x, active):
     """Project x to the film of ``camera`` (:class:`SensorCamera`, :class:`LaneCameras`) and test
     that the camera sees it.

@@ -44,7 +44,7 @@ import mitsuba as mi
 
 from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
                                 pdf_wedge, primary_sample, ray_origin, sample_edge_point, sample_wedge)
-from .camera import LaneCameras, SensorCamera, connect_camera
+from .camera import SensorCamera, connect_camera, lane_views
 from .interior import environment_motion, split_views, turn
 from .sample_log import SampleLog
 from .term import GuideTarget, Term, boundary_pass
@@ -205,10 +205,8 @@ def views_direct_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_s
     lane i (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view
     i // n_samples of ``sensors`` and connects to that view's camera (:class:`.camera.LaneCameras`);
     one image per view."""
-    width, height = sensors[0].film().size()
-    view = dr.arange(mi.UInt32, n_samples * len(sensors)) // dr.opaque(mi.UInt32, n_samples)
-    img = direct_image(scene, LaneCameras(sensors, view, width, height), view, len(sensors), edges, P, n_samples,
-                       sampler, technique)
+    view, cameras = lane_views(sensors, n_samples)
+    img = direct_image(scene, cameras, view, len(sensors), edges, P, n_samples, sampler, technique)
     return split_views(img, len(sensors))
 
 

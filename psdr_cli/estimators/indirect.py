@@ -45,7 +45,7 @@ from . import interior
 from .interior import environment_motion, split_views, turn
 from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
                                 ray_origin, sample_edge_point, sample_wedge)
-from .camera import LaneCameras, SensorCamera, connect_camera
+from .camera import SensorCamera, connect_camera, lane_views
 from .term import GuideTarget, Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
@@ -162,10 +162,8 @@ def views_indirect_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n
     lane i (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view
     i // n_samples of ``sensors`` and its detector walk connects to that view's camera
     (:class:`.camera.LaneCameras`); one image per view."""
-    width, height = sensors[0].film().size()
-    view = dr.arange(mi.UInt32, n_samples * len(sensors)) // dr.opaque(mi.UInt32, n_samples)
-    img = indirect_image(scene, LaneCameras(sensors, view, width, height), view, len(sensors), edges, P, n_samples,
-                         sampler, max_depth)
+    view, cameras = lane_views(sensors, n_samples)
+    img = indirect_image(scene, cameras, view, len(sensors), edges, P, n_samples, sampler, max_depth)
     return split_views(img, len(sensors))
 
 

@@ -51,7 +51,7 @@ from ..intersections import Segments, intersection_segments, segment_points
 from ..jitarray import concat, jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
-from .camera import LaneCameras, Projection, SensorCamera, film_pixel, sensor_groups
+from .camera import Projection, SensorCamera, film_pixel, lane_views, sensor_groups
 from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
@@ -580,8 +580,7 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
     if count == 1:
         view, cameras = None, SensorCamera(sensors[0], width, height)
     else:
-        view = dr.arange(mi.UInt32, n_samples * count) // dr.opaque(mi.UInt32, n_samples)
-        cameras = LaneCameras(sensors, view, width, height)
+        view, cameras = lane_views(sensors, n_samples)
     joined = np.asarray(concat([vc.mass for vc in live]), np.float64)  # one read for all views
     split = iter(np.split(joined, np.cumsum([len(vc.curves) for vc in live])[:-1]))
     masses = [next(split) if vc is not None else np.zeros(0) for vc in parts]
