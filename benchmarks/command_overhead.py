@@ -11,7 +11,7 @@ one warm-up call, so that the kernels come from the cache):
   ``configs/demo.yaml``, the first example of the README), view 0, every term at its configured
   sample counts (``--grad-spp``: the interior's, as ``psdr grad --spp``);
 - ``grad_passes``: the same in ``--grad-passes`` passes per term (default 16; ``psdr grad``
-  with ``estimator.passes``, ``psdr compare``'s equal-sample variants and the tests' gradient
+  with ``estimator.passes``, ``psdr compare``'s reference and the tests' gradient
   checks split their samples so, for per-pass images and standard errors).
 
     .venv/bin/python benchmarks/command_overhead.py [--json docs/benchmarks/command_overhead.json]

@@ -3,7 +3,7 @@
 wall time, kernel execution, code generation and the rest of ``forward_gradient`` of each term
 of ``--config`` (default ``configs/demo.yaml``, view 0, unguided) in ``--passes`` passes, after
 two warm-up calls, the third with Dr.Jit's kernel history and blocking launches. ``psdr grad``
-with ``estimator.passes``, ``psdr compare``'s equal-sample variants and the tests' gradient checks
+with ``estimator.passes``, ``psdr compare``'s reference and the tests' gradient checks
 split their samples into passes like this (per-pass images give the standard errors).
 
     .venv/bin/python benchmarks/grad_passes.py [--passes 16] [--json docs/benchmarks/grad_passes.json]

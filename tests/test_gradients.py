@@ -84,14 +84,14 @@ def test_cornell_image_sum_matches_finite_differences(runs):
 
 @pytest.mark.slow
 def test_indirect_term_is_needed_in_the_cornell_box(tmp_path):
-    """Leaving the indirect term out makes the Cornell-box check fail: the indirect estimator
-    carries a real, significant part of the derivative. The image sums of one run (estimate and
-    its terms, finite differences) with σ = √(se_estimate² + se_fd²): |indirect| > 3σ, and the
-    estimate without it is more than 3σ from the finite differences. Its own run, with the
-    power this needs: the primary term at 1024 spp (at the configured 128 it dominated σ) and
-    h = 0.01 (the sum of a smooth ball's translation; a third of the FD noise of the fixture's
-    h = 0.003, whose σ ≈ 4 left |indirect| / σ ≈ 3.5 and the check up to chance; here 6.7-7.0
-    and |z| 7.2-7.8 over two seeds)."""
+    """The indirect estimator carries a real, significant part of the Cornell box's derivative:
+    the image sums of one run (estimate and its terms, finite differences) with
+    σ = √(se_estimate² + se_fd²) give |indirect| > 3σ, and the estimate without the indirect term
+    is more than 3σ from the finite differences (σ of the whole estimate: conservative). Its own
+    run, with the power this needs: the primary term at 1024 spp (at the configured 128 it
+    dominated σ) and h = 0.01 (the sum of a smooth ball's translation; a third of the FD noise of
+    the fixture's h = 0.003, whose σ ≈ 4 left |indirect| / σ ≈ 3.5 and the check up to chance;
+    here 6.7-7.0 and |z| 7.2-7.8 over two seeds)."""
     cfg = yaml.safe_load(open(VALIDATION / "cornell.yaml"))
     cfg["estimator"]["primary_spp"] = 1024
     path = tmp_path / "cornell.yaml"

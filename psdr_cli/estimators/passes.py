@@ -7,6 +7,9 @@ image with P pixels are split into n passes of at most L paths (lanes) each,
 
 with the counts of the passes differing by at most one. Every pass gets its own seed, a hash of
 (experiment seed, view, pass, stream), so passes, views and terms never share random numbers.
+Passes traced together as one wavefront (several views of a mini-batch, or several passes of one
+view in forward mode) share one seed (:func:`views_seed`) and take their samples from different
+lanes of its sampler, so they never share random numbers either.
 """
 from __future__ import annotations
 
@@ -31,8 +34,9 @@ def pass_seed(seed: int, view: int, pass_index: int, stream: int = 0) -> int:
 
 
 def views_seed(seed: int, views, pass_index: int, stream: int = 0) -> int:
-    """The seed of a pass that traces several ``views`` in one wavefront: :func:`pass_seed` with the
-    views folded into one key (≥ 2^20, so that it names no single view; one view: its own seed)."""
+    """The seed of a pass that traces several ``views`` in one wavefront (views of a mini-batch, or
+    one view repeated for several passes, ``pass_index`` the first of them): :func:`pass_seed` with
+    the views folded into one key (≥ 2^20, so that it names no single view; one view: its own seed)."""
     if len(views) == 1:
         return pass_seed(seed, views[0], pass_index, stream)
     key = 0

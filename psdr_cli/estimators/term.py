@@ -20,6 +20,9 @@ trace of its Python code instead of one per view):
     estimate_views(scene, edges, views, spp, seed, estimator, max_depth) -> [mi.Float per view]
 
 with the samples of ``estimate`` drawn from one sampler seeded with ``seed`` (unguided terms only).
+``views`` may name a view more than once (forward mode traces several passes of one view so):
+each entry must then be an independent estimate from its own lanes, so a term must not key its
+random numbers or any cached state on the view's index.
 
 Each estimator module declares its ``TERM``; :mod:`.registry` lists them.
 """
