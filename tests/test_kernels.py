@@ -120,13 +120,14 @@ def test_guides_built_again_read_aligned_memory_and_compile_nothing_new(tmp_path
             dr.sync_thread()
             history = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
             unaligned += sum(bool(UNALIGNED_LOAD.search(kernel_source(h))) for h in history)
-            builds.append({str(h.get("hash")): h for h in history})
+            builds.append(history)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, flag)
     assert builds[0] and unaligned == 0, f"{unaligned} kernels loaded unaligned numpy memory"
-    compiled = [(b, h) for b in (1, 2) for k, h in builds[b].items() if k not in builds[0] and not h["cache_hit"]]
+    first = {str(h["hash"]): h for h in builds[0]}
+    compiled = [(b, h) for b in (1, 2) for h in builds[b] if str(h["hash"]) not in first and not h["cache_hit"]]
     assert not compiled, "builds 2-3 compiled kernels the first did not launch: " + "; ".join(
-        f"build {b + 1}, {h['size']} lanes: {first_difference(kernel_source(h), builds[0])}" for b, h in compiled)
+        f"build {b + 1}, {h['size']} lanes: {first_difference(kernel_source(h), first)}" for b, h in compiled)
 
 
 def first_difference(source: str, launched: dict) -> str:
