@@ -1,5 +1,6 @@
 """Shared helpers: experiment files written into a temporary folder, and CLI runs."""
 import copy
+import gc
 import os
 import subprocess
 import sys
@@ -103,6 +104,18 @@ def run_psdr(capfd):
         captured = capfd.readouterr()
         return subprocess.CompletedProcess(["psdr", *argv], code, captured.out, captured.err)
     return run
+
+
+@pytest.fixture(autouse=True)
+def freed_mitsuba_objects():
+    """Every test starts after a garbage collection. Mitsuba registers each BSDF, emitter and
+    shape with Dr.Jit, and kernels that dispatch over them (a BSDF evaluated at a ray's hit) hold
+    the instances' registry ids; an id is reused once its object is freed. Earlier tests' scenes
+    left in reference cycles were freed only at some later collection, so a test's kernels
+    depended on what its worker had run before, and every suite run compiled several hundred
+    kernels again (docs/testing.md, "Stop 50")."""
+    gc.collect()
+    yield
 
 
 # --------------------------------------------------------------------------------------------
