@@ -75,13 +75,40 @@ def default_cache_dir() -> str:
     return os.path.join(cache_root(), "drjit")
 
 
+#: Why the user's ``DRJIT_LIBLLVM_PATH`` cannot be used (set by :func:`configure_environment`,
+#: reported by :func:`select_variant` when an LLVM variant is asked for), or None.
+_unusable_llvm: str | None = None
+
+
+def unusable_llvm_reason(path: str) -> str | None:
+    """Why Dr.Jit's LLVM backend cannot load ``path``: it does not exist, or its file name says an
+    LLVM older than ``MIN_LLVM``; None when it looks usable."""
+    if not os.path.exists(path):
+        return (f"DRJIT_LIBLLVM_PATH={path} does not exist; point it at a libLLVM >= {MIN_LLVM} "
+                f"or unset it (install one with 'apt-get install {LLVM_PACKAGE}')")
+    major = _llvm_major(path)
+    if major is not None and major < MIN_LLVM:
+        return (f"DRJIT_LIBLLVM_PATH={path} is LLVM {major}; Dr.Jit needs LLVM >= {MIN_LLVM} "
+                f"(install it with 'apt-get install {LLVM_PACKAGE}' and unset DRJIT_LIBLLVM_PATH)")
+    return None
+
+
 def configure_environment() -> None:
     """Set ``DRJIT_LIBLLVM_PATH`` and ``DRJIT_CACHE_DIR`` unless the user already did.
 
     Best run before the first ``import drjit``. Dr.Jit reads the variables when a backend is first
     initialised, so setting them after the import still works as long as no LLVM kernel ran yet.
+    A user's ``DRJIT_LIBLLVM_PATH`` that cannot work (missing file, LLVM < 16) is removed before
+    Dr.Jit sees it (Dr.Jit would print its own loader errors at import) and reported as one line
+    when an LLVM variant is selected; CUDA variants run without it.
     """
-    if "DRJIT_LIBLLVM_PATH" not in os.environ:
+    global _unusable_llvm
+    user_path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if user_path:
+        _unusable_llvm = unusable_llvm_reason(user_path)
+        if _unusable_llvm:
+            del os.environ["DRJIT_LIBLLVM_PATH"]
+    elif user_path is None:
         lib = find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
@@ -95,13 +122,13 @@ def configure_environment() -> None:
 
 
 def _require_llvm() -> None:
+    if _unusable_llvm:
+        raise PsdrError(_unusable_llvm)
     path = os.environ.get("DRJIT_LIBLLVM_PATH")
     if path:
-        major = _llvm_major(path)
-        if major is not None and major < MIN_LLVM:
-            raise PsdrError(
-                f"DRJIT_LIBLLVM_PATH={path} is LLVM {major}; Dr.Jit needs LLVM >= {MIN_LLVM} "
-                f"(install it with 'apt-get install {LLVM_PACKAGE}' and unset DRJIT_LIBLLVM_PATH)")
+        reason = unusable_llvm_reason(path)
+        if reason:
+            raise PsdrError(reason)
         return
     raise PsdrError(f"no libLLVM >= {MIN_LLVM} found; install one with "
                     f"'apt-get install {LLVM_PACKAGE}' (or set DRJIT_LIBLLVM_PATH)")

@@ -36,13 +36,21 @@ def test_bad_variant_override(monkeypatch):
         backend.select_variant("auto")
 
 
-def test_old_llvm_is_refused_with_the_package_to_install(tmp_path, write_cfg, monkeypatch):
-    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-15.so")
+@pytest.mark.parametrize("name, expected", [
+    ("libLLVM-15.so", "is LLVM 15"),              # an existing file of an old LLVM
+    ("missing/libLLVM-19.so", "does not exist"),  # a path to nothing (Dr.Jit printed its own loader errors)
+])
+def test_unusable_llvm_is_refused_in_one_line_with_the_package_to_install(tmp_path, write_cfg, monkeypatch,
+                                                                          name, expected):
+    lib = tmp_path / name
+    if "missing" not in name:
+        lib.write_bytes(b"")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(lib))
     monkeypatch.setenv("PSDR_VARIANT", "llvm_ad_rgb")
     proc = run_cli("render", write_cfg(experiment()), cwd=tmp_path)
     assert proc.returncode == 2
-    assert "LLVM 15" in proc.stderr and "apt-get install libllvm19" in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+    assert expected in proc.stderr and "apt-get install libllvm19" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr, proc.stderr
 
 
 def test_no_arguments_prints_help_with_every_subcommand():
