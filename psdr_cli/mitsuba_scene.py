@@ -407,6 +407,7 @@ def read_shapes(mi_scene, xml: Path, emitters: list, warnings: list) -> tuple:
     for name in shapes:
         if name_problem(name):
             raise ConfigError(xml, f"shapegroup '{name}'", f"id {name_problem(name)}")
+        refuse_instances_on_cuda(name, mi.variant(), xml)
     for name, shape in zip(_shape_names(mi_scene, shapes), mi_scene.shapes()):
         what = f"shape '{name}'"
         check_shape(shape, name, xml, checked, duplicate=name in objects or name in shapes)
@@ -422,6 +423,16 @@ def read_shapes(mi_scene, xml: Path, emitters: list, warnings: list) -> tuple:
             continue
         objects[name] = xml_object(shape, name, xml, warnings)
     return shapes, objects
+
+
+def refuse_instances_on_cuda(group: str, variant: str, xml: Path):
+    """Shapegroups (and so their instances) are refused on CUDA variants: psdr rebuilds a scene
+    from the loaded XML's objects, and on the first GPU run (Mitsuba 3.9.1, ``cuda_ad_rgb``,
+    H200) ``mi.load_dict`` of a rebuilt scene holding a shapegroup instance ended the process with
+    a segmentation fault; the LLVM variants render it."""
+    if variant.startswith("cuda"):
+        raise ConfigError(xml, f"shapegroup '{group}'", f"instances of a shapegroup crash Mitsuba's {variant} "
+                          "when psdr rebuilds the scene; use variant llvm_ad_rgb or replace the instances by meshes")
 
 
 def check_shape(shape, name: str, xml: Path, checked: set, duplicate: bool):

@@ -20,6 +20,7 @@ from psdr_cli.estimate import forward_gradient, pass_groups, prepare, term_image
 from psdr_cli.estimators.passes import AD_LANES
 from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.config.options import with_estimator
+from conftest import bit_reproducible
 from test_direct_boundary import SHADOW
 
 #: light reaches the floor the camera sees only by way of a wall: the indirect term's scene
@@ -116,6 +117,7 @@ def test_grouped_passes_are_independent_passes_of_the_estimator(tmp_path, monkey
     assert f.ppf(0.0005, dof, dof) < ratio < f.ppf(0.9995, dof, dof), ratio
 
 
+@bit_reproducible
 def test_a_single_pass_is_the_pass_traced_alone(tmp_path):
     """With one Dr.Jit thread (scatter-adds then add in one order, as in the optimisation loop)."""
     with backend.optimization_threads():

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import experiment
+from conftest import bit_reproducible, experiment
 from psdr_cli import cli, fileio
 from psdr_cli.errors import PsdrError
 from psdr_cli.run_folder.layout import RunFiles, lock_run
@@ -430,6 +430,7 @@ LOOP_FED["optimize"].update(iterations=8)
 
 
 @pytest.mark.slow
+@bit_reproducible
 @pytest.mark.parametrize("data", [GUIDED, LOOP_FED], ids=["grid", "loop-fed kdtree"])
 def test_stopped_and_resumed_guided_run_reproduces_the_uninterrupted_one(tmp_path, capsys, data):
     """Guided (grid guides built every 3 iterations, or Kd-trees fitted every 3 iterations to the

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import run_cli
+from conftest import bit_reproducible, run_cli
 from psdr_cli import evaluate as ev
 from psdr_cli import meshes
 
@@ -81,6 +81,7 @@ def wait_for_state(state: Path, at_least: int, proc, timeout: float = 300) -> in
 
 
 @pytest.mark.slow
+@bit_reproducible
 def test_resume_after_hard_kill_continues_where_it_stopped(tmp_path, run_psdr):
     """kill -9 in the middle, then --resume: every iteration is logged exactly once, the run ends
     with final.ply, and the resumed iterations reproduce the uninterrupted run's losses (that run
@@ -660,6 +661,7 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
 
 
 @pytest.mark.slow
+@bit_reproducible
 def test_coarse_to_fine_and_lambda_schedule_resume_exactly(tmp_path):
     """downsample [2, 1] and lambda [40, 10] with a remesh at 4 (stage 0 on 8² images, stage 1 on
     16²): a run stopped at the stage change and resumed repeats the uninterrupted run's losses and

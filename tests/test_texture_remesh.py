@@ -11,7 +11,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from conftest import write_raw_exr
+from conftest import bit_reproducible, write_raw_exr
 from psdr_cli import atlas, backend, cli, fileio, load_experiment, meshes
 from psdr_cli.config.optimize import OptimizeConfig
 from psdr_cli.problem import texture_experiment
@@ -86,6 +86,7 @@ def full_run(tmp_path_factory):
     return path, run
 
 
+@bit_reproducible
 def test_textured_run_with_a_remesh_resumes_exactly(tmp_path, full_run):
     """The textured run completes, with UVs split at the atlas's seams in its state; stopped at
     iteration 2 and resumed, it reproduces the uninterrupted run: losses, texture and final mesh."""

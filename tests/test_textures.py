@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import write_raw_exr
+from conftest import bit_reproducible, write_raw_exr
 from psdr_cli import backend, cli, fileio, load_experiment, meshes
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.log import read_log
@@ -189,6 +189,7 @@ def test_texture_is_recovered_jointly_with_the_shape(tmp_path):
 
 
 @pytest.mark.slow
+@bit_reproducible
 def test_stopped_and_resumed_texture_run_reproduces_the_uninterrupted_one(tmp_path):
     full, run_full = texture_run(tmp_path / "full", 24)
     assert cli.run(["optimize", str(full)]) == 0
