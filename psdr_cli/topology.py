@@ -195,17 +195,23 @@ def boxed_points(corners, points) -> np.ndarray:
     return points[np.all((points >= lo) & (points <= hi), axis=1)]
 
 
-def oriented_parts(V, F, viewpoints=()):
-    """(flipped, solid) per face of a welded mesh (V, F): whether its winding must be reversed so
-    that every connected part (faces joined through edges with two faces) is consistently
-    oriented, towards free space where the part is closed; and whether the part is closed and
-    orientable, so that paths stay on one side of it.
+@dataclass(frozen=True)
+class FaceParts:
+    """What :func:`oriented_parts` needs of a welded face array F alone: per face its part
+    (``label``) and whether its winding must be reversed to agree with its part's root face
+    (``parity``), whether its part is closed and orientable (``solid``); and the half-edge groups
+    of F (:func:`edge_groups`)."""
+    label: np.ndarray
+    parity: np.ndarray
+    solid: np.ndarray
+    groups: tuple
 
-    A closed part's free space is its outside (signed volume Σ det(p0, p1, p2)/6 > 0), unless it
-    encloses one of the ``viewpoints`` (camera origins; winding number ≥ ½): a room seen from
-    inside (only viewpoints inside the solid faces' bounding box are tested: :func:`boxed_points`).
-    flipped(f) = flipped(parent) XOR same(parent, f) over breadth-first trees of the parts
-    (scipy.sparse.csgraph), accumulated to the roots by pointer doubling."""
+
+def face_parts(F) -> FaceParts:
+    """:class:`FaceParts` of the welded faces F: parity(f) = parity(parent) XOR same(parent, f)
+    over breadth-first trees of the parts (scipy.sparse.csgraph), accumulated to the roots by
+    pointer doubling; a part is solid when every edge has two of its faces and no face pair
+    still traverses a shared edge in the same direction."""
     n = len(F)
     f, g, same = face_graph(F)
     # 1 for opposite traversals, 4 for the same; two faces sharing two edges add up (2, 5 or 8)
@@ -227,6 +233,42 @@ def oriented_parts(V, F, viewpoints=()):
     parity = parity[:n]
     twisted = same ^ parity[f] ^ parity[g]  # still the same direction: a non-orientable part
     solid = (closed_parts(F, label) & (np.bincount(label[f], weights=twisted, minlength=label.max() + 1) == 0))[label]
+    return FaceParts(label, parity, solid, edge_groups(F))
+
+
+#: :class:`FaceParts` of the last face arrays seen (by content): an optimisation rebuilds the edge
+#: table every iteration from new vertices but the faces change only at a remesh
+_FACE_PARTS: dict = {}
+_FACE_PARTS_KEPT = 4
+
+
+def cached_face_parts(F) -> FaceParts:
+    """:func:`face_parts` of F, computed once per distinct face array (its bytes as the key; the
+    arrays are read-only results, shared by every caller)."""
+    key = (F.shape, F.tobytes())
+    parts = _FACE_PARTS.get(key)
+    if parts is None:
+        parts = face_parts(F)
+        for a in (parts.label, parts.parity, parts.solid, *parts.groups):
+            a.setflags(write=False)
+        while len(_FACE_PARTS) >= _FACE_PARTS_KEPT:
+            _FACE_PARTS.pop(next(iter(_FACE_PARTS)))
+        _FACE_PARTS[key] = parts
+    return parts
+
+
+def oriented_parts(V, F, viewpoints=()):
+    """(flipped, solid) per face of a welded mesh (V, F): whether its winding must be reversed so
+    that every connected part (faces joined through edges with two faces) is consistently
+    oriented, towards free space where the part is closed; and whether the part is closed and
+    orientable, so that paths stay on one side of it.
+
+    A closed part's free space is its outside (signed volume Σ det(p0, p1, p2)/6 > 0), unless it
+    encloses one of the ``viewpoints`` (camera origins; winding number ≥ ½): a room seen from
+    inside (only viewpoints inside the solid faces' bounding box are tested: :func:`boxed_points`).
+    The parts and their parities depend on F alone (:func:`cached_face_parts`)."""
+    parts = cached_face_parts(F)
+    label, parity, solid = parts.label, parts.parity, parts.solid
     G = np.where(parity[:, None], F[:, ::-1], F)
     det = np.einsum("ij,ij->i", V[G[:, 0]], np.cross(V[G[:, 1]], V[G[:, 2]]))
     inward = np.bincount(label, weights=det) < 0
@@ -289,7 +331,7 @@ def build_topology(V, F, eps: float = 1e-5, viewpoints=()) -> Topology:
     wid, rep = weld(V)
     Fw = wid[F]
     flipped, solid = oriented_parts(V[rep], Fw, viewpoints)
-    _, order, starts, counts = edge_groups(Fw)  # by welded end points
+    _, order, starts, counts = cached_face_parts(Fw).groups  # by welded end points
     simple = counts <= 2
     h0 = order[starts[simple]]
     h1 = np.where(counts[simple] == 2, order[np.minimum(starts[simple] + 1, len(order) - 1)], -1)

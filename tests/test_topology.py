@@ -177,3 +177,25 @@ def test_viewpoints_outside_the_bounding_box_are_not_tested(monkeypatch):
     assert tested == [] and np.array_equal(outside.concave, build_topology(V, F).concave)
     room = build_topology(V, F, viewpoints=[[9, 9, 9], [2, 2, 2], [0.3, -0.5, 0.2]])
     assert tested == [2] and room.concave.sum() == 12
+
+
+def test_edge_table_from_remembered_face_parts_is_the_fresh_one():
+    """The parts and parities of a face array are remembered between builds (an optimisation
+    moves vertices, the faces change at a remesh): a build with moved vertices, and one whose
+    faces differ only in one face's winding (same shape), equal builds from an empty memory."""
+    rng = np.random.default_rng(3)
+    Vs, Fs = meshes.sphere(1.0, 2)
+    Vp, Fp = meshes.plane((3.0, 3.0))
+    Vb, Fb = book_mesh()
+    V = np.concatenate([Vs, Vp - [0, 0, 1.5], Vb + [0, 0, 2]])
+    F = np.concatenate([Fs, Fp + len(Vs), Fb + len(Vs) + len(Vp)])
+    turned = F.copy()
+    turned[5] = turned[5, ::-1]
+    build_topology(V, F)   # remembers F's parts
+    for V2, F2 in ((V + rng.normal(0, 0.02, V.shape), F), (V, turned)):
+        remembered = build_topology(V2, F2)
+        topology._FACE_PARTS.clear()
+        fresh = build_topology(V2, F2)
+        for name, value in vars(fresh).items():
+            assert np.array_equal(getattr(remembered, name), value), name
+    assert not np.array_equal(build_topology(V, turned).turned0, build_topology(V, F).turned0)
