@@ -81,9 +81,10 @@ _unusable_llvm: str | None = None
 
 
 def unusable_llvm_reason(path: str) -> str | None:
-    """Why Dr.Jit's LLVM backend cannot load ``path``: it does not exist, or its file name says an
-    LLVM older than ``MIN_LLVM``; None when it looks usable."""
-    if not os.path.exists(path):
+    """Why Dr.Jit's LLVM backend cannot load ``path``: a path (with a directory) to nothing, or a
+    file name that says an LLVM older than ``MIN_LLVM``; None when it looks usable (a bare name
+    such as ``libLLVM.so.19.1`` is left to the system's library search, as Dr.Jit does)."""
+    if os.sep in path and not os.path.exists(path):
         return (f"DRJIT_LIBLLVM_PATH={path} does not exist; point it at a libLLVM >= {MIN_LLVM} "
                 f"or unset it (install one with 'apt-get install {LLVM_PACKAGE}')")
     major = _llvm_major(path)
@@ -103,12 +104,13 @@ def configure_environment() -> None:
     when an LLVM variant is selected; CUDA variants run without it.
     """
     global _unusable_llvm
-    user_path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    user_path = os.environ.get("DRJIT_LIBLLVM_PATH", "").strip()
     if user_path:
         _unusable_llvm = unusable_llvm_reason(user_path)
         if _unusable_llvm:
             del os.environ["DRJIT_LIBLLVM_PATH"]
-    elif user_path is None:
+    else:  # unset or empty: psdr's own search
+        os.environ.pop("DRJIT_LIBLLVM_PATH", None)
         lib = find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib

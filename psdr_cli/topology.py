@@ -21,6 +21,7 @@ its sector; the sector wider than π (at most one) is the only one with silhouet
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -236,24 +237,30 @@ def face_parts(F) -> FaceParts:
     return FaceParts(label, parity, solid, edge_groups(F))
 
 
-#: :class:`FaceParts` of the last face arrays seen (by content): an optimisation rebuilds the edge
-#: table every iteration from new vertices but the faces change only at a remesh
+#: :class:`FaceParts` of the face arrays used last (by content, least recently used first): an
+#: optimisation rebuilds the edge table every iteration from new vertices, but the faces change
+#: only at a remesh. The edge table is built on the loop's worker thread and on the main thread.
 _FACE_PARTS: dict = {}
-_FACE_PARTS_KEPT = 4
+_FACE_PARTS_KEPT = 16
+_FACE_PARTS_LOCK = threading.Lock()
 
 
 def cached_face_parts(F) -> FaceParts:
-    """:func:`face_parts` of F, computed once per distinct face array (its bytes as the key; the
-    arrays are read-only results, shared by every caller)."""
-    key = (F.shape, F.tobytes())
-    parts = _FACE_PARTS.get(key)
-    if parts is None:
-        parts = face_parts(F)
-        for a in (parts.label, parts.parity, parts.solid, *parts.groups):
-            a.setflags(write=False)
-        while len(_FACE_PARTS) >= _FACE_PARTS_KEPT:
-            _FACE_PARTS.pop(next(iter(_FACE_PARTS)))
+    """:func:`face_parts` of F, computed once per distinct face array (its dtype, shape and bytes
+    as the key; the arrays are read-only results, shared by every caller)."""
+    key = (F.dtype.str, F.shape, F.tobytes())
+    with _FACE_PARTS_LOCK:
+        parts = _FACE_PARTS.pop(key, None)
+        if parts is not None:
+            _FACE_PARTS[key] = parts   # now the most recently used
+            return parts
+    parts = face_parts(F)
+    for a in (parts.label, parts.parity, parts.solid, *parts.groups):
+        a.setflags(write=False)
+    with _FACE_PARTS_LOCK:
         _FACE_PARTS[key] = parts
+        while len(_FACE_PARTS) > _FACE_PARTS_KEPT:
+            _FACE_PARTS.pop(next(iter(_FACE_PARTS)))
     return parts
 
 

@@ -18,7 +18,8 @@ def test_llvm_major_from_file_name(name, major):
 
 
 def test_import_selected_a_supported_libllvm_and_a_stable_cache():
-    path = os.environ["DRJIT_LIBLLVM_PATH"]
+    path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    assert path, "DRJIT_LIBLLVM_PATH unset: psdr found no libLLVM >= 16, or removed an unusable one"
     assert os.path.exists(path) and backend._llvm_major(path) >= backend.MIN_LLVM
     assert os.path.isdir(os.environ["DRJIT_CACHE_DIR"])
     found = backend.find_libllvm()
@@ -51,6 +52,20 @@ def test_unusable_llvm_is_refused_in_one_line_with_the_package_to_install(tmp_pa
     assert proc.returncode == 2
     assert expected in proc.stderr and "apt-get install libllvm19" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_a_bare_library_name_is_left_to_the_system_search_and_an_empty_path_is_unset(monkeypatch):
+    """``DRJIT_LIBLLVM_PATH=libLLVM.so.19.1`` (no folder) is what Dr.Jit loads through the library
+    search path: kept; one naming an old LLVM is refused; an empty value gets psdr's search."""
+    assert backend.unusable_llvm_reason("libLLVM.so.19.1") is None
+    assert "is LLVM 15" in backend.unusable_llvm_reason("libLLVM-15.so")
+    monkeypatch.setattr(backend, "_unusable_llvm", None)
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "libLLVM.so.19.1")
+    backend.configure_environment()
+    assert os.environ["DRJIT_LIBLLVM_PATH"] == "libLLVM.so.19.1" and backend._unusable_llvm is None
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
+    backend.configure_environment()
+    assert os.environ.get("DRJIT_LIBLLVM_PATH") == backend.find_libllvm() and backend._unusable_llvm is None
 
 
 def test_no_arguments_prints_help_with_every_subcommand():

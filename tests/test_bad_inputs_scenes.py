@@ -344,6 +344,15 @@ def test_xml_instances_are_refused_on_cuda_variants_in_one_line(tmp_path):
     mitsuba_scene.refuse_instances_on_cuda("grp", "llvm_ad_rgb", xml)
 
 
+def test_xml_loading_asks_the_variant_check_about_each_shapegroup(tmp_path, monkeypatch):
+    group = ('<shape type="shapegroup" id="grp"><shape type="cube"><bsdf type="diffuse"/></shape></shape>'
+             '<shape type="instance"><ref id="grp"/></shape>')
+    asked = []
+    monkeypatch.setattr(mitsuba_scene, "refuse_instances_on_cuda", lambda name, variant, xml: asked.append(name))
+    load_experiment(xml_experiment(tmp_path, group), warn=lambda m: None)
+    assert asked == ["grp"]
+
+
 def test_obj_uvs_are_read_as_written(tmp_path):
     """No invented UVs for an OBJ with a material library but no ``vt``, and no atlas for one
     with ``vt`` and two materials: each vertex keeps the UV the file gives it."""
