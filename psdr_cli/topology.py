@@ -264,7 +264,7 @@ def cached_face_parts(F) -> FaceParts:
     return parts
 
 
-def oriented_parts(V, F, viewpoints=()):
+def oriented_parts(V, F, parts: FaceParts, viewpoints=()):
     """(flipped, solid) per face of a welded mesh (V, F): whether its winding must be reversed so
     that every connected part (faces joined through edges with two faces) is consistently
     oriented, towards free space where the part is closed; and whether the part is closed and
@@ -273,8 +273,7 @@ def oriented_parts(V, F, viewpoints=()):
     A closed part's free space is its outside (signed volume Σ det(p0, p1, p2)/6 > 0), unless it
     encloses one of the ``viewpoints`` (camera origins; winding number ≥ ½): a room seen from
     inside (only viewpoints inside the solid faces' bounding box are tested: :func:`boxed_points`).
-    The parts and their parities depend on F alone (:func:`cached_face_parts`)."""
-    parts = cached_face_parts(F)
+    ``parts``: F's :class:`FaceParts`, which depend on F alone (:func:`cached_face_parts`)."""
     label, parity, solid = parts.label, parts.parity, parts.solid
     G = np.where(parity[:, None], F[:, ::-1], F)
     det = np.einsum("ij,ij->i", V[G[:, 0]], np.cross(V[G[:, 1]], V[G[:, 2]]))
@@ -337,8 +336,9 @@ def build_topology(V, F, eps: float = 1e-5, viewpoints=()) -> Topology:
     F = np.asarray(F, np.int64)
     wid, rep = weld(V)
     Fw = wid[F]
-    flipped, solid = oriented_parts(V[rep], Fw, viewpoints)
-    _, order, starts, counts = cached_face_parts(Fw).groups  # by welded end points
+    parts = cached_face_parts(Fw)
+    flipped, solid = oriented_parts(V[rep], Fw, parts, viewpoints)
+    _, order, starts, counts = parts.groups  # by welded end points
     simple = counts <= 2
     h0 = order[starts[simple]]
     h1 = np.where(counts[simple] == 2, order[np.minimum(starts[simple] + 1, len(order) - 1)], -1)
