@@ -83,13 +83,14 @@ class Engine:
         return estimate.ad_image(problem.scene, edges, view, self.terms, self.settings, pass_index=iteration,
                                  guides=guides)
 
-    def images(self, problem, edges, views, iteration: int, guides=None) -> list:
+    def images(self, problem, edges, views, iteration: int, guides=None, terms=None) -> list:
         """:meth:`image` of each of ``views``; psdr's terms that can trace the views as one
-        wavefront do (:func:`psdr_cli.estimate.ad_images`)."""
+        wavefront do (:func:`psdr_cli.estimate.ad_images`). ``terms``: a part of psdr's terms
+        (default: all of them)."""
         if self.name == "mitsuba":
             return [self.image(problem, edges, v, iteration, guides) for v in views]
-        return estimate.ad_images(problem.scene, edges, views, self.terms, self.settings, pass_index=iteration,
-                                  guides=guides)
+        return estimate.ad_images(problem.scene, edges, views, self.terms if terms is None else terms,
+                                  self.settings, pass_index=iteration, guides=guides)
 
     def coverage(self, problem, edges, view: int, iteration: int) -> mi.Float:
         """C_v of ``iteration``: the rendered coverage of a masked view (flat W·H, AD;

@@ -18,6 +18,8 @@ from .estimators.passes import pass_seed, views_seed
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
+from .estimators.interior import split_views
+from .frozen_batch import FROZEN_TERM, FrozenBatch, refusal
 from .geometry_ahead import GeometryAhead
 from .guiding.loop_fed import fed_term, fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
@@ -39,6 +41,7 @@ class Loop:
     total: int
     warn: object
     clip: float | None = None  # the gradient clip factor (outlier_clip.clip_factor), None: no clipping
+    frozen: FrozenBatch | None = None  # the recorded part of the iterations (frozen_batch.py), None: all traced
 
     @property
     def settings(self):
@@ -136,7 +139,12 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     """Iteration ``it`` of the run ``loop`` on the shape of ``problem``."""
     cfg, engine, settings, warn = loop.cfg, loop.engine, loop.settings, loop.warn
     n_views, seed = len(stage.arrays), settings.seed
-    problem.apply()
+    views = batch_views(seed, it, n_views, cfg.batch_size)
+    frozen = loop.frozen is not None and refusal(problem, stage, cfg, engine, settings, len(views)) is None
+    if frozen:
+        values, leaves = problem.apply_leaves()
+    else:
+        problem.apply()
     problem.scene.objects[cfg.object].vertices = problem.vertices()
     problem.scene.objects[cfg.object].faces = problem.F
     ahead = GeometryAhead(problem.scene, settings.estimator, settings.edge_sort, "primary" in engine.terms) \
@@ -148,24 +156,14 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
         edges = ahead.edges() if ahead is not None else None
         guides.refresh(problem, edges, stage, loop)
     t_render = time.perf_counter()
-    views = batch_views(seed, it, n_views, cfg.batch_size)
-    loss = mi.Float(0.0)
-    # the adjoint render first: its kernels run while the worker builds the edge table
-    adjoints = adjoint_images(problem.scene, views, cfg.adjoint_spp, seed, it) if cfg.adjoint_spp else \
-        [None] * len(views)
-    if edges is None and ahead is not None:
-        edges = ahead.edges()
-    images = engine.images(problem, edges, views, it, guides.guides)
-    for v, img, adjoint in zip(views, images, adjoints):
-        view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
-                          stage.masks[v] if stage.masks is not None else None,
-                          partial(engine.coverage, problem, edges, v, it))
-        for value in view_losses(view, cfg):  # losses/registry.py
-            loss += value / len(views)
-    prior = problem.prior()  # the unknowns' priors (optimize.envmap.smoothness)
-    if prior is not None:
-        loss += prior
-    dr.backward(loss)
+    if frozen:
+        loss = frozen_loss(problem, loop, stage, guides, views, it, ahead, edges)
+        if dr.grad_enabled(loss):
+            dr.backward(loss)
+        problem.backward_leaves(values, leaves)
+    else:
+        loss = traced_loss(problem, loop, stage, guides, views, it, ahead, edges)
+        dr.backward(loss)
     problem.applied = None  # the backward pass used up the scene's AD graph: the next apply rebuilds it
     loss_value = float(loss[0])
     t_post = time.perf_counter()
@@ -182,6 +180,49 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
         problem.opt.step()
         problem.after_step()  # ranges and the environment's mean (problem.py)
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
+
+
+def traced_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, ahead, edges) -> mi.Float:
+    """The iteration's loss: every view's losses (:mod:`psdr_cli.losses`) over the batch, the
+    unknowns' priors added, its AD graph reaching the optimiser's variables."""
+    cfg, engine = loop.cfg, loop.engine
+    loss = mi.Float(0.0)
+    # the adjoint render first: its kernels run while the worker builds the edge table
+    adjoints = adjoint_images(problem.scene, views, cfg.adjoint_spp, loop.settings.seed, it) if cfg.adjoint_spp \
+        else [None] * len(views)
+    if edges is None and ahead is not None:
+        edges = ahead.edges()
+    images = engine.images(problem, edges, views, it, guides.guides)
+    for v, img, adjoint in zip(views, images, adjoints):
+        view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
+                          stage.masks[v] if stage.masks is not None else None,
+                          partial(engine.coverage, problem, edges, v, it))
+        for value in view_losses(view, cfg):  # losses/registry.py
+            loss += value / len(views)
+    prior = problem.prior()  # the unknowns' priors (optimize.envmap.smoothness)
+    if prior is not None:
+        loss += prior
+    return loss
+
+
+def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, ahead, edges) -> mi.Float:
+    """The iteration's L1 loss with the recorded part (:mod:`psdr_cli.frozen_batch`): the adjoint
+    render and the interior term's backward pass replayed (their gradient already in the scene's
+    leaves), the other terms traced as Σ_v Σ δ_v·I_v,term, whose primal value is 0, and the priors.
+    Returns ℓ + that sum + the priors, for one backward pass of the traced part."""
+    engine = loop.engine
+    loss, delta = loop.frozen(problem, stage, views, it, loop.settings, loop.cfg)
+    if edges is None and ahead is not None:
+        edges = ahead.edges()
+    rest = tuple(t for t in engine.terms if t != FROZEN_TERM)
+    if rest:
+        images = engine.images(problem, edges, views, it, guides.guides, terms=rest)
+        for d, img in zip(split_views(delta, len(views)), images):
+            loss = loss + dr.sum(d * img)
+    prior = problem.prior()
+    if prior is not None:
+        loss = loss + prior
+    return loss
 
 
 def batch_views(seed: int, iteration: int, count: int, size: int) -> list:

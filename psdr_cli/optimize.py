@@ -35,6 +35,7 @@ from .config.experiment_file import Experiment, check_experiment
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
+from .frozen_batch import FrozenBatch
 from .iteration import GuideCache, Loop, iterate
 from .losses.registry import PLOT_LABEL
 from .outlier_clip import clip_factor
@@ -160,7 +161,8 @@ def start_loop(exp, start: RunStart, total: int, warn) -> tuple:
     of a run from ``start``: the guides in use when a resumed run stopped are rebuilt."""
     problem = Problem.from_state(SceneSource.of(exp), start.state, start.cameras)
     engine = Engine(Settings.from_experiment(exp, loop=True))
-    loop = Loop(exp.optimize, engine, total, warn, clip_factor(exp.optimize.outlier_clip, exp.scene.max_depth))
+    loop = Loop(exp.optimize, engine, total, warn, clip_factor(exp.optimize.outlier_clip, exp.scene.max_depth),
+                FrozenBatch() if exp.optimize.freeze else None)
     stage = stage_of(problem, start.targets, loop.settings, loop.terms, masks=start.inputs.masks)
     return Current(problem, stage, GuideCache.resumed(problem, loop, start.state, stage)), loop
 

@@ -189,18 +189,54 @@ class Problem:
                 all(a is b for a, b in zip(current, self.applied)):
             return
         self.applied = None
-        self.params[self.key] = self.steps.from_differential(self.opt["u"])
-        if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
-            self.params[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
-        if self.environment:
-            self.params[self.environment.key] = self.environment.texels(self.opt["envmap"])
-        for name, (key, _) in self.materials.items():
-            self.params[key] = self.opt[name]  # within its range: after_step clamps it
+        for key, value in self.scene_values().items():
+            self.params[key] = value
         if self.envmap:
             self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
         else:
             self.params.update()
         self.applied = current  # held, so that `is` above cannot match a recycled object
+
+    def scene_values(self) -> dict:
+        """{scene parameter: its value from the optimiser's variables (AD-attached)}: the vertices
+        V = solve(u) of the large steps, the albedo clipped to [0, 1], the environment's texels, the
+        materials (the environment's rotation is applied by :meth:`apply` itself)."""
+        values = {self.key: self.steps.from_differential(self.opt["u"])}
+        if self.albedo_key:  # (re-assigning opt["albedo"] would reset its Adam moments)
+            values[self.albedo_key] = dr.clip(self.opt["albedo"], 0.0, 1.0)
+        if self.environment:
+            values[self.environment.key] = self.environment.texels(self.opt["envmap"])
+        for name, (key, _) in self.materials.items():
+            values[key] = self.opt[name]  # within its range: after_step clamps it
+        return values
+
+    def apply_leaves(self) -> tuple:
+        """Write the optimiser's variables into the scene as AD leaves (detached copies with
+        gradients enabled), for a reverse pass that must not reach the optimiser through the
+        large-steps solve (:mod:`psdr_cli.frozen_batch`). Returns (values, leaves): the attached
+        values and the leaves written, for :meth:`backward_leaves`. Not with an environment
+        rotation."""
+        values = self.scene_values()
+        leaves = {}
+        for key, value in values.items():
+            leaves[key] = dr.detach(value)
+            dr.enable_grad(leaves[key])
+            self.params[key] = leaves[key]
+        self.params.update()
+        self.applied = None  # the scene holds leaves: the next apply writes the attached values
+        return values, leaves
+
+    def backward_leaves(self, values: dict, leaves: dict):
+        """Carry the gradients g_k accumulated in the leaves to the optimiser's variables: the
+        backward pass of Σ_k Σ values_k · g_k (g_k constant), i.e. ∂L/∂x = Σ_k (∂values_k/∂x)ᵀ g_k."""
+        total = None
+        for key, value in values.items():
+            g = dr.grad(leaves[key])
+            flat = value.array if isinstance(value, mi.TensorXf) else dr.ravel(value)
+            part = dr.sum(flat * (g.array if isinstance(g, mi.TensorXf) else dr.ravel(g)))
+            total = part if total is None else total + part
+        if total is not None and dr.grad_enabled(total):
+            dr.backward(total)
 
     def prior(self):
         """The loss terms of the unknowns' priors (the environment's smoothness), or None."""

@@ -9,7 +9,7 @@ from .dataset import DatasetConfig, parse_dataset
 from .limits import MAX_FILM, MAX_ITERATIONS, MAX_SPP, MAX_VERTICES
 from .objects import MeshSpec, TransformConfig, parse_mesh, parse_transform
 from .unknowns import EnvmapUnknown, parse_envmap_unknown, parse_material, texture_size
-from .values import Parser, Section, choice, integer, list_of, number, per_stage, reflectance, string, vector
+from .values import Parser, Section, boolean, choice, integer, list_of, number, per_stage, reflectance, string, vector
 from .variants import run_variant_parser, unique_labels
 from .vocabularies import REMESH_METHODS
 
@@ -41,6 +41,7 @@ class OptimizeConfig:
     guide_every: int = 10
     adjoint_spp: int = 0                   # samples of the separate primal render the L1 sign comes from (0: the AD image's own)
     checkpoint_every: int = 50
+    freeze: bool = True                    # record and replay the interior part of each iteration (frozen_batch.py)
     preview_views: tuple = (0,)
     albedo: bool = False
     albedo_init: tuple | None = None       # default: the object's BSDF value
@@ -189,6 +190,7 @@ def read_schedule(sec: Section, o: OptimizeConfig):
     o.guide_every = sec.get("guide_every", integer(1), o.guide_every)
     o.adjoint_spp = sec.get("adjoint_spp", integer(0, MAX_SPP), o.adjoint_spp)
     o.checkpoint_every = sec.get("checkpoint_every", integer(1), o.checkpoint_every)
+    o.freeze = sec.get("freeze", boolean, o.freeze)
     o.preview_views = tuple(sec.get("preview_views", list_of(integer(0), min_len=1), list(o.preview_views)))
 
 

@@ -17,6 +17,7 @@ None: the film size, the field of view and the principal point come from the sce
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -160,21 +161,21 @@ class LaneCameras:
     valid for n < z' < f and a film position inside the (shifted) film."""
 
     def __init__(self, sensors, view: mi.UInt32, width: int, height: int):
-        self.width, self.height = width, height
-        frames, inverses, intrinsics = [], [], []
-        for sensor in sensors:
-            params = mi.traverse(sensor)
-            M = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
-            frames.append(M[:3, :4].T.ravel())  # columns x, y, z (rotation) and the origin
-            inverses.append(np.linalg.inv(M)[:3, :4].T.ravel())
-            proj = Projection(sensor)
-            intrinsics.append((proj.tan_half, *proj.centre, float(params["near_clip"]), float(params["far_clip"])))
-        frames, inverses = jit_array(mi.Float, np.ravel(frames)), jit_array(mi.Float, np.ravel(inverses))
-        self.axes = [dr.gather(mi.Vector3f, frames, view * 4 + j) for j in range(4)]
-        self.local_axes = [dr.gather(mi.Vector3f, inverses, view * 4 + j) for j in range(4)]
-        intrinsics = jit_array(mi.Float, np.ravel(intrinsics))
+        self.gather(CameraTable.of(sensors, width, height), view)
+
+    @classmethod
+    def from_table(cls, table: "CameraTable", view: mi.UInt32) -> "LaneCameras":
+        """The cameras of lanes whose views index the rows of ``table``."""
+        cams = cls.__new__(cls)
+        cams.gather(table, view)
+        return cams
+
+    def gather(self, table: "CameraTable", view: mi.UInt32):
+        self.width, self.height = table.width, table.height
+        self.axes = [dr.gather(mi.Vector3f, table.frames, view * 4 + j) for j in range(4)]
+        self.local_axes = [dr.gather(mi.Vector3f, table.inverses, view * 4 + j) for j in range(4)]
         self.tan_half, self.cx, self.cy, self.near, self.far = (
-            dr.gather(mi.Float, intrinsics, view * 5 + j) for j in range(5))
+            dr.gather(mi.Float, table.intrinsics, view * 5 + j) for j in range(5))
 
     def __call__(self, uv, active=True):
         """The (detached) camera ray of each lane's view through film position ``uv`` (pixels)."""
@@ -204,6 +205,52 @@ class LaneCameras:
         to_camera = self.axes[3] - x
         dist = dr.norm(to_camera)
         return mi.Spectrum(importance), to_camera / dist, uv, valid, dist
+
+
+@dataclass
+class CameraTable:
+    """The cameras of several perspective sensors of one film size W × H as data, one row per
+    sensor: its camera-to-world frame (columns x, y, z and the origin: 12 floats), the frame's
+    inverse (12) and its intrinsics (tan(fov/2), c_x, c_y, near, far: 5). A lane gathers its
+    view's row (:class:`LaneCameras`), so a function of the table and an array of view indices
+    is the same function for every choice of views (what ``dr.freeze`` needs to replay it)."""
+    frames: mi.Float
+    inverses: mi.Float
+    intrinsics: mi.Float
+    width: int
+    height: int
+
+    @classmethod
+    def of(cls, sensors, width: int, height: int) -> "CameraTable":
+        frames, inverses, intrinsics = [], [], []
+        for sensor in sensors:
+            params = mi.traverse(sensor)
+            M = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
+            frames.append(M[:3, :4].T.ravel())
+            inverses.append(np.linalg.inv(M)[:3, :4].T.ravel())
+            proj = Projection(sensor)
+            intrinsics.append((proj.tan_half, *proj.centre, float(params["near_clip"]), float(params["far_clip"])))
+        return cls(*(jit_array(mi.Float, np.ravel(a)) for a in (frames, inverses, intrinsics)), width, height)
+
+
+def is_perspective(sensor: mi.Sensor) -> bool:
+    """Whether ``sensor`` is Mitsuba's ``perspective`` camera (the rays of :class:`LaneCameras`)."""
+    return sensor.class_name() == "PerspectiveCamera"
+
+
+def table_camera_rays(table: CameraTable, views: mi.UInt32, sampler: mi.Sampler, spp: int) -> mi.Ray3f:
+    """:func:`views_camera_rays` with the cameras as data: lane i belongs to the batch's view
+    ``views[i // (W·H·spp)]`` (a row of ``table``) and to its pixel (i mod W·H·spp) // spp, at the
+    film point (x, y) + ξ; the same samples are drawn (ξ, then the unused wavelength sample) and the
+    perspective camera's weight is 1."""
+    width, height = table.width, table.height
+    per_view = width * height * spp
+    idx = dr.arange(mi.UInt32, per_view * dr.width(views))
+    k = idx // dr.opaque(mi.UInt32, per_view)
+    pixel = (idx - k * dr.opaque(mi.UInt32, per_view)) // dr.opaque(mi.UInt32, spp)
+    pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
+    sampler.next_1d()  # the wavelength sample of Mitsuba's sample_ray
+    return LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k))(pos)
 
 
 def lane_views(sensors, n_samples: int) -> tuple:

@@ -45,10 +45,11 @@ def views_seed(seed: int, views, pass_index: int, stream: int = 0) -> int:
     return pass_seed(seed, key | 0x100000, pass_index, stream)
 
 
-def make_sampler(seed: int, lanes: int) -> mi.Sampler:
-    """Independent sampler for ``lanes`` parallel paths; the seed is opaque so kernels are reused."""
+def make_sampler(seed, lanes: int) -> mi.Sampler:
+    """Independent sampler for ``lanes`` parallel paths; the seed (an int, or a ``mi.UInt32`` of
+    one entry: an input of a frozen function) is opaque so kernels are reused."""
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(dr.opaque(mi.UInt32, seed), lanes)
+    sampler.seed(seed if isinstance(seed, mi.UInt32) else dr.opaque(mi.UInt32, seed), lanes)
     return sampler
 
 
