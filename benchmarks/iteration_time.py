@@ -41,6 +41,7 @@ from psdr_cli import backend, iteration  # noqa: E402
 from psdr_cli.engines import Engine  # noqa: E402
 from psdr_cli.estimators import registry  # noqa: E402
 from psdr_cli.estimate import Settings  # noqa: E402
+from psdr_cli.frozen_batch import FrozenBatch  # noqa: E402
 from psdr_cli.iteration import GuideCache  # noqa: E402
 from psdr_cli.losses import registry as loss_registry  # noqa: E402
 from psdr_cli.optimize import log_row, save_state  # noqa: E402
@@ -138,6 +139,7 @@ def instrument(phases: Phases):
         iteration.adjoint_image = phases.wrap("adjoint", iteration.adjoint_image)
     loss_registry.LOSSES = tuple(replace(x, value=phases.wrap("loss", x.value)) for x in loss_registry.LOSSES)
     iteration.dr = DrProxy(phases)
+    FrozenBatch.__call__ = phases.wrap("frozen", FrozenBatch.__call__)
 
 
 def timed_geometry(phases: Phases, cls):
@@ -172,15 +174,18 @@ def setup(scale: int, tmp: Path, initial: int | None = None):
     return exp, files, problem, settings, engine, stage
 
 
-def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial: int | None = None) -> dict:
+def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial: int | None = None,
+              freeze: bool = False) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         exp, files, problem, settings, engine, stage = setup(scale, Path(tmp), initial)
         guides = GuideCache()
         problem.apply = phases.wrap("apply", problem.apply)
+        problem.apply_leaves = phases.wrap("apply", problem.apply_leaves)
+        problem.backward_leaves = phases.wrap("backward", problem.backward_leaves)
         problem.opt.step = phases.wrap("update", problem.opt.step)
         total = warmup + iterations
         seconds = 0.0
-        loop = iteration.Loop(exp.optimize, engine, total, print)
+        loop = iteration.Loop(exp.optimize, engine, total, print, frozen=FrozenBatch() if freeze else None)
         body = phases.wrap("step", lambda it: iteration.iterate(problem, loop, stage, guides, it))
         save = phases.wrap("save", lambda it, s: save_state(problem, files, it + 1, s, guides))
         with backend.optimization_threads():
@@ -202,10 +207,11 @@ def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial:
         out["iteration"]["python"] = wall - sum(out["iteration"][k] for k in ("execution", "codegen", "backend"))
         out["iteration"]["cpu"] = cpu  # every thread's CPU time (the geometry worker's included)
         out["vertices"] = int(len(problem.vertices()))
+        out["recordings"] = loop.frozen.n_recordings if freeze else 0
         return out
 
 
-ORDER = ("edges", "interior", "primary", "direct", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other",
+ORDER = ("edges", "frozen", "interior", "primary", "direct", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other",
          "iteration")
 
 
@@ -233,6 +239,8 @@ def main(argv=None):
     ap.add_argument("--initial", type=int, default=None,
                     help="vertices of the initial shape (default: the experiment's remesh.initial, 800; the demo "
                          "remeshes to 1500 and 2500 later)")
+    ap.add_argument("--freeze", choices=("off", "on", "both"), default="both",
+                    help="the recorded part of the iteration (psdr_cli/frozen_batch.py): off, on, or both in turn")
     ap.add_argument("--no-blocking", action="store_true",
                     help="asynchronous launches (the loop's mode): kernel times then overlap and include queueing")
     args = ap.parse_args(argv)
@@ -242,12 +250,16 @@ def main(argv=None):
     dr.set_flag(dr.JitFlag.LaunchBlocking, not args.no_blocking)
     results = {"label": args.label, "python": platform.python_version(), "drjit": dr.__version__,
                "reference_before": reference_loop(), "scales": {}}
+    modes = {"off": (False,), "on": (True,), "both": (False, True)}[args.freeze]
     for s in (int(x) for x in args.scales.split(",")):
-        res = run_scale(s, args.warmup, args.iterations, phases, args.initial)
-        results["scales"][f"{64 * s}x{64 * s}"] = res
-        print(f"\n{args.label} {64 * s}² ({res['vertices']} vertices), per iteration over {args.iterations}:")
-        print("\n".join(table(res)))
-        print(f"CPU time of the process (every thread): {res['iteration']['cpu'] * 1e3:.1f} ms per iteration")
+        for freeze in modes:
+            res = run_scale(s, args.warmup, args.iterations, phases, args.initial, freeze)
+            key = f"{64 * s}x{64 * s}" + (" frozen" if freeze else "")
+            results["scales"][key] = res
+            print(f"\n{args.label} {key} ({res['vertices']} vertices, {res['recordings']} recordings), per iteration "
+                  f"over {args.iterations}:")
+            print("\n".join(table(res)))
+            print(f"CPU time of the process (every thread): {res['iteration']['cpu'] * 1e3:.1f} ms per iteration")
     results["reference_after"] = reference_loop()
     print(f"reference loop (10⁷ steps): {results['reference_before']:.3f} s before, "
           f"{results['reference_after']:.3f} s after")

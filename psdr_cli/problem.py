@@ -66,6 +66,7 @@ class Problem:
     def __init__(self, source: SceneSource, shape: Shape, cameras, values: dict, stage: int = 0):
         self.source, self.cfg, self.file = source, source.optimize, source.file
         self.applied = None  # the optimiser's variables last written into the scene (apply)
+        self.applied_values = {}  # and the values written (scene_values)
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
@@ -184,18 +185,25 @@ class Problem:
         applies after each step, for the checkpoint and the state, and again when the next
         iteration starts); a backward pass, :meth:`release` or a direct write of ``params`` must
         set ``applied = None``."""
-        current = [self.opt.state[k][0] for k in self.opt.keys()]
-        if self.applied is not None and len(current) == len(self.applied) and \
-                all(a is b for a, b in zip(current, self.applied)):
+        if self.applied_current():
             return
+        current = [self.opt.state[k][0] for k in self.opt.keys()]
         self.applied = None
-        for key, value in self.scene_values().items():
+        self.applied_values = self.scene_values()
+        for key, value in self.applied_values.items():
             self.params[key] = value
         if self.envmap:
             self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
         else:
             self.params.update()
         self.applied = current  # held, so that `is` above cannot match a recycled object
+
+    def applied_current(self) -> bool:
+        """Whether the values :meth:`apply` wrote last are the optimiser's variables as they are
+        now, their AD graph unused."""
+        current = [self.opt.state[k][0] for k in self.opt.keys()]
+        return self.applied is not None and len(current) == len(self.applied) and \
+            all(a is b for a, b in zip(current, self.applied))
 
     def scene_values(self) -> dict:
         """{scene parameter: its value from the optimiser's variables (AD-attached)}: the vertices
@@ -214,9 +222,10 @@ class Problem:
         """Write the optimiser's variables into the scene as AD leaves (detached copies with
         gradients enabled), for a reverse pass that must not reach the optimiser through the
         large-steps solve (:mod:`psdr_cli.frozen_batch`). Returns (values, leaves): the attached
-        values and the leaves written, for :meth:`backward_leaves`. Not with an environment
-        rotation."""
-        values = self.scene_values()
+        values and the leaves written, for :meth:`backward_leaves` (the values :meth:`apply` wrote
+        when they are still the optimiser's and unused: the loop applies after every step). Not
+        with an environment rotation."""
+        values = self.applied_values if self.applied_current() else self.scene_values()
         leaves = {}
         for key, value in values.items():
             leaves[key] = dr.detach(value)

@@ -136,3 +136,25 @@ def test_an_iteration_searches_intersections_on_the_worker_only(monkeypatch):
         step = iteration.iterate(problem, loop, stage, iteration.GuideCache(), 0)
     assert np.isfinite(step.loss) and not step.skipped
     problem.release()
+
+
+def test_leaves_after_an_apply_carry_the_gradient_of_a_fresh_apply():
+    """The loop applies after each step; the next iteration's leaves (frozen_batch.py) reuse the
+    values written then, and the gradient they carry back to u is that of values solved afresh."""
+    exp = experiment()
+    V, F = meshes.sphere(0.4, 2)
+    problem = Problem(exp, Shape(V + [0, 0, 0.42], F), None, {})
+    weights = mi.Float(np.linspace(-1.0, 2.0, 3 * len(V)))
+    grads = []
+    for reuse in (True, False):
+        if reuse:
+            problem.apply()
+        values, leaves = problem.apply_leaves()
+        assert (values[problem.key] is problem.applied_values[problem.key]) == reuse
+        dr.backward(dr.sum(problem.params[problem.key] * weights))  # the scene's buffer is the leaf
+        problem.backward_leaves(values, leaves)
+        grads.append(np.asarray(dr.grad(problem.opt["u"])).copy())
+        dr.set_grad(problem.opt["u"], 0.0)
+    assert np.abs(grads[0]).sum() > 0
+    assert np.allclose(grads[0], grads[1], rtol=1e-6, atol=1e-9)
+    problem.release()
