@@ -141,6 +141,7 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     n_views, seed = len(stage.arrays), settings.seed
     views = batch_views(seed, it, n_views, cfg.batch_size)
     frozen = loop.frozen is not None and refusal(problem, stage, cfg, engine, settings, len(views)) is None
+    problem.use_leaves = frozen  # the form the loop's apply after the step writes (problem.py)
     if frozen:
         values, leaves = problem.apply_leaves()
     else:

@@ -67,6 +67,8 @@ class Problem:
         self.source, self.cfg, self.file = source, source.optimize, source.file
         self.applied = None  # the optimiser's variables last written into the scene (apply)
         self.applied_values = {}  # and the values written (scene_values)
+        self.leaves = None  # or the leaves written in their place (apply_leaves)
+        self.use_leaves = False  # the form apply writes by default (the loop's last iteration's)
         self.factor = stage_value(self.cfg.downsample, stage)
         self.uv = None if shape.uv is None else np.asarray(shape.uv, np.float64)
         self.texture = bool(self.cfg.albedo and self.cfg.albedo_texture is not None)
@@ -179,18 +181,22 @@ class Problem:
                 adam_import(problem.opt, k, saved)
         return problem
 
-    def apply(self):
-        """Write the optimiser's variables into the scene (AD-attached). Nothing is done when the
-        variables written last are still the optimiser's and their AD graph is unused (the loop
+    def apply(self, leaves: bool | None = None):
+        """Write the optimiser's variables into the scene: AD-attached, or as AD leaves (detached
+        copies with gradients enabled, :meth:`apply_leaves`) when ``leaves`` (None: as the loop's
+        last iteration wanted, ``use_leaves``). Nothing is done when the variables written last
+        are still the optimiser's, in the same form, and their AD graph is unused (the loop
         applies after each step, for the checkpoint and the state, and again when the next
         iteration starts); a backward pass, :meth:`release` or a direct write of ``params`` must
         set ``applied = None``."""
-        if self.applied_current():
+        leaves = self.use_leaves if leaves is None else leaves
+        if self.applied_current() and (self.leaves is not None) == leaves:
             return
         current = [self.opt.state[k][0] for k in self.opt.keys()]
         self.applied = None
         self.applied_values = self.scene_values()
-        for key, value in self.applied_values.items():
+        self.leaves = {key: leaf(value) for key, value in self.applied_values.items()} if leaves else None
+        for key, value in (self.leaves or self.applied_values).items():
             self.params[key] = value
         if self.envmap:
             self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
@@ -219,21 +225,12 @@ class Problem:
         return values
 
     def apply_leaves(self) -> tuple:
-        """Write the optimiser's variables into the scene as AD leaves (detached copies with
-        gradients enabled), for a reverse pass that must not reach the optimiser through the
-        large-steps solve (:mod:`psdr_cli.frozen_batch`). Returns (values, leaves): the attached
-        values and the leaves written, for :meth:`backward_leaves` (the values :meth:`apply` wrote
-        when they are still the optimiser's and unused: the loop applies after every step). Not
-        with an environment rotation."""
-        values = self.applied_values if self.applied_current() else self.scene_values()
-        leaves = {}
-        for key, value in values.items():
-            leaves[key] = dr.detach(value)
-            dr.enable_grad(leaves[key])
-            self.params[key] = leaves[key]
-        self.params.update()
-        self.applied = None  # the scene holds leaves: the next apply writes the attached values
-        return values, leaves
+        """:meth:`apply` with the optimiser's variables as AD leaves, for a reverse pass that must
+        not reach the optimiser through the large-steps solve (:mod:`psdr_cli.frozen_batch`).
+        Returns (values, leaves): the attached values and the leaves written, for
+        :meth:`backward_leaves`. Not with an environment rotation."""
+        self.apply(leaves=True)
+        return self.applied_values, self.leaves
 
     def backward_leaves(self, values: dict, leaves: dict):
         """Carry the gradients g_k accumulated in the leaves to the optimiser's variables: the
@@ -412,6 +409,13 @@ def latlong_resample(image, W: int, H: int) -> np.ndarray:
     xa, xb = x0 % w, (x0 + 1) % w
     row = lambda r: image[r][:, xa] * (1 - fx) + image[r][:, xb] * fx  # noqa: E731
     return row(y0) * (1 - fy) + row(y1) * fy
+
+
+def leaf(value):
+    """A detached copy of ``value`` with gradients enabled (an AD leaf)."""
+    x = dr.detach(value)
+    dr.enable_grad(x)
+    return x
 
 
 def stage_experiment(exp, stage: int):

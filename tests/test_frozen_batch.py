@@ -37,7 +37,8 @@ def setup(subdivisions: int = 2, width: int | None = None):
 
 
 def batch_gradient(fb: FrozenBatch, problem, stage, engine, cfg, views, it):
-    """(ℓ, δ, the vertex leaf's gradient) of one call."""
+    """(ℓ, δ, the vertex leaf's gradient) of one call, on leaves written afresh."""
+    problem.applied = None
     values, leaves = problem.apply_leaves()
     loss, delta = fb(problem, stage, views, it, engine.settings, cfg)
     g = dr.grad(leaves[problem.key])

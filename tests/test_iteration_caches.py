@@ -139,22 +139,33 @@ def test_an_iteration_searches_intersections_on_the_worker_only(monkeypatch):
 
 
 def test_leaves_after_an_apply_carry_the_gradient_of_a_fresh_apply():
-    """The loop applies after each step; the next iteration's leaves (frozen_batch.py) reuse the
-    values written then, and the gradient they carry back to u is that of values solved afresh."""
+    """The loop applies after each step in the form its iteration used (problem.use_leaves); the
+    next iteration's leaves (frozen_batch.py) are then the ones written, with no second scene
+    update, and the gradient they carry back to u is that of leaves written afresh."""
     exp = experiment()
     V, F = meshes.sphere(0.4, 2)
     problem = Problem(exp, Shape(V + [0, 0, 0.42], F), None, {})
     weights = mi.Float(np.linspace(-1.0, 2.0, 3 * len(V)))
+    updates = []
+    update = problem.params.update
+    problem.params.update = lambda *a, **k: updates.append(1) or update(*a, **k)
     grads = []
     for reuse in (True, False):
+        problem.use_leaves = reuse
         if reuse:
-            problem.apply()
+            problem.apply()  # after the step: leaves already
+        before = len(updates)
         values, leaves = problem.apply_leaves()
-        assert (values[problem.key] is problem.applied_values[problem.key]) == reuse
-        dr.backward(dr.sum(problem.params[problem.key] * weights))  # the scene's buffer is the leaf
+        assert len(updates) == before + (0 if reuse else 1)
+        assert problem.params[problem.key].index == leaves[problem.key].index  # the scene's buffer is the leaf
+        dr.backward(dr.sum(problem.params[problem.key] * weights))
         problem.backward_leaves(values, leaves)
+        problem.applied = None  # as iterate() does after its backward pass
         grads.append(np.asarray(dr.grad(problem.opt["u"])).copy())
         dr.set_grad(problem.opt["u"], 0.0)
     assert np.abs(grads[0]).sum() > 0
     assert np.allclose(grads[0], grads[1], rtol=1e-6, atol=1e-9)
+    problem.apply(leaves=False)  # and back to attached values: a gradient reaches u directly
+    dr.backward(dr.sum(problem.params[problem.key] * weights))
+    assert np.allclose(np.asarray(dr.grad(problem.opt["u"])), grads[0], rtol=1e-6, atol=1e-9)
     problem.release()
