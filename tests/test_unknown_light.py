@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import write_raw_exr
+from conftest import bit_reproducible, write_raw_exr
 from psdr_cli import backend, cli, fileio, load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
@@ -142,19 +142,24 @@ def run_data(tmp_path, iterations=4):
     return data
 
 
-def test_stopped_and_resumed_run_reproduces_the_uninterrupted_one_and_exports(tmp_path):
-    """4 iterations at once, and 2 then --resume: the same losses, unknowns and Adam moments; the
-    environment's solid-angle mean stays at its initial 0.5 (albedo is free too); metallic stays
-    in [0, 1] (it starts at 0.02 with a large step); optimize.json names envmap.exr and holds the
-    materials; psdr export writes environment.exr and the glTF factors."""
-    (tmp_path / "full").mkdir()
-    (tmp_path / "part").mkdir()
-    full = write(tmp_path / "full", run_data(tmp_path / "full"))
-    part = write(tmp_path / "part", run_data(tmp_path / "part"))
+@pytest.fixture(scope="module")
+def light_runs(tmp_path_factory):
+    """(run folder of 4 iterations at once, run folder of 2 then --resume) of :func:`run_data`."""
+    tmp = tmp_path_factory.mktemp("light")
+    (tmp / "full").mkdir()
+    (tmp / "part").mkdir()
+    full = write(tmp / "full", run_data(tmp / "full"))
+    part = write(tmp / "part", run_data(tmp / "part"))
     assert cli.run(["optimize", str(full)]) == 0
     assert cli.run(["optimize", str(part), "--iterations", "2"]) == 0
     assert cli.run(["optimize", str(part), "--resume"]) == 0
-    run_full, run_part = tmp_path / "full" / "runs" / "light", tmp_path / "part" / "runs" / "light"
+    return tmp / "full" / "runs" / "light", tmp / "part" / "runs" / "light"
+
+
+@bit_reproducible
+def test_stopped_and_resumed_run_reproduces_the_uninterrupted_one(light_runs):
+    """4 iterations at once, and 2 then --resume: the same losses, unknowns and Adam moments."""
+    run_full, run_part = light_runs
     assert [r["loss"] for r in read_log(run_part / "log.csv")] == [r["loss"] for r in read_log(run_full / "log.csv")]
     a, b = State.load(run_full / "state.npz"), State.load(run_part / "state.npz")
     assert set(a.values) == {"albedo", "envmap_log", "roughness", "metallic"}
@@ -162,6 +167,14 @@ def test_stopped_and_resumed_run_reproduces_the_uninterrupted_one_and_exports(tm
         assert np.array_equal(a.values[k], b.values[k]), k
     for k in a.adam:
         assert all(np.array_equal(x, y) for x, y in zip(a.adam[k][1:], b.adam[k][1:])), k
+
+
+def test_a_run_with_unknown_light_and_materials_keeps_their_ranges_and_exports(light_runs):
+    """The environment's solid-angle mean stays at its initial 0.5 (albedo is free too); metallic
+    stays in [0, 1] (it starts at 0.02 with a large step); optimize.json names envmap.exr and holds
+    the materials; psdr export writes environment.exr and the glTF factors."""
+    run_full, _ = light_runs
+    a = State.load(run_full / "state.npz")
     env = fileio.read_rgb_exr(run_full / "envmap.exr")
     w = np.sin((np.arange(4) + 0.5) / 4 * np.pi)[:, None, None]
     assert env.shape == (4, 8, 3) and (env * w).sum() / (w.sum() * 8 * 3) == pytest.approx(0.5, rel=1e-5)
