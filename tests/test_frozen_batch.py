@@ -10,13 +10,16 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import yaml
 
 import psdr_cli
-from psdr_cli import backend, iteration, meshes
+from conftest import bit_reproducible
+from psdr_cli import api, backend, iteration, meshes
 from psdr_cli.engines import Engine
 from psdr_cli.estimate import Settings
 from psdr_cli.frozen_batch import FrozenBatch, refusal
 from psdr_cli.problem import Problem, Shape
+from psdr_cli.run_folder.log import read_log
 from psdr_cli.stages import stage_of
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
@@ -133,3 +136,39 @@ def test_freeze_is_read_from_the_experiment(tmp_path, run_psdr):
     path.write_text(CONFIG.read_text().replace("  adjoint_spp: 4", "  adjoint_spp: 4\n  freeze: 3"))
     r = run_psdr("optimize", str(path), "--iterations", "1")
     assert r.returncode != 0 and "optimize.freeze" in r.stderr and "Traceback" not in r.stderr
+
+
+@bit_reproducible
+def test_a_frozen_run_resumes_exactly_across_a_remesh(tmp_path):
+    """A run on the frozen path (an adjoint render, a remesh at 3: a new scene, recorded again)
+    stopped at the remesh and resumed repeats the uninterrupted run's losses and final mesh (the
+    resumed process records afresh). (The scene is test_optimize's TINY one, whose traced terms'
+    kernels the suite compiles anyway.)"""
+    data = {
+        "name": "f", "seed": 3, "output": str(tmp_path / "runs"),
+        "scene": {"film": {"width": 16, "height": 16}, "max_depth": 2,
+                  "cameras": [{"orbit": {"count": 3, "radius": 2.6, "elevation_deg": 20, "target": [0, 0, 0.4],
+                                         "fov": 30}}],
+                  "emitters": [{"type": "sky", "sun_direction": [0.5, -0.4, 0.75], "sun_scale": 0.2}],
+                  "objects": [{"name": "bunny", "mesh": {"shape": "bunny", "size": 0.8, "faces": 400},
+                               "bsdf": {"type": "diffuse", "reflectance": 0.6}}]},
+        "estimator": {"spp": 1, "primary_spp": 1, "boundary_spp": 1, "terms": ["interior", "primary", "direct"]},
+        "optimize": {"object": "bunny", "target": {"spp": 8}, "iterations": 6, "batch_size": 1, "adjoint_spp": 4,
+                     "init": {"mesh": {"shape": "sphere", "radius": 0.3, "subdivisions": 2},
+                              "transform": {"translate": [0, 0, 0.4]}},
+                     "remesh": {"method": "instant", "initial": 150, "at": [3], "vertices": [250]},
+                     "checkpoint_every": 3, "preview_views": [0]}}
+    runs = {}
+    for label in ("whole", "stopped"):
+        data["name"] = label
+        path = tmp_path / f"{label}.yaml"
+        path.write_text(yaml.safe_dump(data))
+        exp = psdr_cli.load_experiment(path)
+        if label == "stopped":
+            api.optimize(exp, iterations=3, warn=lambda m: None)
+            api.optimize(exp, resume=True, warn=lambda m: None)
+        else:
+            api.optimize(exp, warn=lambda m: None)
+        runs[label] = [float(r["loss"]) for r in read_log(exp.run_dir / "log.csv")], exp.run_dir
+    assert runs["whole"][0] == runs["stopped"][0] and len(runs["whole"][0]) == 6
+    assert (runs["whole"][1] / "final.ply").read_bytes() == (runs["stopped"][1] / "final.ply").read_bytes()
