@@ -7,8 +7,11 @@ samples per pixel), the L1 loss and its adjoint
 and the interior term's reverse pass, the backward of Σ δ·I_interior into the scene's leaf
 buffers (:meth:`psdr_cli.problem.Problem.apply_leaves`). This is the derivative the traced loop
 takes of ``losses.l1.l1_loss`` with an adjoint render (mean over the views of mean
-sign(P − T)·∂I), split by term: the loop adds the other terms' Σ δ·I_term traced, and one backward
-pass through the large-steps solve carries the leaves' gradient to the optimiser.
+sign(P − T)·∂I), split by term. Once the iteration's edge table is there, the direct boundary
+term's backward of Σ δ·I_direct is recorded and replayed too (unguided; the edges enter as arrays
+of any length and are drawn ∝ length by :class:`.estimators.boundary_sampling.LengthDistribution`,
+whose kernels do not depend on their number). The loop adds the other terms' Σ δ·I_term traced,
+and one backward pass through the large-steps solve carries the leaves' gradient to the optimiser.
 
 Everything that varies between iterations enters as data: the batch as an array of view indices
 into the run's cameras (:class:`.estimators.camera.CameraTable`), the seeds as arrays, the targets
@@ -16,7 +19,7 @@ of all views as one array. A recording is replayed only while the structure it w
 holds (:class:`BatchShape`: the scene object, the film, the batch size, the sample counts and
 passes); when it changes (a remesh builds a new scene, a stage a new film) the next call is traced
 and recorded again. The terms that read numpy between their kernels (the primary term's curve
-selection, the boundary terms' edge table and guides) stay traced.
+selection, guided passes) stay traced.
 
 Parameters (experiment keys)
 ----------------------------
@@ -33,16 +36,24 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .estimators.camera import CameraTable, is_perspective, table_camera_rays
+from .estimate import has_guide, term_passes
+from .estimators.boundary_sampling import BoundaryEdges, length_distribution
+from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_camera_rays
+from .estimators.direct import direct_image
 from .estimators.interior import radiance
-from .estimate import term_passes
 from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from .estimators.registry import term as registry_term
 from .jitarray import jit_array
 
-#: The term whose reverse pass is recorded (the others read numpy between their kernels).
+#: The term whose reverse pass is recorded with the adjoint render (before the edge table is there).
 FROZEN_TERM = "interior"
+#: The boundary term whose reverse pass is recorded once the edge table is there.
+DIRECT_TERM = "direct"
+#: Most edges the direct part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
+MAX_EDGES = 1 << 24
+#: Fewest edge slots of the direct part (:func:`padded_edges`).
+MIN_EDGE_SLOTS = 256
 
 
 @dataclass(frozen=True)
@@ -60,11 +71,49 @@ class BatchShape:
     hide_background: bool
 
 
+@dataclass(frozen=True)
+class DirectShape:
+    """What a recording of the direct term's part is valid for: the scene object, the film, the
+    batch size, the term's samples per pixel, its sampling technique and the objects whose edges
+    are drawn (their vertex buffers, in order)."""
+    scene_id: int
+    width: int
+    height: int
+    views: int
+    spp: int
+    sampling: str
+    names: tuple
+    slots: int
+
+
+def edge_slots(count: int) -> int:
+    """The edge arrays' length in the direct part: ``count`` rounded up to a power of two (at
+    least :data:`MIN_EDGE_SLOTS`), so that a recording serves every count up to it. (A replay
+    whose edge arrays had changed length gave wrong samples on Dr.Jit 1.5 — measured in
+    tests/test_frozen_batch.py —, so the length is held fixed.)"""
+    return max(MIN_EDGE_SLOTS, 1 << (count - 1).bit_length())
+
+
+def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
+    """(ids, flip, open) of ``edges`` padded to ``slots`` entries with edges of length 0 (both
+    ends vertex 0: never drawn, :class:`.estimators.boundary_sampling.LengthDistribution`)."""
+    index = dr.arange(mi.UInt32, slots)
+    real = index < edges.count
+    at = dr.minimum(index, edges.count - 1)
+    ids = [dr.select(real, dr.gather(mi.UInt32, a, at), 0) for a in edges.ids]
+    flip = real & dr.gather(mi.Bool, edges.flip, at)
+    open_ = real & dr.gather(mi.Bool, edges.open, at)
+    dr.eval(ids, flip, open_)
+    return ids, flip, open_
+
+
 def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
     """Why the frozen part cannot serve this run (None: it can). It needs psdr's interior term
     with a batch of ``batch`` views in one AD pass, an adjoint render, the L1 loss alone (no pixel
-    weights or masks), the optimiser's unknowns written into the scene as plain buffers
-    (no environment rotation) and Mitsuba's perspective cameras, fixed."""
+    weights or masks), the shape as the only unknown (its vertex buffer written by the large-steps
+    solve: the case the tests replay; a buffer written from a host array before each call replayed
+    wrong results on Dr.Jit 1.5, ``benchmarks/freeze_direct_probe.py``) and Mitsuba's perspective
+    cameras, fixed."""
     if not getattr(cfg, "freeze", True):
         return "optimize.freeze is false"
     if engine.name != "psdr" or FROZEN_TERM not in engine.terms:
@@ -73,8 +122,8 @@ def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
         return "no adjoint render (optimize.adjoint_spp)"
     if stage.weights or stage.masks is not None:
         return "pixel weights or masks"
-    if problem.envmap:
-        return "an environment rotation"
+    if list(problem.opt.keys()) != ["u"]:
+        return "unknowns besides the shape (albedo, lighting, materials)"
     if not all(is_perspective(s) for s in problem.scene.sensors):
         return "a camera other than Mitsuba's perspective camera"
     width, height = problem.scene.resolution
@@ -120,16 +169,59 @@ def pass_sums(shape: BatchShape, mi_scene, table: CameraTable, views: mi.UInt32,
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") for c in range(3)]))
 
 
+def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32, ids: list,
+                    flip: mi.Bool, open_: mi.Bool, count: mi.UInt32, delta: mi.Float):
+    """The direct term's pass over the batch (the samples of its ``estimate_views``, the cameras
+    from ``table``) and the backward pass of Σ δ·I_direct into the scene's leaves. The edges
+    (``ids``: their six vertex-id columns, ``flip``, ``open_``; ``shape.slots`` entries, of which
+    ``count`` real ones, at least one, and the rest of length 0: :func:`padded_edges`) index the
+    concatenated vertex buffers of ``shape.names``."""
+    edges = BoundaryEdges(list(shape.names), ids, open_, MAX_EDGES, flip=flip)  # (count: any positive int)
+    P = edges.positions(mi.traverse(mi_scene))
+    n = shape.spp * shape.width * shape.height
+    sampler = make_sampler(seed, n * shape.views)
+    k = dr.arange(mi.UInt32, n * shape.views) // dr.opaque(mi.UInt32, n)
+    cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k))
+    image = direct_image(mi_scene, cameras, k, shape.views, edges, P, n, sampler, shape.sampling,
+                         distr=length_distribution(edges, P, count))
+    dr.backward(dr.sum(delta * image))
+    return count  # (a frozen function returns something)
+
+
+class Recording:
+    """``dr.freeze(body)`` bound to one structure (``shape``): a new structure gets a new function,
+    the old recordings dropped. ``enabled`` false calls the body traced (the fallback)."""
+
+    def __init__(self, body, enabled: bool = True):
+        self.body, self.enabled = body, enabled
+        self.shape = self.fn = None
+        self.earlier = 0  # recordings of earlier structures' functions
+
+    def __call__(self, shape, *args):
+        if shape != self.shape:
+            self.earlier = self.n_recordings
+            self.shape = shape
+            bound = _bind(self.body, shape)
+            self.fn = dr.freeze(bound, warn_after=1000) if self.enabled else bound
+        return self.fn(*args)
+
+    @property
+    def n_recordings(self) -> int:
+        if not self.enabled:
+            return 0
+        return self.earlier + (self.fn.n_recordings if self.fn is not None else 0)
+
+
 class FrozenBatch:
-    """The recorded part of a run's iterations (module docstring). ``enabled`` false runs the same
-    function traced every call (the fallback, and the reference the tests compare with)."""
+    """The recorded parts of a run's iterations (module docstring). ``enabled`` false runs the same
+    functions traced every call (the fallback, and the reference the tests compare with)."""
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled
-        self.shape = None
-        self.fn = None
+        self.interior = Recording(batch_loss, enabled)
+        self.direct_part = Recording(direct_backward, enabled)
+        self.scene_id = self.stage = None
         self.table = self.targets = None
-        self.recordings = 0  # recordings made by earlier shapes' functions
 
     def structure(self, problem, stage, views, settings, cfg) -> BatchShape:
         width, height = problem.scene.resolution
@@ -138,14 +230,11 @@ class FrozenBatch:
                           tuple(passes_for(cfg.adjoint_spp, width * height * len(views))),
                           settings.max_depth, bool(problem.scene.config.hide_background))
 
-    def prepare(self, shape: BatchShape, problem, stage):
-        """A new function (and nothing of the old recordings) for a new structure."""
-        if self.fn is not None and self.enabled:
-            self.recordings += self.fn.n_recordings
-        self.shape = shape
-        body = _bind(shape)
-        self.fn = dr.freeze(body, warn_after=1000) if self.enabled else body
-        self.table = CameraTable.of(problem.scene.sensors, shape.width, shape.height)
+    def prepare(self, problem, stage):
+        """The cameras and the targets of a new scene or stage as arrays."""
+        width, height = problem.scene.resolution
+        self.scene_id, self.stage = id(problem.scene.mi_scene), stage
+        self.table = CameraTable.of(problem.scene.sensors, width, height)
         self.targets = jit_array(mi.Float, np.concatenate([np.ravel(np.asarray(a, np.float32))
                                                              for a in stage.arrays]))
 
@@ -153,22 +242,41 @@ class FrozenBatch:
         """(ℓ, δ) of iteration ``iteration``'s batch ``views`` on the current scene (whose
         unknowns are leaves: the interior term's gradient is accumulated into them)."""
         shape = self.structure(problem, stage, views, settings, cfg)
-        if shape != self.shape:
-            self.prepare(shape, problem, stage)
+        if (shape.scene_id, stage) != (self.scene_id, self.stage):
+            self.prepare(problem, stage)
         interior = views_seed(settings.seed, views, iteration, registry_term(FROZEN_TERM).stream)
         adjoint = views_seed(settings.seed, views, iteration, ADJOINT_STREAM)
         seeds = [mi.UInt32(views_seed(adjoint, views, p, RENDER_STREAM)) for p in range(len(shape.adjoint_passes))]
-        return self.fn(problem.scene.mi_scene, self.table, self.targets, mi.UInt32(views), mi.UInt32(interior), seeds)
+        return self.interior(shape, problem.scene.mi_scene, self.table, self.targets, mi.UInt32(views),
+                             mi.UInt32(interior), seeds)
+
+    def serves_direct(self, problem, views, settings, edges, guides) -> bool:
+        """Whether the direct term's part can run on this iteration's ``edges`` (unguided, the
+        batch in one AD pass, 1 to :data:`MAX_EDGES` edges)."""
+        width, height = problem.scene.resolution
+        spp = term_passes(DIRECT_TERM, settings, width * height)[0]
+        return edges is not None and 0 < edges.count < MAX_EDGES and not has_guide(guides, DIRECT_TERM) and \
+            len(views) * width * height * spp <= AD_LANES
+
+    def direct(self, problem, views, iteration: int, settings, edges, delta: mi.Float):
+        """The direct term's backward pass of Σ δ·I_direct over the batch ``views`` (into the
+        scene's leaves), replayed; :meth:`__call__` must have run for this scene."""
+        width, height = problem.scene.resolution
+        shape = DirectShape(id(problem.scene.mi_scene), width, height, len(views),
+                            term_passes(DIRECT_TERM, settings, width * height)[0], settings.estimator.sampling,
+                            tuple(edges.names), edge_slots(edges.count))
+        seed = views_seed(settings.seed, views, iteration, registry_term(DIRECT_TERM).stream)
+        ids, flip, open_ = padded_edges(edges, shape.slots)
+        self.direct_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), mi.UInt32(seed),
+                         ids, flip, open_, mi.UInt32(edges.count), delta)
 
     @property
     def n_recordings(self) -> int:
         """Recordings made so far (0 when not enabled)."""
-        if not self.enabled:
-            return 0
-        return self.recordings + (self.fn.n_recordings if self.fn is not None else 0)
+        return self.interior.n_recordings + self.direct_part.n_recordings
 
 
-def _bind(shape: BatchShape):
-    def body(mi_scene, table, targets, views, interior_seed, adjoint_seeds):
-        return batch_loss(shape, mi_scene, table, targets, views, interior_seed, adjoint_seeds)
-    return body
+def _bind(body, shape):
+    def bound(*args):
+        return body(shape, *args)
+    return bound

@@ -206,18 +206,60 @@ def primary_sample(sampler: mi.Sampler, guide=None):
     return u.x, mi.Point2f(u.y, u.z), g
 
 
-def edge_distribution(edges: BoundaryEdges, P) -> mi.DiscreteDistribution:
+#: Bisection steps of :meth:`LengthDistribution.sample_reuse`: enough for 2^24 edges.
+SEARCH_STEPS = 24
+
+
+class LengthDistribution:
+    """Edges drawn ∝ their length ℓ_k: inclusive cumulative sums C_k = Σ_{i≤k} ℓ_i, total
+    T = C_{n−1}. ``sample_reuse(u)`` takes the first k with C_k > u·T (among edges of positive
+    length) and reuses the remainder s = (u·T − C_{k−1}) / ℓ_k ∈ [0, 1), as Mitsuba's
+    ``DiscreteDistribution.sample_reuse``; ``sum()`` is T. The count n enters as an array and the
+    bisection takes :data:`SEARCH_STEPS` steps whatever n is, so no kernel depends on the number
+    of edges (a frozen function replays it for any count, :mod:`psdr_cli.frozen_batch`)."""
+
+    def __init__(self, lengths: mi.Float, count: mi.UInt32):
+        self.pmf = lengths
+        self.cdf = dr.cumsum(lengths)  # inclusive
+        self.count = count
+        self.total = dr.gather(mi.Float, self.cdf, count - 1)
+        index = dr.arange(mi.UInt32, dr.width(lengths))
+        self.last = dr.max(dr.select(lengths > 0, index, 0))  # the last edge of positive length
+        dr.eval(self.cdf, self.total, self.last)
+
+    def sum(self) -> mi.Float:
+        return self.total
+
+    def sample_reuse(self, u: mi.Float):
+        x = u * self.total
+        lo, size = dr.zeros(mi.UInt32, dr.width(u)), dr.gather(mi.UInt32, self.count, dr.zeros(mi.UInt32, dr.width(u)))
+        for _ in range(SEARCH_STEPS):  # first k in [lo, lo + size) with C_k > x
+            half = size >> 1
+            right = (size > 0) & (dr.gather(mi.Float, self.cdf, lo + half, size > 0) <= x)
+            lo = dr.select(right, lo + half + 1, lo)
+            size = dr.select(right, size - half - 1, half)
+        k = dr.minimum(lo, dr.gather(mi.UInt32, self.last, dr.zeros(mi.UInt32, dr.width(u))))
+        pmf = dr.gather(mi.Float, self.pmf, k)
+        s = (x - (dr.gather(mi.Float, self.cdf, k) - pmf)) / dr.select(pmf > 0, pmf, 1.0)
+        return k, dr.clip(s, 0.0, dr.one_minus_epsilon(mi.Float))
+
+
+def length_distribution(edges: BoundaryEdges, P, count: mi.UInt32 | None = None) -> LengthDistribution:
+    """:class:`LengthDistribution` of the edges' current (detached) lengths; ``count``: the number
+    of edges as an array (default: ``edges.count``)."""
+    with dr.suspend_grad():
+        p0 = dr.gather(mi.Point3f, P, edges.ids[0])
+        p1 = dr.gather(mi.Point3f, P, edges.ids[1])
+        return LengthDistribution(dr.norm(p1 - p0), mi.UInt32(edges.count) if count is None else count)
+
+
+def edge_distribution(edges: BoundaryEdges, P) -> LengthDistribution:
     """Edge-selection distribution ∝ current (detached) edge lengths (built once per vertex
     buffer ``P``: every view of an iteration samples the same one)."""
-    def build():
-        with dr.suspend_grad():
-            p0 = dr.gather(mi.Point3f, P, edges.ids[0])
-            p1 = dr.gather(mi.Point3f, P, edges.ids[1])
-            return mi.DiscreteDistribution(dr.norm(p1 - p0))
-    return edges.remembered("distribution", [P], build)
+    return edges.remembered("distribution", [P], lambda: length_distribution(edges, P))
 
 
-def sample_edge_point(edges: BoundaryEdges, P, distr: mi.DiscreteDistribution, u1: mi.Float) -> EdgeSample:
+def sample_edge_point(edges: BoundaryEdges, P, distr: LengthDistribution, u1: mi.Float) -> EdgeSample:
     """x^B = p0 + s (p1 − p0) for the edge k chosen by u1 (s reuses the remainder of u1, or is
     1 − remainder on flipped edges)."""
     k, s = distr.sample_reuse(u1)

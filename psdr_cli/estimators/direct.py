@@ -211,15 +211,16 @@ def views_direct_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_s
 
 
 def direct_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges, P, n_samples: int,
-                 sampler: mi.Sampler, technique: str, guides=None) -> mi.Float:
+                 sampler: mi.Sampler, technique: str, guides=None, distr=None) -> mi.Float:
     """The direct boundary contributions of ``count`` views as one flat image, view-major (count·W·H·3),
     each lane's sample added to its view's part (``view``: each lane's view, None for one view):
-    Σ over the techniques of v − detach(v), v from :func:`direct_motion` with weight W·H / N."""
+    Σ over the techniques of v − detach(v), v from :func:`direct_motion` with weight W·H / N.
+    ``distr``: the edges' length distribution (default: :func:`.boundary_sampling.edge_distribution`)."""
     width, height = camera.width, camera.height
     img = dr.zeros(mi.Float, width * height * 3 * count)
     if edges.count == 0:
         return img
-    distr = edge_distribution(edges, P)
+    distr = edge_distribution(edges, P) if distr is None else distr
     env_motion = environment_motion(scene)
     scale = dr.opaque(mi.Float, (width * height) / n_samples)
     for t in (("light", "dir") if technique == "mis" else (technique,)):
