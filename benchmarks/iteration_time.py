@@ -140,6 +140,7 @@ def instrument(phases: Phases):
     loss_registry.LOSSES = tuple(replace(x, value=phases.wrap("loss", x.value)) for x in loss_registry.LOSSES)
     iteration.dr = DrProxy(phases)
     FrozenBatch.__call__ = phases.wrap("frozen", FrozenBatch.__call__)
+    FrozenBatch.direct = phases.wrap("frozen", FrozenBatch.direct)
 
 
 def timed_geometry(phases: Phases, cls):

@@ -246,9 +246,9 @@ class FrozenBatch:
             self.prepare(problem, stage)
         interior = views_seed(settings.seed, views, iteration, registry_term(FROZEN_TERM).stream)
         adjoint = views_seed(settings.seed, views, iteration, ADJOINT_STREAM)
-        seeds = [mi.UInt32(views_seed(adjoint, views, p, RENDER_STREAM)) for p in range(len(shape.adjoint_passes))]
+        seeds = [opaque(views_seed(adjoint, views, p, RENDER_STREAM)) for p in range(len(shape.adjoint_passes))]
         return self.interior(shape, problem.scene.mi_scene, self.table, self.targets, mi.UInt32(views),
-                             mi.UInt32(interior), seeds)
+                             opaque(interior), seeds)
 
     def serves_direct(self, problem, views, settings, edges, guides) -> bool:
         """Whether the direct term's part can run on this iteration's ``edges`` (unguided, the
@@ -267,13 +267,19 @@ class FrozenBatch:
                             tuple(edges.names), edge_slots(edges.count))
         seed = views_seed(settings.seed, views, iteration, registry_term(DIRECT_TERM).stream)
         ids, flip, open_ = padded_edges(edges, shape.slots)
-        self.direct_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), mi.UInt32(seed),
-                         ids, flip, open_, mi.UInt32(edges.count), delta)
+        self.direct_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed),
+                         ids, flip, open_, opaque(edges.count), delta)
 
     @property
     def n_recordings(self) -> int:
         """Recordings made so far (0 when not enabled)."""
         return self.interior.n_recordings + self.direct_part.n_recordings
+
+
+def opaque(value: int) -> mi.UInt32:
+    """A number that changes from call to call as an evaluated array (a constant would be written
+    into the kernels: compiled anew, or recorded again, for every value)."""
+    return dr.opaque(mi.UInt32, value)
 
 
 def _bind(body, shape):

@@ -250,7 +250,8 @@ def length_distribution(edges: BoundaryEdges, P, count: mi.UInt32 | None = None)
     with dr.suspend_grad():
         p0 = dr.gather(mi.Point3f, P, edges.ids[0])
         p1 = dr.gather(mi.Point3f, P, edges.ids[1])
-        return LengthDistribution(dr.norm(p1 - p0), mi.UInt32(edges.count) if count is None else count)
+        # opaque: a count written into the kernels as a constant would compile them anew for every count
+        return LengthDistribution(dr.norm(p1 - p0), dr.opaque(mi.UInt32, edges.count) if count is None else count)
 
 
 def edge_distribution(edges: BoundaryEdges, P) -> LengthDistribution:
