@@ -88,6 +88,8 @@ class Engine:
         wavefront do (:func:`psdr_cli.estimate.ad_images`). ``terms``: a part of psdr's terms
         (default: all of them)."""
         if self.name == "mitsuba":
+            if terms is not None:
+                raise ValueError("Engine.images: Mitsuba's integrators render every term at once")
             return [self.image(problem, edges, v, iteration, guides) for v in views]
         return estimate.ad_images(problem.scene, edges, views, self.terms if terms is None else terms,
                                   self.settings, pass_index=iteration, guides=guides)

@@ -88,7 +88,8 @@ class DirectShape:
 
 def edge_slots(count: int) -> int:
     """The edge arrays' length in the direct part: ``count`` rounded up to a power of two (at
-    least :data:`MIN_EDGE_SLOTS`), so that a recording serves every count up to it. (A replay
+    least :data:`MIN_EDGE_SLOTS`; never fewer than a scene needed before), so that a recording
+    serves every count up to it. (A replay
     whose edge arrays had changed length gave wrong samples on Dr.Jit 1.5 — measured in
     tests/test_frozen_batch.py —, so the length is held fixed.)"""
     return max(MIN_EDGE_SLOTS, 1 << (count - 1).bit_length())
@@ -98,8 +99,9 @@ def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
     """(ids, flip, open) of ``edges`` padded to ``slots`` entries with edges of length 0 (both
     ends vertex 0: never drawn, :class:`.estimators.boundary_sampling.LengthDistribution`)."""
     index = dr.arange(mi.UInt32, slots)
-    real = index < edges.count
-    at = dr.minimum(index, edges.count - 1)
+    count = opaque(edges.count)  # (a constant would compile this kernel anew for every count)
+    real = index < count
+    at = dr.minimum(index, count - 1)
     ids = [dr.select(real, dr.gather(mi.UInt32, a, at), 0) for a in edges.ids]
     flip = real & dr.gather(mi.Bool, edges.flip, at)
     open_ = real & dr.gather(mi.Bool, edges.open, at)
@@ -176,7 +178,7 @@ def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.
     (``ids``: their six vertex-id columns, ``flip``, ``open_``; ``shape.slots`` entries, of which
     ``count`` real ones, at least one, and the rest of length 0: :func:`padded_edges`) index the
     concatenated vertex buffers of ``shape.names``."""
-    edges = BoundaryEdges(list(shape.names), ids, open_, MAX_EDGES, flip=flip)  # (count: any positive int)
+    edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
     P = edges.positions(mi.traverse(mi_scene))
     n = shape.spp * shape.width * shape.height
     sampler = make_sampler(seed, n * shape.views)
@@ -220,7 +222,8 @@ class FrozenBatch:
         self.enabled = enabled
         self.interior = Recording(batch_loss, enabled)
         self.direct_part = Recording(direct_backward, enabled)
-        self.scene_id = self.stage = None
+        self.scene_id = self.stage = self.scene = None
+        self.slots = 0  # the edge slots of the direct part: the most this scene needed
         self.table = self.targets = None
 
     def structure(self, problem, stage, views, settings, cfg) -> BatchShape:
@@ -234,6 +237,8 @@ class FrozenBatch:
         """The cameras and the targets of a new scene or stage as arrays."""
         width, height = problem.scene.resolution
         self.scene_id, self.stage = id(problem.scene.mi_scene), stage
+        self.scene = problem.scene.mi_scene  # held: its id cannot name another scene meanwhile
+        self.slots = 0
         self.table = CameraTable.of(problem.scene.sensors, width, height)
         self.targets = jit_array(mi.Float, np.concatenate([np.ravel(np.asarray(a, np.float32))
                                                              for a in stage.arrays]))
@@ -242,7 +247,7 @@ class FrozenBatch:
         """(ℓ, δ) of iteration ``iteration``'s batch ``views`` on the current scene (whose
         unknowns are leaves: the interior term's gradient is accumulated into them)."""
         shape = self.structure(problem, stage, views, settings, cfg)
-        if (shape.scene_id, stage) != (self.scene_id, self.stage):
+        if shape.scene_id != self.scene_id or stage is not self.stage:
             self.prepare(problem, stage)
         interior = views_seed(settings.seed, views, iteration, registry_term(FROZEN_TERM).stream)
         adjoint = views_seed(settings.seed, views, iteration, ADJOINT_STREAM)
@@ -261,10 +266,14 @@ class FrozenBatch:
     def direct(self, problem, views, iteration: int, settings, edges, delta: mi.Float):
         """The direct term's backward pass of Σ δ·I_direct over the batch ``views`` (into the
         scene's leaves), replayed; :meth:`__call__` must have run for this scene."""
+        if id(problem.scene.mi_scene) != self.scene_id:
+            raise RuntimeError("FrozenBatch.direct: the batch's part must run first for this scene")
         width, height = problem.scene.resolution
+        self.slots = max(self.slots, edge_slots(edges.count))  # never fewer: a count going back and
+        # forth across a power of two would record again each time
         shape = DirectShape(id(problem.scene.mi_scene), width, height, len(views),
                             term_passes(DIRECT_TERM, settings, width * height)[0], settings.estimator.sampling,
-                            tuple(edges.names), edge_slots(edges.count))
+                            tuple(edges.names), self.slots)
         seed = views_seed(settings.seed, views, iteration, registry_term(DIRECT_TERM).stream)
         ids, flip, open_ = padded_edges(edges, shape.slots)
         self.direct_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed),

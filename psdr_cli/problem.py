@@ -275,6 +275,7 @@ class Problem:
         """Detach the scene from the optimiser's AD graph (nothing may linger in Dr.Jit's global
         AD state after a run, e.g. for later forward-mode work in the same process)."""
         self.applied = None
+        self.applied_values, self.leaves, self.use_leaves = {}, None, False
         with dr.suspend_grad():
             self.params[self.key] = dr.detach(self.params[self.key])
             if self.albedo_key:

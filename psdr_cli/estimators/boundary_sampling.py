@@ -247,6 +247,8 @@ class LengthDistribution:
 def length_distribution(edges: BoundaryEdges, P, count: mi.UInt32 | None = None) -> LengthDistribution:
     """:class:`LengthDistribution` of the edges' current (detached) lengths; ``count``: the number
     of edges as an array (default: ``edges.count``)."""
+    if count is None and edges.count >= 1 << SEARCH_STEPS:
+        raise ValueError(f"{edges.count} boundary edges: the edge draw serves fewer than 2^{SEARCH_STEPS}")
     with dr.suspend_grad():
         p0 = dr.gather(mi.Point3f, P, edges.ids[0])
         p1 = dr.gather(mi.Point3f, P, edges.ids[1])
