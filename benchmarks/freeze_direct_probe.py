@@ -1,13 +1,14 @@
 #!/usr/bin/env python
 """Can ``dr.freeze`` replay the direct boundary term's segments when the edge table changes?
-(issue 38, stop 52: why the direct term stays traced in psdr_cli/frozen_batch.py.)
+(issue 38, stop 52: why psdr_cli/frozen_batch.py serves only runs whose vertex buffer the
+large-steps solve writes.)
 
 The demo's scene (``configs/reconstruct_bunny.yaml``, 64², a noisy sphere), four views' lanes
 (4·64² samples of the ``dir`` technique, no MIS), the cameras as data
 (:class:`~psdr_cli.estimators.camera.CameraTable`). The frozen function takes the edge table as
-arrays padded to a fixed length (so that no input changes length) and the number of real edges
-as an opaque array; it draws an edge ∝ length by inverse CDF with a fixed number of bisection
-steps (no kernel depends on the count), samples the wedge, and returns (lanes kept, Σ coef) of
+arrays padded to a fixed length (``frozen_batch.padded_edges``) and the number of real edges as
+an opaque array; it draws an edge ∝ length (``boundary_sampling.LengthDistribution``: no kernel
+depends on the count), samples the wedge, and returns (lanes kept, Σ coef) of
 :func:`~psdr_cli.estimators.direct.segment_weight` (``--level segment``) or only of the edge
 draw, the wedge and the source ray (``--level ray``). Each trial drops 7 more edges from the end
 of the table (same shape, same vertices) and compares the frozen call with the same function
@@ -30,6 +31,7 @@ only runs whose unknown is the shape alone, written so.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import sys
 import tempfile
 from pathlib import Path
@@ -41,36 +43,14 @@ import numpy as np  # noqa: E402
 from iteration_time import setup  # noqa: E402
 
 from psdr_cli import backend  # noqa: E402
-from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, edge_list, in_wedge, ray_origin,  # noqa: E402
-                                                   sample_edge_point, sample_wedge)
+from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, LengthDistribution, edge_list,  # noqa: E402
+                                                   in_wedge, ray_origin, sample_edge_point, sample_wedge)
 from psdr_cli.estimators.camera import CameraTable, LaneCameras  # noqa: E402
 from psdr_cli.estimators.direct import direct_motion, segment_weight  # noqa: E402
 from psdr_cli.estimators.passes import make_sampler  # noqa: E402
+from psdr_cli.frozen_batch import padded_edges  # noqa: E402
 
-SLOTS, STEPS, SIZE, VIEWS = 512, 24, 64, 4
-
-
-class Lengths:
-    """Edges drawn ∝ length, the count an array: first k with C_k > u·T, reused remainder."""
-
-    def __init__(self, lengths, count):
-        self.pmf, self.cdf = lengths, dr.cumsum(lengths)
-        self.count, self.total = count, dr.gather(mi.Float, dr.cumsum(lengths), count - 1)
-
-    def sum(self):
-        return self.total
-
-    def sample_reuse(self, u):
-        x = u * self.total
-        lo = dr.zeros(mi.UInt32, dr.width(u))
-        size = dr.gather(mi.UInt32, self.count, lo)
-        for _ in range(STEPS):
-            half = size >> 1
-            right = (size > 0) & (dr.gather(mi.Float, self.cdf, lo + half, size > 0) <= x)
-            lo, size = dr.select(right, lo + half + 1, lo), dr.select(right, size - half - 1, half)
-        pmf = dr.gather(mi.Float, self.pmf, lo)
-        return lo, dr.clip((x - dr.gather(mi.Float, self.cdf, lo) + pmf) / dr.select(pmf > 0, pmf, 1.0), 0.0,
-                           dr.one_minus_epsilon(mi.Float))
+SLOTS, SIZE, VIEWS = 512, 64, 4
 
 
 def body(level, mi_scene, table, views, ids, flip, open_, count, seed):
@@ -80,7 +60,7 @@ def body(level, mi_scene, table, views, ids, flip, open_, count, seed):
         lengths = dr.norm(dr.gather(mi.Point3f, P, ids[1]) - dr.gather(mi.Point3f, P, ids[0]))
         sampler = make_sampler(seed, SIZE * SIZE * VIEWS)
         u1, u2 = sampler.next_1d(), sampler.next_2d()
-        e = sample_edge_point(edges, P, Lengths(lengths, count), u1)
+        e = sample_edge_point(edges, P, LengthDistribution(lengths, count), u1)
         w, pdf = sample_wedge(e, u2)
         ok = in_wedge(e, w)
         if level == "ray":
@@ -91,24 +71,12 @@ def body(level, mi_scene, table, views, ids, flip, open_, count, seed):
         if level == "segment":
             coef, _, _, _, kept, _, _, _ = segment_weight(mi_scene, cams, e, w, None, pdf, False, ray_origin(e), None)
             return dr.sum(mi.Float(kept)), dr.sum(coef[0])
-    v, pixel, kept, size = direct_motion(mi_scene, cams, edges, P, Lengths(lengths, count), "dir", False, u1, u2, 1.0,
+    v, pixel, kept, size = direct_motion(mi_scene, cams, edges, P, LengthDistribution(lengths, count), "dir", False, u1, u2, 1.0,
                                          None)
     if level == "motion":
         return dr.sum(mi.Float(kept)), dr.sum(dr.detach(v[0]))
     dr.backward(dr.sum(v[0] - dr.detach(v[0])))
     return dr.sum(mi.Float(kept)), dr.sum(dr.abs(dr.grad(P)))
-
-
-def padded(edges, m):
-    """The first m edges, padded to SLOTS with edges of length 0 (device gathers)."""
-    index = dr.arange(mi.UInt32, SLOTS)
-    real = index < m
-    at = dr.minimum(index, m - 1)
-    ids = [dr.select(real, dr.gather(mi.UInt32, a, at), 0) for a in edges.ids]
-    flip = real & dr.gather(mi.Bool, edges.flip, at)
-    open_ = real & dr.gather(mi.Bool, edges.open, at)
-    dr.eval(ids, flip, open_)
-    return ids, flip, open_
 
 
 def main(argv=None):
@@ -130,7 +98,7 @@ def main(argv=None):
         frozen = dr.freeze(fn)
         for trial in range(5):
             m = min(edges.count, SLOTS) - 7 * trial
-            ids, flip, open_ = padded(edges, m)
+            ids, flip, open_ = padded_edges(replace(edges, count=m), SLOTS)  # the first m edges
             out = []
             for f in (frozen, fn):
                 leaf = mi.Float(np.ravel(V).astype(np.float32))

@@ -9,8 +9,9 @@ buffers (:meth:`psdr_cli.problem.Problem.apply_leaves`). This is the derivative 
 takes of ``losses.l1.l1_loss`` with an adjoint render (mean over the views of mean
 sign(P − T)·∂I), split by term. Once the iteration's edge table is there, the direct boundary
 term's backward of Σ δ·I_direct is recorded and replayed too (unguided; the edges enter as arrays
-of any length and are drawn ∝ length by :class:`.estimators.boundary_sampling.LengthDistribution`,
-whose kernels do not depend on their number). The loop adds the other terms' Σ δ·I_term traced,
+padded to a power of two, :func:`padded_edges`, and are drawn ∝ length by
+:class:`.estimators.boundary_sampling.LengthDistribution`, whose kernels do not depend on their
+number). The loop adds the other terms' Σ δ·I_term traced,
 and one backward pass through the large-steps solve carries the leaves' gradient to the optimiser.
 
 Everything that varies between iterations enters as data: the batch as an array of view indices
@@ -37,7 +38,7 @@ import mitsuba as mi
 import numpy as np
 
 from .estimate import has_guide, term_passes
-from .estimators.boundary_sampling import BoundaryEdges, length_distribution
+from .estimators.boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
 from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_camera_rays
 from .estimators.direct import direct_image
 from .estimators.interior import radiance
@@ -51,7 +52,7 @@ FROZEN_TERM = "interior"
 #: The boundary term whose reverse pass is recorded once the edge table is there.
 DIRECT_TERM = "direct"
 #: Most edges the direct part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
-MAX_EDGES = 1 << 24
+MAX_EDGES = 1 << SEARCH_STEPS
 #: Fewest edge slots of the direct part (:func:`padded_edges`).
 MIN_EDGE_SLOTS = 256
 
@@ -88,10 +89,9 @@ class DirectShape:
 
 def edge_slots(count: int) -> int:
     """The edge arrays' length in the direct part: ``count`` rounded up to a power of two (at
-    least :data:`MIN_EDGE_SLOTS`; never fewer than a scene needed before), so that a recording
-    serves every count up to it. (A replay
-    whose edge arrays had changed length gave wrong samples on Dr.Jit 1.5 — measured in
-    tests/test_frozen_batch.py —, so the length is held fixed.)"""
+    least :data:`MIN_EDGE_SLOTS`), so that one recording serves every count up to it with inputs
+    of one length (the case tests/test_frozen_batch.py replays; :meth:`FrozenBatch.direct` keeps
+    the largest a scene needed)."""
     return max(MIN_EDGE_SLOTS, 1 << (count - 1).bit_length())
 
 
@@ -116,7 +116,7 @@ def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
     solve: the case the tests replay; a buffer written from a host array before each call replayed
     wrong results on Dr.Jit 1.5, ``benchmarks/freeze_direct_probe.py``) and Mitsuba's perspective
     cameras, fixed."""
-    if not getattr(cfg, "freeze", True):
+    if not cfg.freeze:
         return "optimize.freeze is false"
     if engine.name != "psdr" or FROZEN_TERM not in engine.terms:
         return "the interior term is not psdr's"
