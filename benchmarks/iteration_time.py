@@ -140,7 +140,8 @@ def instrument(phases: Phases):
     loss_registry.LOSSES = tuple(replace(x, value=phases.wrap("loss", x.value)) for x in loss_registry.LOSSES)
     iteration.dr = DrProxy(phases)
     FrozenBatch.__call__ = phases.wrap("frozen", FrozenBatch.__call__)
-    FrozenBatch.direct = phases.wrap("frozen", FrozenBatch.direct)
+    FrozenBatch.direct = phases.wrap("frozen direct", FrozenBatch.direct)
+    FrozenBatch.primary = phases.wrap("frozen primary", FrozenBatch.primary)
 
 
 def timed_geometry(phases: Phases, cls):
@@ -212,7 +213,7 @@ def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial:
         return out
 
 
-ORDER = ("edges", "frozen", "interior", "primary", "direct", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other",
+ORDER = ("edges", "frozen", "frozen direct", "frozen primary", "interior", "primary", "direct", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other",
          "iteration")
 
 

@@ -7,20 +7,25 @@ samples per pixel), the L1 loss and its adjoint
 and the interior term's reverse pass, the backward of Σ δ·I_interior into the scene's leaf
 buffers (:meth:`psdr_cli.problem.Problem.apply_leaves`). This is the derivative the traced loop
 takes of ``losses.l1.l1_loss`` with an adjoint render (mean over the views of mean
-sign(P − T)·∂I), split by term. Once the iteration's edge table is there, the direct boundary
-term's backward of Σ δ·I_direct is recorded and replayed too (unguided; the edges enter as arrays
-padded to a power of two, :func:`padded_edges`, and are drawn ∝ length by
+sign(P − T)·∂I), split by term. Once the iteration's edge table is there, two boundary terms'
+backward passes are recorded and replayed too: the direct term's Σ δ·I_direct (unguided; the
+edges enter as arrays padded to a power of two, :func:`padded_edges`, and are drawn ∝ length by
 :class:`.estimators.boundary_sampling.LengthDistribution`, whose kernels do not depend on their
-number). The loop adds the other terms' Σ δ·I_term traced,
-and one backward pass through the large-steps solve carries the leaves' gradient to the optimiser.
+number) and the primary term's Σ δ·I_primary (each view's curves selected on the host in numpy,
+:func:`.estimators.primary.primary_edge_ids`, and handed over end to end as arrays padded to a
+power of two, :func:`curve_columns`; projected, weighed and drawn on the device,
+:func:`.estimators.primary.draw_views`; an iteration with intersection curves traces the term).
+The loop adds the other terms' Σ δ·I_term traced, and one backward pass through the large-steps
+solve carries the leaves' gradient to the optimiser.
 
 Everything that varies between iterations enters as data: the batch as an array of view indices
 into the run's cameras (:class:`.estimators.camera.CameraTable`), the seeds as arrays, the targets
-of all views as one array. A recording is replayed only while the structure it was recorded on
-holds (:class:`BatchShape`: the scene object, the film, the batch size, the sample counts and
-passes); when it changes (a remesh builds a new scene, a stage a new film) the next call is traced
-and recorded again. The terms that read numpy between their kernels (the primary term's curve
-selection, guided passes) stay traced.
+of all views as one array, the edges and curves as padded arrays with their counts. A recording
+is replayed only while the structure it was recorded on holds (:class:`BatchShape`,
+:class:`DirectShape`, :class:`PrimaryShape`: the scene object, the film, the batch size, the
+sample counts and passes, the slots); when it changes (a remesh builds a new scene, a stage a new
+film) the next call is traced and recorded again. Guided passes, which read their guides' numpy
+between kernels, stay traced.
 
 Parameters (experiment keys)
 ----------------------------
@@ -42,6 +47,9 @@ from .estimators.boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_di
 from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_camera_rays
 from .estimators.direct import direct_image
 from .estimators.interior import radiance
+from .estimators.primary import (CurveTable, camera_origins_of, crossing_count, curve_mass, curves_image,
+                                 draw_views, mesh_normals, primary_edge_ids, shape_id, stratified, vectors,
+                                 view_ranges)
 from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from .estimators.registry import term as registry_term
@@ -51,6 +59,8 @@ from .jitarray import jit_array
 FROZEN_TERM = "interior"
 #: The boundary term whose reverse pass is recorded once the edge table is there.
 DIRECT_TERM = "direct"
+#: The term whose reverse pass is recorded once the iteration's curves are selected (host side).
+PRIMARY_TERM = "primary"
 #: Most edges the direct part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
 MAX_EDGES = 1 << SEARCH_STEPS
 #: Fewest edge slots of the direct part (:func:`padded_edges`).
@@ -85,6 +95,24 @@ class DirectShape:
     sampling: str
     names: tuple
     slots: int
+
+
+@dataclass(frozen=True)
+class PrimaryShape:
+    """What a recording of the primary term's part is valid for: the scene object, the film, the
+    batch size, the term's samples per pixel, the curve slots, the objects whose edges are curves,
+    the path depth, whether camera rays that leave the scene see the background, and whether some
+    curve folds back (:func:`.estimators.primary.fold_offsets` traced or not)."""
+    scene_id: int
+    width: int
+    height: int
+    views: int
+    spp: int
+    slots: int
+    names: tuple
+    max_depth: int
+    hide_background: bool
+    folds: bool
 
 
 def edge_slots(count: int) -> int:
@@ -190,28 +218,81 @@ def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.
     return count  # (a frozen function returns something)
 
 
+def primary_backward(shape: PrimaryShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
+                     columns: dict, start: mi.UInt32, count: mi.UInt32, delta: mi.Float):
+    """The primary term's pass over the batch (the samples of its ``estimate_views``: the draw,
+    the side rays and radiances; the cameras from ``table``) and the backward pass of
+    Σ δ·I_primary into the scene's leaves. ``columns`` are the batch's curves end to end
+    (:func:`curve_columns`: ``shape.slots`` entries, view j's the ``count[j]`` from ``start[j]``,
+    the rest of weight 0), their end points vertex ids into the concatenated vertex buffers of
+    ``shape.names``; each curve is projected into its own view's camera."""
+    params = mi.traverse(mi_scene)
+    P = dr.concat([params[f"{n}.vertex_positions"] for n in shape.names]) if len(shape.names) > 1 else \
+        params[f"{shape.names[0]}.vertex_positions"]
+    p0, p1 = (dr.gather(mi.Point3f, P, columns[a]) for a in ("v0", "v1"))
+    curve_cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, columns["view"]))
+    (q0, z0), (q1, z1) = curve_cameras.project(p0), curve_cameras.project(p1)
+    mass = curve_mass(q0, q1, z0, z1, curve_cameras.near, columns["weight"])
+    n = shape.spp * shape.width * shape.height
+    sampler = make_sampler(seed, n * shape.views)
+    view = dr.arange(mi.UInt32, n * shape.views) // dr.opaque(mi.UInt32, n)
+    cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, view))
+    draw = draw_views(mass, start, count, view, stratified(sampler.next_1d(), n, view), n)
+    none = dr.zeros(mi.Vector3f, shape.slots)  # no intersection curves (refused before)
+    curves = CurveTable(p0, p1, columns["shape"], columns["face0"], columns["shape"], columns["face1"],
+                        columns["strict"], columns["inner"], columns["weight"], none, none, columns["fold0"],
+                        columns["fold1"], False, shape.folds)
+    image = curves_image(mi_scene, cameras, view, shape.views, curves, q0, q1, draw, sampler, shape.width,
+                         shape.height, shape.max_depth, shape.hide_background, None)
+    dr.backward(dr.sum(delta * image))
+    return count
+
+
+def curve_columns(parts, ids: np.ndarray, slots: int) -> tuple:
+    """(columns, folds): the primary curves ``parts`` of the batch's views (each the columns of
+    :func:`.estimators.primary.primary_edge_ids`), end to end and padded to ``slots`` entries of
+    weight 0, as Dr.Jit arrays: end-point vertex ids v0, v1, the edge object's registry id (``ids``
+    per object), the two face indices, strict, inner, the weight w_e, the fold normals and the
+    curve's view (its position in the batch); and whether some curve folds back."""
+    cols = [np.concatenate([p[i] for p in parts]) for i in range(10)]
+    pad = slots - len(cols[0])
+    ints = lambda a: np.concatenate([a, np.zeros(pad, np.int64)])  # noqa: E731
+    vecs = lambda a: np.concatenate([a, np.zeros((pad, 3))])  # noqa: E731
+    view = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
+    columns = {"v0": jit_array(mi.UInt32, ints(cols[0])), "v1": jit_array(mi.UInt32, ints(cols[1])),
+               "face0": jit_array(mi.UInt32, ints(cols[2])), "face1": jit_array(mi.UInt32, ints(cols[3])),
+               "shape": jit_array(mi.UInt32, ints(ids[cols[4]])),
+               "strict": jit_array(mi.Bool, ints(cols[5])), "inner": jit_array(mi.Bool, ints(cols[6])),
+               "weight": jit_array(mi.Float, np.concatenate([cols[7], np.zeros(pad)])),
+               "fold0": vectors(vecs(cols[8])), "fold1": vectors(vecs(cols[9])),
+               "view": jit_array(mi.UInt32, ints(view))}
+    return columns, bool(np.any(cols[8]))
+
+
 class Recording:
-    """``dr.freeze(body)`` bound to one structure (``shape``): a new structure gets a new function,
-    the old recordings dropped. ``enabled`` false calls the body traced (the fallback)."""
+    """``dr.freeze(body)`` bound to one structure (``shape``) per function; the functions of one
+    scene are kept (a structure that comes back, such as curves that fold back or not, replays),
+    a new scene drops them. ``enabled`` false calls the body traced (the fallback)."""
 
     def __init__(self, body, enabled: bool = True):
         self.body, self.enabled = body, enabled
-        self.shape = self.fn = None
-        self.earlier = 0  # recordings of earlier structures' functions
+        self.scene_id, self.fns = None, {}
+        self.earlier = 0  # recordings of earlier scenes' functions
 
     def __call__(self, shape, *args):
-        if shape != self.shape:
+        if shape.scene_id != self.scene_id:
             self.earlier = self.n_recordings
-            self.shape = shape
+            self.scene_id, self.fns = shape.scene_id, {}
+        if shape not in self.fns:
             bound = _bind(self.body, shape)
-            self.fn = dr.freeze(bound, warn_after=1000) if self.enabled else bound
-        return self.fn(*args)
+            self.fns[shape] = dr.freeze(bound, warn_after=1000) if self.enabled else bound
+        return self.fns[shape](*args)
 
     @property
     def n_recordings(self) -> int:
         if not self.enabled:
             return 0
-        return self.earlier + (self.fn.n_recordings if self.fn is not None else 0)
+        return self.earlier + sum(fn.n_recordings for fn in self.fns.values())
 
 
 class FrozenBatch:
@@ -222,8 +303,11 @@ class FrozenBatch:
         self.enabled = enabled
         self.interior = Recording(batch_loss, enabled)
         self.direct_part = Recording(direct_backward, enabled)
+        self.primary_part = Recording(primary_backward, enabled)
         self.scene_id = self.stage = self.scene = None
         self.slots = 0  # the edge slots of the direct part: the most this scene needed
+        self.curve_slots = 0  # the curve slots of the primary part: the most this scene needed
+        self.origins = self.shape_ids = None
         self.table = self.targets = None
 
     def structure(self, problem, stage, views, settings, cfg) -> BatchShape:
@@ -238,8 +322,10 @@ class FrozenBatch:
         width, height = problem.scene.resolution
         self.scene_id, self.stage = id(problem.scene.mi_scene), stage
         self.scene = problem.scene.mi_scene  # held: its id cannot name another scene meanwhile
-        self.slots = 0
+        self.slots = self.curve_slots = 0
         self.table = CameraTable.of(problem.scene.sensors, width, height)
+        self.origins = camera_origins_of(problem.scene.sensors)
+        self.shape_ids = {s.id(): shape_id(s) for s in problem.scene.mi_scene.shapes()}
         self.targets = jit_array(mi.Float, np.concatenate([np.ravel(np.asarray(a, np.float32))
                                                              for a in stage.arrays]))
 
@@ -279,10 +365,50 @@ class FrozenBatch:
         self.direct_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed),
                          ids, flip, open_, opaque(edges.count), delta)
 
+    def serves_primary(self, problem, views, settings, edges) -> bool:
+        """Whether the primary term's part can run on this iteration's ``edges`` (the batch in one
+        AD pass, edge objects with meshes, no intersection curve: those stay traced)."""
+        width, height = problem.scene.resolution
+        spp = term_passes(PRIMARY_TERM, settings, width * height)[0]
+        if edges is None or not edges.meshes or len(views) * width * height * spp > AD_LANES:
+            return False
+        with dr.suspend_grad():
+            P = dr.detach(edges.positions(mi.traverse(problem.scene.mi_scene)))
+        return crossing_count(problem.scene.mi_scene, edges, P) == 0
+
+    def primary(self, problem, views, iteration: int, settings, edges, delta: mi.Float) -> int:
+        """The primary term's backward pass of Σ δ·I_primary over the batch ``views`` (into the
+        scene's leaves), replayed; the curves are selected here (numpy, in each view's camera) and
+        enter as padded arrays. Returns their number. :meth:`__call__` must have run for this scene."""
+        if id(problem.scene.mi_scene) != self.scene_id:
+            raise RuntimeError("FrozenBatch.primary: the batch's part must run first for this scene")
+        width, height = problem.scene.resolution
+        with dr.suspend_grad():
+            P = dr.detach(edges.positions(mi.traverse(problem.scene.mi_scene)))
+        V = edges.remembered("vertices", [P], lambda: np.asarray(P, np.float64).reshape(-1, 3))
+        normals = edges.remembered("normals", [P], lambda: mesh_normals(edges, V))
+        parts = [primary_edge_ids(edges, V, self.origins[v], settings.max_depth >= 2,
+                                  settings.estimator.primary_sampling, normals) for v in views]
+        counts = [len(p[0]) for p in parts]
+        if not sum(counts):
+            return 0  # no curve in any view: the term adds nothing
+        self.curve_slots = max(self.curve_slots, edge_slots(sum(counts)))  # never fewer (see direct)
+        columns, folds = curve_columns(parts, np.array([self.shape_ids[n] for n in edges.names], np.int64),
+                                       self.curve_slots)
+        shape = PrimaryShape(id(problem.scene.mi_scene), width, height, len(views),
+                             term_passes(PRIMARY_TERM, settings, width * height)[0], self.curve_slots,
+                             tuple(edges.names), settings.max_depth, bool(problem.scene.config.hide_background),
+                             folds)
+        seed = views_seed(settings.seed, views, iteration, registry_term(PRIMARY_TERM).stream)
+        start, count = view_ranges(counts)
+        self.primary_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed), columns,
+                          start, count, delta)
+        return sum(counts)
+
     @property
     def n_recordings(self) -> int:
         """Recordings made so far (0 when not enabled)."""
-        return self.interior.n_recordings + self.direct_part.n_recordings
+        return self.interior.n_recordings + self.direct_part.n_recordings + self.primary_part.n_recordings
 
 
 def opaque(value: int) -> mi.UInt32:

@@ -19,7 +19,7 @@ from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
 from .estimators.interior import split_views
-from .frozen_batch import DIRECT_TERM, FROZEN_TERM, FrozenBatch, refusal
+from .frozen_batch import DIRECT_TERM, FROZEN_TERM, PRIMARY_TERM, FrozenBatch, refusal
 from .geometry_ahead import GeometryAhead
 from .guiding.loop_fed import fed_term, fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
@@ -208,8 +208,9 @@ def traced_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, 
 
 def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, ahead, edges) -> mi.Float:
     """The iteration's L1 loss with the recorded parts (:mod:`psdr_cli.frozen_batch`): the adjoint
-    render and the interior term's backward pass replayed, then (unguided) the direct term's
-    (their gradient already in the scene's leaves), the other terms traced as Σ_v Σ δ_v·I_v,term,
+    render and the interior term's backward pass replayed, then (unguided) the direct term's and
+    (without intersection curves) the primary term's (their gradient already in the scene's
+    leaves), the other terms traced as Σ_v Σ δ_v·I_v,term,
     whose primal value is 0, and the priors.
     Returns ℓ + that sum + the priors, for one backward pass of the traced part."""
     engine = loop.engine
@@ -220,6 +221,9 @@ def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, 
     if DIRECT_TERM in rest and loop.frozen.serves_direct(problem, views, loop.settings, edges, guides.guides):
         loop.frozen.direct(problem, views, it, loop.settings, edges, delta)
         rest = tuple(t for t in rest if t != DIRECT_TERM)
+    if PRIMARY_TERM in rest and loop.frozen.serves_primary(problem, views, loop.settings, edges):
+        loop.frozen.primary(problem, views, it, loop.settings, edges, delta)
+        rest = tuple(t for t in rest if t != PRIMARY_TERM)
     if rest:
         images = engine.images(problem, edges, views, it, guides.guides, terms=rest)
         for d, img in zip(split_views(delta, len(views)), images):

@@ -22,7 +22,7 @@ from psdr_cli.estimators.camera import LaneCameras, Projection, camera_ray, view
 from psdr_cli.estimators.direct import direct_boundary, views_direct_boundary
 from psdr_cli.estimators.indirect import indirect_boundary, views_indirect_boundary
 from psdr_cli.estimators.passes import make_sampler
-from psdr_cli.estimators.primary import draw_views
+from psdr_cli.estimators.primary import draw_views, view_ranges
 from psdr_cli.jitarray import concat
 from psdr_cli.render import render_view, render_views
 from psdr_cli.experiment import parse_experiment
@@ -88,7 +88,8 @@ def test_each_lane_draws_a_curve_of_its_own_view_with_its_views_density(exp):
     masses = [np.array([1.0, 0.0, 3.0, 0.0]), np.zeros(0), np.array([0.0, 2.0])]
     view = dr.arange(mi.UInt32, 3 * n) // n
     u = (mi.Float(dr.arange(mi.UInt32, 3 * n) % n) + 0.5) / n
-    draw = draw_views(masses, u, view, n)
+    start, count = view_ranges([len(m) for m in masses])
+    draw = draw_views(mi.Float(np.concatenate(masses)), start, count, view, u, n)
     k, s, scale, alive = (np.asarray(a) for a in (draw.k, draw.s, draw.scale, draw.alive))
     view = np.asarray(view)
     assert set(k[view == 0]) == {0, 2} and abs(np.mean(k[view == 0] == 2) - 0.75) < 0.01

@@ -104,7 +104,7 @@ def test_a_frozen_loop_is_the_traced_loop_while_the_shape_moves():
     """Eight loop iterations (Adam steps move the shape: the recorded part replays on new vertex
     buffers, written by the large-steps solve as the loop writes them) with the recorded part and
     with the same part traced: the same losses and the same shape, bit for bit (on LLVM); and the
-    traced loop of before (no leaves, Mitsuba's sensor objects): the same losses to 10⁻³."""
+    traced loop of before (no leaves, Mitsuba's sensor objects): the same losses up to rounding."""
     runs = []
     for enabled in (True, False, None):  # None: the traced iteration of before (Mitsuba's sensors)
         exp, problem, engine, stage = setup(shadowed=True)
@@ -120,10 +120,12 @@ def test_a_frozen_loop_is_the_traced_loop_while_the_shape_moves():
             assert np.abs(runs[-1][1] - V0).max() > 1e-3  # the shape moved
         problem.release()
     (a, Va, recorded), (b, Vb, _), (c, _, _) = runs
-    # and the traced loop of before up to the rays' rounding, which the later iterations amplify
-    # (a ray grazing a silhouette hits or misses, a pixel's sign(P − T) turns): the losses
-    assert np.allclose(a, c, rtol=1e-3), (a, c)
-    assert 2 <= recorded <= 4  # each part recorded once or twice, replayed on the later iterations
+    # and the traced loop of before up to the rays' rounding (Mitsuba's sensor objects against the
+    # camera table), which the later iterations amplify (a ray grazing a silhouette hits or misses,
+    # a pixel's sign(P − T) turns: 2·10⁻³ by the eighth): the first five losses agree to 10⁻⁴
+    # (measured ≤ 4·10⁻⁵; with the recorded primary term halved the third is 1.5·10⁻³ off)
+    assert np.allclose(a[:5], c[:5], rtol=1e-4), (a, c)
+    assert 3 <= recorded <= 6  # each part recorded once or twice, replayed on the later iterations
     if mi.variant().startswith("cuda"):
         assert np.allclose(a, b, rtol=1e-4) and np.abs(Va - Vb).max() < 1e-4
     else:
@@ -136,8 +138,9 @@ def iteration_gradient(frozen: bool, it: int):
     u0 = np.asarray(problem.opt["u"]).copy()
     with backend.optimization_threads():
         step = iteration.iterate(problem, loop, stage, iteration.GuideCache(), it)
-    if frozen:  # both parts ran: the interior term's and the direct term's
+    if frozen:  # the three parts ran: the interior term's, the direct term's and the primary term's
         assert loop.frozen.interior.n_recordings == 1 and loop.frozen.direct_part.n_recordings == 1
+        assert loop.frozen.primary_part.n_recordings == 1
     moved = np.asarray(problem.opt["u"]) - u0
     m = adam_export(problem.opt, "u")[1]  # Adam's first moment after its first step: (1 − β₁)·g
     problem.release()
@@ -265,5 +268,55 @@ def test_the_direct_part_replays_right_for_any_number_of_edges():
                 assert np.array_equal(grads[0], grads[1])
     assert len(set(counts)) > 1, counts
     assert frozen.direct_part.n_recordings <= 2
+    problem.applied = None
+    problem.release()
+
+
+def test_the_primary_part_replays_right_for_any_number_of_curves():
+    """The primary term's recorded part (each view's curves selected on the host, the batch's
+    curves as arrays padded to a power of two, drawn on the device) against the same part traced,
+    on shapes whose curve lists differ in length: the same gradient each time, and no recording per
+    count; and against the term's traced pass of before (``estimate_views``: Mitsuba's sensors,
+    per-view projections), up to the rounding of the cameras. The vertices are written through
+    the optimiser, as the loop writes them (see the direct part's test)."""
+    exp, problem, engine, stage = setup()
+    cfg = exp.optimize
+    frozen, traced = FrozenBatch(), FrozenBatch(enabled=False)
+    V0 = np.asarray(problem.vertices())
+    rng = np.random.default_rng(3)
+    delta = mi.Float(rng.choice([-1.0, 1.0], 4 * 3 * exp.scene.width * exp.scene.height) * 1e-4)
+    counts = []
+    with backend.optimization_threads():
+        for fb in (frozen, traced):
+            fb.prepare(problem, stage)
+        for trial in range(4):
+            V = V0 + rng.normal(0.0, 0.01, V0.shape)
+            problem.scene.objects["bunny"].vertices = V
+            edges = edge_list(problem.scene, engine.settings.estimator, False)
+            views = iteration.batch_views(0, trial, len(stage.arrays), cfg.batch_size)
+            grads = []
+            for fb in (frozen, traced, None):  # None: the term's traced pass of before
+                problem.opt["u"] = problem.steps.to_differential(jit_array(mi.Float, np.ravel(V)))
+                problem.applied = None
+                _, leaves = problem.apply_leaves()
+                leaf = leaves[problem.key]
+                if fb is None:
+                    images = engine.images(problem, edges, views, trial, terms=("primary",))
+                    dr.backward(dr.sum(delta * dr.concat(images)))
+                else:
+                    assert fb.serves_primary(problem, views, engine.settings, edges)
+                    counts.append(fb.primary(problem, views, trial, engine.settings, edges, delta))
+                grads.append(np.asarray(dr.grad(leaf), np.float64))
+            assert np.abs(grads[1]).sum() > 0
+            if mi.variant().startswith("cuda"):
+                assert np.abs(grads[0] - grads[1]).max() <= 1e-5 * np.abs(grads[1]).max()
+            else:
+                assert np.array_equal(grads[0], grads[1])
+            # the same arithmetic (the traced pass projects with the camera table too): rounding only
+            # (measured ≤ 6·10⁻⁸; half the term would give 0.5)
+            error = np.abs(grads[1] - grads[2]).sum() / np.abs(grads[2]).sum()
+            assert error <= 1e-5, error
+    assert len(set(counts)) > 1, counts
+    assert frozen.primary_part.n_recordings <= 2
     problem.applied = None
     problem.release()

@@ -189,13 +189,28 @@ class LaneCameras:
         ray.maxt = (self.far - self.near) * inv_z
         return ray
 
+    def local(self, x):
+        """Camera-space coordinates M⁻¹ x of world points ``x`` in each lane's camera."""
+        a, b, c, t = self.local_axes
+        return a * x.x + b * x.y + c * x.z + t
+
+    def film(self, local):
+        """Film position (pixels) of camera-space points ``local``: :class:`Projection`'s formula."""
+        aspect = self.width / self.height
+        return mi.Point2f(self.width * (self.cx - 0.5 * local.x / (local.z * self.tan_half)),
+                          self.height * (self.cy - 0.5 * aspect * local.y / (local.z * self.tan_half)))
+
+    def project(self, x):
+        """(film position in pixels, camera-space depth z) of world points ``x`` (AD), as
+        :class:`Projection` gives them, each lane in its own camera."""
+        local = self.local(x)
+        return self.film(local), local.z
+
     def direction(self, x, active):
         """(W_e, d0, film position, valid, distance) of each lane's camera towards ``x``."""
-        a, b, c, t = self.local_axes
-        local = a * x.x + b * x.y + c * x.z + t
+        local = self.local(x)
         aspect = self.width / self.height
-        uv = mi.Point2f(self.width * (self.cx - 0.5 * local.x / (local.z * self.tan_half)),
-                        self.height * (self.cy - 0.5 * aspect * local.y / (local.z * self.tan_half)))
+        uv = self.film(local)
         valid = mi.Bool(active) & (local.z > self.near) & (local.z < self.far) & \
             (uv.x >= 0) & (uv.x <= self.width) & (uv.y >= 0) & (uv.y <= self.height)
         dist2 = dr.squared_norm(local)

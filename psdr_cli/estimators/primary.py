@@ -51,7 +51,7 @@ from ..intersections import Segments, intersection_segments, segment_points
 from ..jitarray import concat, jit_array
 from ..topology import face_normals
 from .boundary_sampling import BoundaryEdges
-from .camera import Projection, SensorCamera, film_pixel, lane_views, sensor_groups
+from .camera import CameraTable, LaneCameras, Projection, SensorCamera, film_pixel, sensor_groups
 from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
@@ -245,12 +245,23 @@ def scene_segments(edges: BoundaryEdges, meshes) -> Segments:
     return edges.segments[key]
 
 
-def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
-    """Intersection curves that involve at least one edge object (:mod:`psdr_cli.intersections`)."""
+def moving_segments(scene: mi.Scene, edges: BoundaryEdges, P) -> tuple:
+    """(meshes, segments, keep): the scene's meshes (:func:`scene_meshes`), their intersection
+    segments (:func:`scene_segments`) and which of them involve at least one edge object."""
     with dr.suspend_grad():
         meshes, _, n_moving = scene_meshes(scene, edges, P)
     seg = scene_segments(edges, meshes)
-    keep = (seg.mesh < n_moving).any(1)
+    return meshes, seg, (seg.mesh < n_moving).any(1)
+
+
+def crossing_count(scene: mi.Scene, edges: BoundaryEdges, P) -> int:
+    """Number of intersection curves :func:`intersection_curves` would return."""
+    return int(moving_segments(scene, edges, P)[2].sum())
+
+
+def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
+    """Intersection curves that involve at least one edge object (:mod:`psdr_cli.intersections`)."""
+    meshes, seg, keep = moving_segments(scene, edges, P)
     empty = np.zeros(0, np.int64)
     if not keep.any():
         return Curves(mi.Point3f(), mi.Point3f(), empty, empty, empty, empty, empty.astype(bool), empty.astype(bool))
@@ -444,29 +455,50 @@ def fold_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int
 
 
 @dataclass
-class ViewCurves:
-    """One view's curves (:func:`primary_curves`) projected to its film: end points q0, q1 (AD)
-    and the sampling mass w_e·ℓ_e of each curve (0 unless both ends lie before the near plane)."""
-    curves: Curves
-    q0: mi.Point2f
-    q1: mi.Point2f
-    mass: mi.Float
+class CurveTable:
+    """What a lane reads of the curve it drew, as Dr.Jit arrays (one entry per curve): the end
+    points p0, p1 (AD), the two faces' (shape id, face index), ``strict`` and ``inner``
+    (:class:`Curves`), the sampling weight w_e, the faces' normals on intersection curves
+    (``normal0``, ``normal1``) and on folded mesh edges (``fold0``, ``fold1``), zero elsewhere.
+    ``crossings`` and ``folds`` say whether any curve has such normals (the side offsets of
+    :func:`crossing_offsets` and :func:`fold_offsets` are traced only then)."""
+    p0: mi.Point3f
+    p1: mi.Point3f
+    shape0: mi.UInt32
+    face0: mi.UInt32
+    shape1: mi.UInt32
+    face1: mi.UInt32
+    strict: mi.Bool
+    inner: mi.Bool
+    weight: mi.Float
+    normal0: mi.Vector3f
+    normal1: mi.Vector3f
+    fold0: mi.Vector3f
+    fold1: mi.Vector3f
+    crossings: bool
+    folds: bool
 
 
-def view_curves(scene: mi.Scene, edges: BoundaryEdges, P, proj: Projection, scattering: bool,
-                sampling: str) -> ViewCurves | None:
-    """The curves of the view of ``proj`` with their sampling mass (None: it has none)."""
-    curves = primary_curves(scene, edges, P, np.asarray(dr.detach(proj.origin), np.float64).reshape(-1)[:3],
-                            scattering, sampling)
-    if len(curves) == 0:
-        return None
-    q0, z0 = proj(curves.p0)
-    q1, z1 = proj(curves.p1)
+def vectors(a: np.ndarray) -> mi.Vector3f:
+    """An (n, 3) numpy array as a ``mi.Vector3f``."""
+    return mi.Vector3f(*(jit_array(mi.Float, a[:, i]) for i in range(3)))
+
+
+def curve_table(curves: Curves) -> CurveTable:
+    """The columns of ``curves`` (numpy) uploaded as a :class:`CurveTable`."""
+    ints = [jit_array(mi.UInt32, getattr(curves, a)) for a in ("shape0", "face0", "shape1", "face1")]
+    return CurveTable(curves.p0, curves.p1, *ints, jit_array(mi.Bool, curves.strict),
+                      jit_array(mi.Bool, curves.inner), jit_array(mi.Float, curves.weight),
+                      *(vectors(getattr(curves, a)) for a in ("normal0", "normal1", "fold0", "fold1")),
+                      bool(np.any(curves.normal0)), bool(np.any(curves.fold0)))
+
+
+def curve_mass(q0, q1, z0, z1, near, weight) -> mi.Float:
+    """Sampling mass w_e·ℓ_e of curves with projected end points q0, q1 (pixels) at camera depths
+    z0, z1: 0 unless both ends lie before the near plane (detached)."""
     with dr.suspend_grad():
-        weight = jit_array(mi.Float, curves.weight)
-        front = (dr.detach(z0) > proj.near) & (dr.detach(z1) > proj.near)
-        mass = dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)  # w_e·ℓ_e
-    return ViewCurves(curves, q0, q1, mass)
+        front = (dr.detach(z0) > near) & (dr.detach(z1) > near)
+        return dr.select(front, weight * dr.norm(dr.detach(q1 - q0)), 0.0)
 
 
 def join_curves(parts) -> Curves:
@@ -507,41 +539,45 @@ def stratified(u: mi.Float, n_samples: int, view=None) -> mi.Float:
     return dr.minimum((mi.Float(lane) + u) * (1.0 / n_samples), dr.one_minus_epsilon(mi.Float))
 
 
-def draw_views(masses, u: mi.Float, view, n_samples: int) -> Draw | None:
-    """Curves drawn per lane among its own view's: ``masses`` holds each view's curve masses (numpy,
-    views in batch order, curves joined in that order), lane i belongs to view ``view[i]`` (None:
-    one view). With C_j the cumulative mass of the view's curves up to curve j and T its total,
-    the lane finds the first j with C_j > u·T by bisection within its view's range and
-    s = (u·T − C_{j−1}) / m_j; a view without mass draws nothing (None: no view has mass). The
-    bisection takes :data:`DRAW_STEPS` steps whatever the counts (more only beyond 2^DRAW_STEPS
-    curves), so that a count crossing a power of two does not compile the kernel again."""
-    view = mi.UInt32(0) if view is None else view
-    counts = np.array([len(m) for m in masses], np.int64)
-    flat = np.concatenate(masses).astype(np.float64)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    totals = np.array([m.sum(dtype=np.float64) for m in masses])
-    if not (totals > 0).any():
-        return None
-    after = np.concatenate([np.cumsum(m, dtype=np.float64) for m in masses])
-    before = after - flat
-    total = dr.gather(mi.Float, jit_array(mi.Float, totals), view)
-    x = u * total
-    lo = dr.gather(mi.UInt32, jit_array(mi.UInt32, starts), view)
-    size = dr.gather(mi.UInt32, jit_array(mi.UInt32, counts), view)
-    cumulative = jit_array(mi.Float, after)
-    for _ in range(max(DRAW_STEPS, int(counts.max()).bit_length())):  # first j in [lo, lo + size) with C_j > x
+def draw_views(mass: mi.Float, start: mi.UInt32, count: mi.UInt32, view, u: mi.Float, n_samples: int) -> Draw:
+    """Curves drawn per lane among its own view's, on the device: ``mass`` holds the joined curves'
+    masses w_e·ℓ_e (view j's are the ``count[j]`` entries from ``start[j]``; entries of no view may
+    follow), lane i belongs to view ``view[i]`` (None: view 0). With C_j the cumulative mass (an
+    exclusive prefix sum in float64 over the whole array, B_v = C at the view's first curve) and
+    T_v its view's total, the lane finds the first j of its view's range with C_j + m_j > B_v + u·T_v
+    by bisection and s = (B_v + u·T_v − C_j) / m_j; a lane whose view has no mass draws nothing
+    (``alive`` false). The bisection takes :data:`DRAW_STEPS` steps whatever the counts (up to
+    2^DRAW_STEPS curves per view): one kernel for every count, and no value read to the host."""
+    view = dr.zeros(mi.UInt32, dr.width(u)) if view is None else view
+    before = dr.prefix_sum(mi.Float64(mass))
+    after = before + mi.Float64(mass)
+    lo = dr.gather(mi.UInt32, start, view)
+    size = dr.gather(mi.UInt32, count, view)
+    has = size > 0
+    last = dr.select(has, lo + size - 1, 0)
+    base = dr.gather(mi.Float64, before, lo, has)
+    total = dr.gather(mi.Float64, after, last, has) - base
+    x = base + mi.Float64(u) * total
+    for _ in range(DRAW_STEPS):  # first j in [lo, lo + size) with C_j + m_j > x
         half = size >> 1
-        right = (size > 0) & (dr.gather(mi.Float, cumulative, lo + half, size > 0) <= x)
+        right = (size > 0) & (dr.gather(mi.Float64, after, lo + half, size > 0) <= x)
         lo = dr.select(right, lo + half + 1, lo)
         size = dr.select(right, size - half - 1, half)
-    alive = dr.gather(mi.Bool, jit_array(mi.Bool, totals > 0), view)
-    last = dr.gather(mi.UInt32, jit_array(mi.UInt32, starts + np.maximum(counts - 1, 0)), view)
-    k = dr.select(alive, dr.minimum(lo, last), 0)  # a view without mass may have no curve to index
-    m = dr.gather(mi.Float, jit_array(mi.Float, flat), k)
-    alive &= m > 0
-    s = dr.clip((x - dr.gather(mi.Float, jit_array(mi.Float, before), k)) / dr.select(m > 0, m, 1.0), 0.0,
-                dr.one_minus_epsilon(mi.Float))
-    return Draw(k, s, total / n_samples, alive)
+    k = dr.select(has, dr.minimum(lo, last), 0)
+    m = dr.gather(mi.Float, mass, k, has)
+    alive = has & (total > 0) & (m > 0)
+    s = mi.Float((x - dr.gather(mi.Float64, before, k, has)) / dr.select(m > 0, mi.Float64(m), 1.0))
+    s = dr.clip(s, 0.0, dr.one_minus_epsilon(mi.Float))
+    return Draw(k, s, mi.Float(total) / n_samples, alive)
+
+
+def view_ranges(counts) -> tuple:
+    """(start, count) of each view's curves in the joined list (``counts`` per view), as UInt32
+    arrays; at most 2^DRAW_STEPS − 1 curves per view (what :func:`draw_views` can draw from)."""
+    counts = np.asarray(counts, np.int64)
+    if counts.size and counts.max() >> DRAW_STEPS:
+        raise ValueError(f"primary term: {int(counts.max())} curves in one view; at most 2^{DRAW_STEPS} - 1")
+    return jit_array(mi.UInt32, np.concatenate([[0], np.cumsum(counts)[:-1]])), jit_array(mi.UInt32, counts)
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
@@ -563,45 +599,67 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
     """:func:`primary_boundary` of several views (one film size) traced as one wavefront: lane i
     (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view i // n_samples of
     ``sensors``, draws a point of that view's curves (:func:`draw_views`) and casts that view's
-    camera rays (:class:`.camera.LaneCameras`); one image per view. One view is the per-view pass."""
-    projs = [Projection(s) for s in sensors]
-    width, height, count = projs[0].width, projs[0].height, len(sensors)
+    camera rays; each view's curves are projected into its camera (:class:`.camera.LaneCameras`
+    for several views, rays and projections from one camera table: the arithmetic of the recorded
+    part, :mod:`psdr_cli.frozen_batch`); one image per view. One view is the per-view pass."""
+    width, height = (int(s) for s in sensors[0].film().size())
+    count = len(sensors)
     images = [dr.zeros(mi.Float, width * height * 3) for _ in sensors]
     if edges.count == 0 and not edges.meshes:
         return images
+    origins = camera_origins_of(sensors)
     parts = [None] * count  # a sensor listed several times (passes of one view) selects its curves once
     for group in sensor_groups(sensors):
-        curves = view_curves(scene, edges, P, projs[group[0]], max_depth >= 2, sampling)
+        curves = primary_curves(scene, edges, P, origins[group[0]], max_depth >= 2, sampling)
         for k in group:
-            parts[k] = curves
-    live = [vc for vc in parts if vc is not None]
+            parts[k] = curves if len(curves) else None
+    live = [c for c in parts if c is not None]
     if not live:
         return images
+    curves = join_curves(live)
     if count == 1:
         view, cameras = None, SensorCamera(sensors[0], width, height)
+        proj = Projection(sensors[0])
+        (q0, z0), (q1, z1), near = proj(curves.p0), proj(curves.p1), proj.near
     else:
-        view, cameras = lane_views(sensors, n_samples)
-    joined = np.asarray(concat([vc.mass for vc in live]), np.float64)  # one read for all views
-    split = iter(np.split(joined, np.cumsum([len(vc.curves) for vc in live])[:-1]))
-    masses = [next(split) if vc is not None else np.zeros(0) for vc in parts]
-    draw = draw_views(masses, stratified(sampler.next_1d(), n_samples, view), view, n_samples)
-    if draw is None:
-        return images
-    curves = join_curves([vc.curves for vc in live])
-    q0, q1 = concat([vc.q0 for vc in live]), concat([vc.q1 for vc in live])
-    delta, pixel, n_s, q, ok = curve_samples(scene, cameras, curves, q0, q1, draw, sampler, width, height, max_depth,
+        table = CameraTable.of(sensors, width, height)
+        view = dr.arange(mi.UInt32, n_samples * count) // dr.opaque(mi.UInt32, n_samples)
+        cameras = LaneCameras.from_table(table, view)
+        owner = np.repeat(np.arange(count), [len(c) if c is not None else 0 for c in parts])
+        curve_cameras = LaneCameras.from_table(table, jit_array(mi.UInt32, owner))
+        (q0, z0), (q1, z1), near = curve_cameras.project(curves.p0), curve_cameras.project(curves.p1), \
+            curve_cameras.near
+    start, counts = view_ranges([len(c) if c is not None else 0 for c in parts])
+    draw = draw_views(curve_mass(q0, q1, z0, z1, near, jit_array(mi.Float, curves.weight)), start, counts, view,
+                      stratified(sampler.next_1d(), n_samples, view), n_samples)
+    img = curves_image(scene, cameras, view, count, curve_table(curves), q0, q1, draw, sampler, width, height,
+                       max_depth, hide_background, coverage)
+    return [img] if count == 1 else interior.split_views(img, count)
+
+
+def camera_origins_of(sensors) -> np.ndarray:
+    """(n, 3) camera positions of ``sensors`` (float64)."""
+    return np.array([np.ravel(s.world_transform().translation()) for s in sensors], np.float64).reshape(-1, 3)
+
+
+def curves_image(scene, cameras, view, count: int, table: CurveTable, q0, q1, draw: Draw, sampler, width: int,
+                 height: int, max_depth: int, hide_background: bool, coverage) -> mi.Float:
+    """The drawn curve points' contributions (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] added to
+    their pixels: a flat W·H·3 image per view, ``count`` views end to end (lane i's view
+    ``view[i]``; None: one view), primal 0."""
+    delta, pixel, n_s, q, ok = curve_samples(scene, cameras, table, q0, q1, draw, sampler, width, height, max_depth,
                                              hide_background, coverage)
     if view is not None:
         pixel += view * (width * height)
     v = delta * dr.dot(n_s, q)
     v = v - dr.detach(v)
-    img = images[0] if count == 1 else dr.zeros(mi.Float, width * height * 3 * count)
+    img = dr.zeros(mi.Float, width * height * 3 * count)
     for c in range(3):
         dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
-    return [img] if count == 1 else interior.split_views(img, count)
+    return img
 
 
-def curve_samples(scene, cameras, curves: Curves, q0, q1, draw: Draw, sampler, width: int, height: int,
+def curve_samples(scene, cameras, curves: CurveTable, q0, q1, draw: Draw, sampler, width: int, height: int,
                   max_depth: int, hide_background: bool, coverage):
     """(ΔL / p(q) per lane, its pixel, screen normal n_s, film point q (AD), mask) of the points
     ``draw`` picks on ``curves`` (projected end points q0, q1): the two sides' radiance (or
@@ -616,26 +674,22 @@ def curve_samples(scene, cameras, curves: Curves, q0, q1, draw: Draw, sampler, w
         n_s = mi.Vector2f(-t.y, t.x)
         ok = (qd.x >= 0) & (qd.x < width) & (qd.y >= 0) & (qd.y < height) & draw.alive
         eps = SIDE_EPS * max(width, height)
-        own = [dr.gather(mi.UInt32, jit_array(mi.UInt32, getattr(curves, a)), k)
-               for a in ("shape0", "face0", "shape1", "face1")]
+        own = [dr.gather(mi.UInt32, getattr(curves, a), k) for a in ("shape0", "face0", "shape1", "face1")]
+        x0 = dr.gather(mi.Point3f, dr.detach(curves.p0), k)
         offsets = [mi.Float(-eps), mi.Float(eps)]
-        if np.any(curves.normal0):  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
-            normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
-                                                            for i in range(3))), k) for a in ("normal0", "normal1")]
-            offsets = crossing_offsets(scene, cameras, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
-                                       *normals, own, width, height, ok)
-        if np.any(curves.fold0):  # mesh edges that fold back: clear the ray-spawn offset (see fold_offsets)
-            normals = [dr.gather(mi.Vector3f, mi.Vector3f(*(jit_array(mi.Float, getattr(curves, a)[:, i])
-                                                            for i in range(3))), k) for a in ("fold0", "fold1")]
-            offsets = fold_offsets(scene, cameras, qd, n_s, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
-                                   *normals, own, width, height, offsets, ok)
+        if curves.crossings:  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
+            normals = [dr.gather(mi.Vector3f, getattr(curves, a), k) for a in ("normal0", "normal1")]
+            offsets = crossing_offsets(scene, cameras, qd, n_s, x0, *normals, own, width, height, ok)
+        if curves.folds:  # mesh edges that fold back: clear the ray-spawn offset (see fold_offsets)
+            normals = [dr.gather(mi.Vector3f, getattr(curves, a), k) for a in ("fold0", "fold1")]
+            offsets = fold_offsets(scene, cameras, qd, n_s, x0, *normals, own, width, height, offsets, ok)
         rays = [cameras(qd + o * n_s, ok) for o in offsets]
-        strict = dr.gather(mi.Bool, jit_array(mi.Bool, curves.strict), k)
-        inner = dr.gather(mi.Bool, jit_array(mi.Bool, curves.inner), k)
+        strict = dr.gather(mi.Bool, curves.strict, k)
+        inner = dr.gather(mi.Bool, curves.inner, k)
         # each side's first hit, traced once: for the visibility test and as the radiance's first vertex
         hits = [scene.ray_intersect(ray, ok) for ray in rays]
-        ok &= edge_visible(scene, rays, dr.gather(mi.Point3f, dr.detach(curves.p0), k),
-                           dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok, hits)
+        ok &= edge_visible(scene, rays, x0, dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok,
+                           hits)
         # common random numbers: both sides trace the same samples, so their difference keeps
         # the jump and loses most of the noise (each side alone stays unbiased)
         twin = sampler.clone()
@@ -645,7 +699,7 @@ def curve_samples(scene, cameras, curves: Curves, q0, q1, draw: Draw, sampler, w
             sides = [interior.radiance(scene, smp, ray, max_depth, ok, hide_background=hide_background, si=si)
                      for smp, ray, si in zip((sampler, twin), rays, hits)]
         # 1/(N·p(q)) = Σw·ℓ / (N·w_e)
-        inv_pdf = draw.scale / dr.gather(mi.Float, jit_array(mi.Float, curves.weight), k)
+        inv_pdf = draw.scale / dr.gather(mi.Float, curves.weight, k)
         delta = dr.select(ok, (sides[0] - sides[1]) * inv_pdf, 0.0)
         pixel = dr.select(ok, film_pixel(qd, width), 0)
         dr.eval(delta, pixel, n_s, ok)
