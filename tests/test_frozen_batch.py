@@ -229,94 +229,88 @@ def test_a_frozen_run_resumes_exactly_across_a_remesh(tmp_path, monkeypatch):
     assert (runs["whole"][1] / "final.ply").read_bytes() == (runs["stopped"][1] / "final.ply").read_bytes()
 
 
+def perturbed_shapes(seed: int, trials: int = 4):
+    """The part tests' set-up: yields (problem, engine, a recorded and a traced FrozenBatch, the
+    trial, the sphere's vertices jittered, their edge table, a batch, a fixed δ) on a prepared
+    problem, in the optimisation's thread setting."""
+    exp, problem, engine, stage = setup()
+    frozen, traced = FrozenBatch(), FrozenBatch(enabled=False)
+    V0 = np.asarray(problem.vertices())
+    rng = np.random.default_rng(seed)
+    delta = mi.Float(rng.choice([-1.0, 1.0], 4 * 3 * exp.scene.width * exp.scene.height) * 1e-4)
+    with backend.optimization_threads():
+        for fb in (frozen, traced):
+            fb.prepare(problem, stage)
+        for trial in range(trials):
+            V = V0 + rng.normal(0.0, 0.01, V0.shape)
+            problem.scene.objects["bunny"].vertices = V
+            edges = edge_list(problem.scene, engine.settings.estimator, False)
+            views = iteration.batch_views(0, trial, len(stage.arrays), exp.optimize.batch_size)
+            yield problem, engine, frozen, traced, trial, V, edges, views, delta
+    problem.applied = None
+    problem.release()
+
+
+def vertex_leaf_written(problem, V):
+    """The scene's vertex leaf after writing ``V`` as the loop writes vertices: through the
+    optimiser's latent and the large-steps solve (a frozen call on a vertex buffer written from a
+    numpy array each call replayed wrong results on Dr.Jit 1.5: docs/benchmarks/iteration_time.md,
+    stop 52)."""
+    problem.opt["u"] = problem.steps.to_differential(jit_array(mi.Float, np.ravel(V)))
+    problem.applied = None
+    _, leaves = problem.apply_leaves()
+    return leaves[problem.key]
+
+
+def assert_replayed(grads):
+    """The recorded part's gradient (``grads[0]``) is the traced part's (``grads[1]``), nonzero."""
+    assert np.abs(grads[1]).sum() > 0
+    if mi.variant().startswith("cuda"):
+        assert np.abs(grads[0] - grads[1]).max() <= 1e-5 * np.abs(grads[1]).max()
+    else:
+        assert np.array_equal(grads[0], grads[1])
+
+
 def test_the_direct_part_replays_right_for_any_number_of_edges():
     """The direct term's recorded part (edges as arrays padded to a power of two, drawn by
     LengthDistribution) against the same part traced, on shapes whose edge tables differ in
     length: the same gradient each time, and no recording per edge count. The vertices are
-    written through the optimiser and the large-steps solve, as the loop writes them: a frozen
-    call on a vertex buffer written from a numpy array each call replayed wrong results on Dr.Jit
-    1.5 (docs/benchmarks/iteration_time.md, stop 52)."""
-    exp, problem, engine, stage = setup()
-    cfg = exp.optimize
-    frozen, traced = FrozenBatch(), FrozenBatch(enabled=False)
-    V0 = np.asarray(problem.vertices())
-    rng = np.random.default_rng(2)
-    delta = mi.Float(rng.choice([-1.0, 1.0], 4 * 3 * exp.scene.width * exp.scene.height) * 1e-4)
+    written as the loop writes them (:func:`vertex_leaf_written`)."""
     counts = []
-    with backend.optimization_threads():
+    for problem, engine, frozen, traced, trial, V, edges, views, delta in perturbed_shapes(2):
+        counts.append(edges.count)
+        grads = []
         for fb in (frozen, traced):
-            fb.prepare(problem, stage)
-        for trial in range(4):
-            V = V0 + rng.normal(0.0, 0.01, V0.shape)
-            problem.scene.objects["bunny"].vertices = V
-            edges = edge_list(problem.scene, engine.settings.estimator, False)
-            counts.append(edges.count)
-            views = iteration.batch_views(0, trial, len(stage.arrays), cfg.batch_size)
-            grads = []
-            for fb in (frozen, traced):  # the vertices written as the loop writes them (see the docstring)
-                problem.opt["u"] = problem.steps.to_differential(jit_array(mi.Float, np.ravel(V)))
-                problem.applied = None
-                _, leaves = problem.apply_leaves()
-                leaf = leaves[problem.key]
-                assert fb.serves_direct(problem, views, engine.settings, edges, None)
-                fb.direct(problem, views, trial, engine.settings, edges, delta)
-                grads.append(np.asarray(dr.grad(leaf), np.float64))
-            assert np.abs(grads[1]).sum() > 0
-            if mi.variant().startswith("cuda"):
-                assert np.abs(grads[0] - grads[1]).max() <= 1e-5 * np.abs(grads[1]).max()
-            else:
-                assert np.array_equal(grads[0], grads[1])
+            leaf = vertex_leaf_written(problem, V)
+            assert fb.serves_direct(problem, views, engine.settings, edges, None)
+            fb.direct(problem, views, trial, engine.settings, edges, delta)
+            grads.append(np.asarray(dr.grad(leaf), np.float64))
+        assert_replayed(grads)
     assert len(set(counts)) > 1, counts
     assert frozen.direct_part.n_recordings <= 2
-    problem.applied = None
-    problem.release()
 
 
 def test_the_primary_part_replays_right_for_any_number_of_curves():
     """The primary term's recorded part (each view's curves selected on the host, the batch's
     curves as arrays padded to a power of two, drawn on the device) against the same part traced,
     on shapes whose curve lists differ in length: the same gradient each time, and no recording per
-    count; and against the term's traced pass of before (``estimate_views``: Mitsuba's sensors,
-    per-view projections), up to the rounding of the cameras. The vertices are written through
-    the optimiser, as the loop writes them (see the direct part's test)."""
-    exp, problem, engine, stage = setup()
-    cfg = exp.optimize
-    frozen, traced = FrozenBatch(), FrozenBatch(enabled=False)
-    V0 = np.asarray(problem.vertices())
-    rng = np.random.default_rng(3)
-    delta = mi.Float(rng.choice([-1.0, 1.0], 4 * 3 * exp.scene.width * exp.scene.height) * 1e-4)
+    count; and against the term's traced pass (``estimate_views``), which projects with the same
+    camera table: the same up to rounding. The vertices are written as the loop writes them."""
     counts = []
-    with backend.optimization_threads():
-        for fb in (frozen, traced):
-            fb.prepare(problem, stage)
-        for trial in range(4):
-            V = V0 + rng.normal(0.0, 0.01, V0.shape)
-            problem.scene.objects["bunny"].vertices = V
-            edges = edge_list(problem.scene, engine.settings.estimator, False)
-            views = iteration.batch_views(0, trial, len(stage.arrays), cfg.batch_size)
-            grads = []
-            for fb in (frozen, traced, None):  # None: the term's traced pass of before
-                problem.opt["u"] = problem.steps.to_differential(jit_array(mi.Float, np.ravel(V)))
-                problem.applied = None
-                _, leaves = problem.apply_leaves()
-                leaf = leaves[problem.key]
-                if fb is None:
-                    images = engine.images(problem, edges, views, trial, terms=("primary",))
-                    dr.backward(dr.sum(delta * dr.concat(images)))
-                else:
-                    assert fb.serves_primary(problem, views, engine.settings, edges)
-                    counts.append(fb.primary(problem, views, trial, engine.settings, edges, delta))
-                grads.append(np.asarray(dr.grad(leaf), np.float64))
-            assert np.abs(grads[1]).sum() > 0
-            if mi.variant().startswith("cuda"):
-                assert np.abs(grads[0] - grads[1]).max() <= 1e-5 * np.abs(grads[1]).max()
+    for problem, engine, frozen, traced, trial, V, edges, views, delta in perturbed_shapes(3):
+        grads = []
+        for fb in (frozen, traced, None):  # None: the term's traced pass
+            leaf = vertex_leaf_written(problem, V)
+            if fb is None:
+                images = engine.images(problem, edges, views, trial, terms=("primary",))
+                dr.backward(dr.sum(delta * dr.concat(images)))
             else:
-                assert np.array_equal(grads[0], grads[1])
-            # the same arithmetic (the traced pass projects with the camera table too): rounding only
-            # (measured ≤ 6·10⁻⁸; half the term would give 0.5)
-            error = np.abs(grads[1] - grads[2]).sum() / np.abs(grads[2]).sum()
-            assert error <= 1e-5, error
+                assert fb.serves_primary(problem, views, engine.settings, edges)
+                counts.append(fb.primary(problem, views, trial, engine.settings, edges, delta))
+            grads.append(np.asarray(dr.grad(leaf), np.float64))
+        assert_replayed(grads[:2])
+        # the same arithmetic: rounding only (measured ≤ 6·10⁻⁸; half the term would give 0.5)
+        error = np.abs(grads[1] - grads[2]).sum() / np.abs(grads[2]).sum()
+        assert error <= 1e-5, error
     assert len(set(counts)) > 1, counts
     assert frozen.primary_part.n_recordings <= 2
-    problem.applied = None
-    problem.release()
