@@ -81,43 +81,47 @@ def run_cli(*args, cwd=None, timeout=600):
                           capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.fixture
-def run_psdr(capfd):
-    """run_psdr(*args, cwd=None) -> CompletedProcess: ``psdr ARGS`` run in this process, through
-    the function ``python -m psdr_cli`` calls (``psdr_cli.cli.run``), for checks that are not about
-    the process itself (exit codes and one-line errors, run folders): it saves the ~4 s of imports
-    a ``run_cli`` subprocess costs. As ``run_cli``: the exit code, and stdout and stderr captured
-    at the file descriptors (C++ output included), 200 columns, PSDR_DEBUG unset, Mitsuba's log
-    level of a new process; warnings filtered afresh per call (a warning shown once per process
-    shows in every call, as in a new process) and psdr's warning hook undone afterwards. Keep
-    ``run_cli`` for what only a real process shows: kills, signals, hangs, locks held by another
-    process, the entry point itself."""
+def psdr_exit_code(argv, cwd=None) -> int:
+    """The exit code of ``psdr ARGV`` run in this process through the function ``python -m
+    psdr_cli`` calls (``psdr_cli.cli.run``), as a new process would see it: 200 columns,
+    PSDR_DEBUG unset, Mitsuba's log level of a new process, warnings filtered afresh (a warning
+    shown once per process shows in every call) and psdr's warning hook undone afterwards, the
+    working directory ``cwd``; all restored after the call. The caller captures the output."""
     import warnings
     from psdr_cli import cli
+    widths = cli.console._width, cli.out._width  # rich sets these from COLUMNS at import
+    debug = os.environ.pop("PSDR_DEBUG", None)
+    here, level = os.getcwd(), mi.log_level()
+    try:
+        cli.console.width = cli.out.width = 200
+        mi.set_log_level(MITSUBA_LOG_LEVEL)
+        os.chdir(cwd or here)
+        with warnings.catch_warnings():
+            try:
+                return cli.run([str(a) for a in argv])
+            except SystemExit as exc:  # as the interpreter turns sys.exit into an exit status
+                return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        os.chdir(here)
+        mi.set_log_level(level)
+        cli.console._width, cli.out._width = widths
+        if debug is not None:
+            os.environ["PSDR_DEBUG"] = debug
 
+
+@pytest.fixture
+def run_psdr(capfd):
+    """run_psdr(*args, cwd=None) -> CompletedProcess: ``psdr ARGS`` run in this process
+    (:func:`psdr_exit_code`), for checks that are not about the process itself (exit codes and
+    one-line errors, run folders): it saves the ~4 s of imports a ``run_cli`` subprocess costs.
+    As ``run_cli``: the exit code, and stdout and stderr captured at the file descriptors (C++
+    output included). Keep ``run_cli`` for what only a real process shows: kills, signals, hangs,
+    locks held by another process, the entry point itself."""
     def run(*args, cwd=None):
-        argv = [str(a) for a in args]
-        widths = cli.console._width, cli.out._width  # rich sets these from COLUMNS at import
-        debug = os.environ.pop("PSDR_DEBUG", None)
-        here, level = os.getcwd(), mi.log_level()
         capfd.readouterr()
-        try:
-            cli.console.width = cli.out.width = 200
-            mi.set_log_level(MITSUBA_LOG_LEVEL)
-            os.chdir(cwd or here)
-            with warnings.catch_warnings():
-                try:
-                    code = cli.run(argv)
-                except SystemExit as exc:  # as the interpreter turns sys.exit into an exit status
-                    code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-        finally:
-            os.chdir(here)
-            mi.set_log_level(level)
-            cli.console._width, cli.out._width = widths
-            if debug is not None:
-                os.environ["PSDR_DEBUG"] = debug
+        code = psdr_exit_code(args, cwd)
         captured = capfd.readouterr()
-        return subprocess.CompletedProcess(["psdr", *argv], code, captured.out, captured.err)
+        return subprocess.CompletedProcess(["psdr", *map(str, args)], code, captured.out, captured.err)
     return run
 
 

@@ -68,20 +68,23 @@ def test_a_bare_library_name_is_left_to_the_system_search_and_an_empty_path_is_u
     assert os.environ.get("DRJIT_LIBLLVM_PATH") == backend.find_libllvm() and backend._unusable_llvm is None
 
 
-def test_no_arguments_prints_help_with_every_subcommand():
-    proc = run_cli()
+# The next three run psdr in this process (run_psdr: the messages and exit codes are the point);
+# the real entry point: test_unusable_llvm_* above, tests/test_faults.py::
+# test_usage_error_through_the_real_command_line and test_bad_inputs.py's REAL_PROCESS cases.
+def test_no_arguments_prints_help_with_every_subcommand(run_psdr):
+    proc = run_psdr()
     assert proc.returncode == 0
     for cmd in ("render", "grad", "guide-stats", "optimize", "evaluate"):
         assert cmd in proc.stdout
 
 
-def test_optimize_without_its_section_is_a_one_line_error(tmp_path, write_cfg):
-    proc = run_cli("optimize", write_cfg(experiment()), cwd=tmp_path)
+def test_optimize_without_its_section_is_a_one_line_error(tmp_path, write_cfg, run_psdr):
+    proc = run_psdr("optimize", write_cfg(experiment()), cwd=tmp_path)
     assert proc.returncode == 2 and "optimize: missing" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
-def test_grad_without_parameter_is_a_one_line_error(tmp_path, write_cfg):
-    proc = run_cli("grad", write_cfg(experiment()), cwd=tmp_path)
+def test_grad_without_parameter_is_a_one_line_error(tmp_path, write_cfg, run_psdr):
+    proc = run_psdr("grad", write_cfg(experiment()), cwd=tmp_path)
     assert proc.returncode == 2 and "parameter: missing" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()

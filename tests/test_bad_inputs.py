@@ -1,7 +1,7 @@
 """Bad input through the CLI: one clear line naming file and key, non-zero exit, no traceback,
 and nothing written to the output folder. Most cases run ``psdr`` in this process (run_psdr,
-~4 s of imports fewer each); the cases in REAL_PROCESS and the missing config file go through
-the real entry point (``python -m psdr_cli``)."""
+~4 s of imports fewer each); the cases in REAL_PROCESS go through the real entry point
+(``python -m psdr_cli``)."""
 import numpy as np
 import pytest
 
@@ -142,8 +142,10 @@ def test_bad_input_gives_one_line_and_nonzero_exit(tmp_path, write_cfg, run_psdr
     assert not (tmp_path / "out").exists(), "a failed run must not leave output behind"
 
 
-def test_missing_config_file(tmp_path):
-    proc = run_cli("render", tmp_path / "nope.yaml", cwd=tmp_path)
+def test_missing_config_file(tmp_path, run_psdr):
+    """In this process: read_file's other errors (yaml_syntax, in REAL_PROCESS) take the same path
+    through the real entry point."""
+    proc = run_psdr("render", tmp_path / "nope.yaml", cwd=tmp_path)
     assert proc.returncode == 2 and "nope.yaml: file not found" in proc.stderr
     assert "Traceback" not in proc.stderr
 

@@ -1,4 +1,5 @@
-"""Gradient validation through the real CLI: ``psdr grad configs/validation/*.yaml --fd H``.
+"""Gradient validation through the CLI (psdr_cli.cli.run, in this process): ``psdr grad
+configs/validation/*.yaml --fd H``.
 
 Each scene isolates terms (docs/theory.md §7): a silhouette against a constant background (primary
 only), an occluder under an area light (shadow: direct + primary), a glossy bunny under a sky
@@ -9,12 +10,15 @@ independent batches on both sides) is checked on the image sum (|z| < 3) and on 
 signal tiles that a wrong gradient could not pass.
 """
 import json
+import subprocess
+from contextlib import redirect_stderr, redirect_stdout
+from io import StringIO
 
 import numpy as np
 import pytest
 import yaml
 
-from conftest import REPO, run_cli
+from conftest import REPO, psdr_exit_code
 from psdr_cli.verdict import agrees, describe
 
 VALIDATION = REPO / "configs" / "validation"
@@ -33,9 +37,22 @@ RUNS = {
 }
 
 
-def run_grad(config, tmp_path, h, spp, fd_spp, *extra):
-    proc = run_cli("grad", config, "--fd", h, "--interior-spp", spp, "--fd-spp", fd_spp, "--out", tmp_path, *extra,
-                   timeout=900)
+def psdr_in_process(*args):
+    """``psdr ARGS`` in this process (conftest.psdr_exit_code) for the module-scoped fixture
+    ``runs`` (run_psdr captures with capfd, a per-test fixture): stdout and stderr are captured at
+    ``sys.stdout`` / ``sys.stderr``, where psdr's rich consoles write; C++ output is not captured
+    (no check here reads it)."""
+    out, err = StringIO(), StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = psdr_exit_code(args)
+    return subprocess.CompletedProcess(["psdr", *map(str, args)], code, out.getvalue(), err.getvalue())
+
+
+def run_grad(run, config, tmp_path, h, spp, fd_spp, *extra):
+    """``psdr grad CONFIG --fd H ...`` through ``run`` (run_psdr, or psdr_in_process in a
+    module-scoped fixture: all in this process, ~4 s of imports fewer than a subprocess each;
+    `psdr grad` through the real command line: tests/test_guiding.py, tests/test_pinhole.py)."""
+    proc = run("grad", config, "--fd", h, "--interior-spp", spp, "--fd-spp", fd_spp, "--out", tmp_path, *extra)
     assert proc.returncode == 0, proc.stderr
     name = yaml.safe_load(open(config))["name"]
     summary = json.loads((tmp_path / name / "grad" / "summary.json").read_text())
@@ -52,7 +69,8 @@ def assert_agrees(view, min_signal=10):
 def runs(tmp_path_factory):
     out = {}
     for name, (h, spp, fd_spp, _) in RUNS.items():
-        out[name] = run_grad(VALIDATION / f"{name}.yaml", tmp_path_factory.mktemp(name), h, spp, fd_spp)
+        out[name] = run_grad(psdr_in_process, VALIDATION / f"{name}.yaml", tmp_path_factory.mktemp(name), h, spp,
+                             fd_spp)
     return out
 
 
@@ -83,7 +101,7 @@ def test_cornell_image_sum_matches_finite_differences(runs):
 
 
 @pytest.mark.slow
-def test_indirect_term_is_needed_in_the_cornell_box(tmp_path):
+def test_indirect_term_is_needed_in_the_cornell_box(tmp_path, run_psdr):
     """The indirect estimator carries a real, significant part of the Cornell box's derivative:
     the image sums of one run (estimate and its terms, finite differences) with
     σ = √(se_estimate² + se_fd²) give |indirect| > 3σ, and the estimate without the indirect term
@@ -96,7 +114,7 @@ def test_indirect_term_is_needed_in_the_cornell_box(tmp_path):
     cfg["estimator"]["primary_spp"] = 1024
     path = tmp_path / "cornell.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    _, view = run_grad(path, tmp_path, 0.01, 2048, 16384)
+    _, view = run_grad(run_psdr, path, tmp_path, 0.01, 2048, 16384)
     s = view["fd_agreement"]["sum"]
     sigma = np.hypot(s["estimate_se"], s["fd_se"])
     indirect = view["sums"]["indirect"]
@@ -122,14 +140,14 @@ def test_outputs_of_grad(runs):
 
 
 @pytest.mark.slow
-def test_environment_rotation_matches_finite_differences(tmp_path):
+def test_environment_rotation_matches_finite_differences(tmp_path, run_psdr):
     """θ rotates the sky (and its sun) about z: interior term plus the moving shadows of the sun."""
     cfg = yaml.safe_load(open(VALIDATION / "bunny.yaml"))
     cfg["name"] = "bunny_env"
     cfg["parameter"] = {"kind": "envmap_rotate", "axis": [0, 0, 1]}
     path = tmp_path / "bunny_env.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    _, view = run_grad(path, tmp_path, 0.004, 256, 4096, "--terms", "interior,direct")
+    _, view = run_grad(run_psdr, path, tmp_path, 0.004, 256, 4096, "--terms", "interior,direct")
     assert_agrees(view)
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import bit_reproducible, run_cli
+from conftest import bit_reproducible, psdr_exit_code, run_cli
 from psdr_cli import evaluate as ev
 from psdr_cli import meshes
 
@@ -317,11 +317,10 @@ THREE["optimize"].update(iterations=3, remesh={"method": "none"})
 
 @pytest.fixture(scope="module")
 def three_iterations(tmp_path_factory):
-    """A folder holding THREE's experiment file and its finished run (`psdr optimize`, a real
-    process); tests work on a copy (:func:`copy_run`), never on it."""
+    """A folder holding THREE's experiment file and its finished run (`psdr optimize` in this
+    process: conftest.psdr_exit_code); tests work on a copy (:func:`copy_run`), never on it."""
     folder = tmp_path_factory.mktemp("three_iterations")
-    r = run_cli("optimize", write(folder, THREE))
-    assert r.returncode == 0, r.stderr
+    assert psdr_exit_code(["optimize", write(folder, THREE)]) == 0
     return folder
 
 
@@ -378,7 +377,7 @@ def test_variants_time_budget_report_and_table2(tmp_path, run_psdr):
     data["optimize"]["variants"] = [{"label": "grid", "guiding": "grid"},
                                     {"label": "plain", "guiding": "none", "sampling": "light"}]
     cfg = write(tmp_path, data)
-    r = run_cli("optimize", cfg)
+    r = run_psdr("optimize", cfg)
     assert r.returncode == 0, r.stderr
     assert "grid: guiding grid: direct grid" in r.stdout and "plain: guiding none" in r.stdout  # one line per run
     root = tmp_path / "runs" / "tiny"
