@@ -13,7 +13,7 @@ edges enter as arrays padded to a power of two, :func:`padded_edges`, and are dr
 :class:`.estimators.boundary_sampling.LengthDistribution`, whose kernels do not depend on their
 number) and the primary term's Σ δ·I_primary (each view's curves selected on the host in numpy,
 :func:`.estimators.primary.primary_edge_ids`, and handed over end to end as arrays padded to a
-power of two, :func:`curve_columns`; projected, weighed and drawn on the device,
+power of two, :func:`packed_curves`; projected, weighed and drawn on the device,
 :func:`.estimators.primary.draw_views`; an iteration with intersection curves traces the term).
 The loop adds the other terms' Σ δ·I_term traced, and one backward pass through the large-steps
 solve carries the leaves' gradient to the optimiser.
@@ -48,8 +48,7 @@ from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_c
 from .estimators.direct import direct_image
 from .estimators.interior import radiance
 from .estimators.primary import (CurveTable, camera_origins_of, crossing_count, curve_mass, curves_image,
-                                 draw_views, mesh_normals, primary_edge_ids, shape_id, stratified, vectors,
-                                 view_ranges)
+                                 draw_views, drawable, mesh_normals, primary_edge_ids, shape_id, stratified)
 from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from .estimators.registry import term as registry_term
@@ -219,13 +218,14 @@ def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.
 
 
 def primary_backward(shape: PrimaryShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
-                     columns: dict, start: mi.UInt32, count: mi.UInt32, delta: mi.Float):
+                     packed: mi.UInt32, delta: mi.Float):
     """The primary term's pass over the batch (the samples of its ``estimate_views``: the draw,
     the side rays and radiances; the cameras from ``table``) and the backward pass of
-    Σ δ·I_primary into the scene's leaves. ``columns`` are the batch's curves end to end
-    (:func:`curve_columns`: ``shape.slots`` entries, view j's the ``count[j]`` from ``start[j]``,
+    Σ δ·I_primary into the scene's leaves. ``packed`` holds the batch's curves end to end
+    (:func:`packed_curves`: ``shape.slots`` entries, view j's the ``count[j]`` from ``start[j]``,
     the rest of weight 0), their end points vertex ids into the concatenated vertex buffers of
     ``shape.names``; each curve is projected into its own view's camera."""
+    columns, start, count = unpacked_curves(packed, shape.slots, shape.views)
     params = mi.traverse(mi_scene)
     P = dr.concat([params[f"{n}.vertex_positions"] for n in shape.names]) if len(shape.names) > 1 else \
         params[f"{shape.names[0]}.vertex_positions"]
@@ -248,25 +248,51 @@ def primary_backward(shape: PrimaryShape, mi_scene, table: CameraTable, views: m
     return count
 
 
-def curve_columns(parts, ids: np.ndarray, slots: int) -> tuple:
-    """(columns, folds): the primary curves ``parts`` of the batch's views (each the columns of
+#: The primary part's curve columns in their packed order (:func:`packed_curves`): name, number
+#: of components, type.
+CURVE_COLUMNS = (("v0", 1, "u"), ("v1", 1, "u"), ("face0", 1, "u"), ("face1", 1, "u"), ("shape", 1, "u"),
+                 ("strict", 1, "b"), ("inner", 1, "b"), ("weight", 1, "f"), ("fold0", 3, "f"), ("fold1", 3, "f"),
+                 ("view", 1, "u"))
+
+
+def packed_curves(parts, ids: np.ndarray, slots: int) -> tuple:
+    """(packed, folds): the primary curves ``parts`` of the batch's views (each the columns of
     :func:`.estimators.primary.primary_edge_ids`), end to end and padded to ``slots`` entries of
-    weight 0, as Dr.Jit arrays: end-point vertex ids v0, v1, the edge object's registry id (``ids``
-    per object), the two face indices, strict, inner, the weight w_e, the fold normals and the
-    curve's view (its position in the batch); and whether some curve folds back."""
+    weight 0, as one UInt32 array: each component of :data:`CURVE_COLUMNS` in turn (end-point
+    vertex ids v0, v1, the two face indices, the edge object's registry id (``ids`` per object),
+    strict, inner, the weight w_e and the fold normals as float bits, the curve's view, its
+    position in the batch), then each view's first curve and count; and whether some curve
+    folds back. One upload, freed as one (an array mapped from numpy is released by a host
+    function after the kernels that read it: one operation per array)."""
     cols = [np.concatenate([p[i] for p in parts]) for i in range(10)]
+    counts = drawable([len(p[0]) for p in parts])
+    values = {"v0": cols[0], "v1": cols[1], "face0": cols[2], "face1": cols[3], "shape": ids[cols[4]],
+              "strict": cols[5], "inner": cols[6], "weight": cols[7], "fold0": cols[8], "fold1": cols[9],
+              "view": np.repeat(np.arange(len(parts)), counts)}
     pad = slots - len(cols[0])
-    ints = lambda a: np.concatenate([a, np.zeros(pad, np.int64)])  # noqa: E731
-    vecs = lambda a: np.concatenate([a, np.zeros((pad, 3))])  # noqa: E731
-    view = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
-    columns = {"v0": jit_array(mi.UInt32, ints(cols[0])), "v1": jit_array(mi.UInt32, ints(cols[1])),
-               "face0": jit_array(mi.UInt32, ints(cols[2])), "face1": jit_array(mi.UInt32, ints(cols[3])),
-               "shape": jit_array(mi.UInt32, ints(ids[cols[4]])),
-               "strict": jit_array(mi.Bool, ints(cols[5])), "inner": jit_array(mi.Bool, ints(cols[6])),
-               "weight": jit_array(mi.Float, np.concatenate([cols[7], np.zeros(pad)])),
-               "fold0": vectors(vecs(cols[8])), "fold1": vectors(vecs(cols[9])),
-               "view": jit_array(mi.UInt32, ints(view))}
-    return columns, bool(np.any(cols[8]))
+    blocks = []
+    for name, width, kind in CURVE_COLUMNS:
+        a = np.asarray(values[name]).reshape(len(cols[0]), width)
+        a = np.concatenate([a, np.zeros((pad, width), a.dtype)])
+        a = a.astype(np.float32).view(np.uint32) if kind == "f" else a.astype(np.uint32)
+        blocks.extend(a[:, c] for c in range(width))
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    blocks += [starts.astype(np.uint32), np.asarray(counts, np.uint32)]
+    return jit_array(mi.UInt32, np.concatenate(blocks)), bool(np.any(cols[8]))
+
+
+def unpacked_curves(packed: mi.UInt32, slots: int, views: int) -> tuple:
+    """(columns by name, start, count): the arrays :func:`packed_curves` packed."""
+    index = dr.arange(mi.UInt32, slots)
+    columns, offset = {}, 0
+    for name, width, kind in CURVE_COLUMNS:
+        parts = [dr.gather(mi.UInt32, packed, index + offset + c * slots) for c in range(width)]
+        offset += width * slots
+        if kind == "f":
+            parts = [dr.reinterpret_array(mi.Float, x) for x in parts]
+        columns[name] = parts[0] != 0 if kind == "b" else parts[0] if width == 1 else mi.Vector3f(*parts)
+    view = dr.arange(mi.UInt32, views)
+    return columns, dr.gather(mi.UInt32, packed, view + offset), dr.gather(mi.UInt32, packed, view + offset + views)
 
 
 class Recording:
@@ -393,16 +419,14 @@ class FrozenBatch:
         if not sum(counts):
             return 0  # no curve in any view: the term adds nothing
         self.curve_slots = max(self.curve_slots, edge_slots(sum(counts)))  # never fewer (see direct)
-        columns, folds = curve_columns(parts, np.array([self.shape_ids[n] for n in edges.names], np.int64),
-                                       self.curve_slots)
+        packed, folds = packed_curves(parts, np.array([self.shape_ids[n] for n in edges.names], np.int64),
+                                      self.curve_slots)
         shape = PrimaryShape(id(problem.scene.mi_scene), width, height, len(views),
                              term_passes(PRIMARY_TERM, settings, width * height)[0], self.curve_slots,
                              tuple(edges.names), settings.max_depth, bool(problem.scene.config.hide_background),
                              folds)
         seed = views_seed(settings.seed, views, iteration, registry_term(PRIMARY_TERM).stream)
-        start, count = view_ranges(counts)
-        self.primary_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed), columns,
-                          start, count, delta)
+        self.primary_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed), packed, delta)
         return sum(counts)
 
     @property

@@ -571,12 +571,18 @@ def draw_views(mass: mi.Float, start: mi.UInt32, count: mi.UInt32, view, u: mi.F
     return Draw(k, s, mi.Float(total) / n_samples, alive)
 
 
-def view_ranges(counts) -> tuple:
-    """(start, count) of each view's curves in the joined list (``counts`` per view), as UInt32
-    arrays; at most 2^DRAW_STEPS − 1 curves per view (what :func:`draw_views` can draw from)."""
+def drawable(counts) -> np.ndarray:
+    """``counts`` (curves per view) as an array, refused beyond 2^DRAW_STEPS − 1 curves in a view
+    (what :func:`draw_views` can draw from)."""
     counts = np.asarray(counts, np.int64)
     if counts.size and counts.max() >> DRAW_STEPS:
         raise ValueError(f"primary term: {int(counts.max())} curves in one view; at most 2^{DRAW_STEPS} - 1")
+    return counts
+
+
+def view_ranges(counts) -> tuple:
+    """(start, count) of each view's curves in the joined list (``counts`` per view), as UInt32 arrays."""
+    counts = drawable(counts)
     return jit_array(mi.UInt32, np.concatenate([[0], np.cumsum(counts)[:-1]])), jit_array(mi.UInt32, counts)
 
 
