@@ -292,7 +292,9 @@ def unpacked_curves(packed: mi.UInt32, slots: int, views: int) -> tuple:
             parts = [dr.reinterpret_array(mi.Float, x) for x in parts]
         columns[name] = parts[0] != 0 if kind == "b" else parts[0] if width == 1 else mi.Vector3f(*parts)
     view = dr.arange(mi.UInt32, views)
-    return columns, dr.gather(mi.UInt32, packed, view + offset), dr.gather(mi.UInt32, packed, view + offset + views)
+    start, count = dr.gather(mi.UInt32, packed, view + offset), dr.gather(mi.UInt32, packed, view + offset + views)
+    dr.eval(columns, start, count)  # one kernel (left lazy, the later kernels would gather them again per use)
+    return columns, start, count
 
 
 class Recording:
