@@ -45,9 +45,9 @@ import numpy as np
 from .estimate import has_guide, term_passes
 from .estimators.boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
 from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_camera_rays
-from .estimators.direct import direct_image
+from .estimators.direct import direct_samples
 from .estimators.interior import radiance
-from .estimators.primary import (CurveTable, camera_origins_of, crossing_count, curve_mass, curves_image,
+from .estimators.primary import (CurveTable, camera_origins_of, crossing_count, curve_mass, curve_values,
                                  draw_views, drawable, mesh_normals, primary_edge_ids, shape_id, stratified)
 from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
@@ -175,7 +175,7 @@ def batch_loss(shape: BatchShape, mi_scene, table: CameraTable, targets: mi.Floa
             P = sums if P is None else P + sums
         P = P / spp_adjoint
         lane = dr.arange(mi.UInt32, n * shape.views)
-        k = lane // dr.opaque(mi.UInt32, n)
+        k = lane // n  # (literals here and below: recorded per structure; an opaque scalar is a memset per replay)
         T = dr.gather(mi.Float, targets, dr.gather(mi.UInt32, views, k) * n + (lane - k * n))
         residual = P - T
         scale = 1.0 / (n * shape.views)
@@ -209,11 +209,11 @@ def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.
     P = edges.positions(mi.traverse(mi_scene))
     n = shape.spp * shape.width * shape.height
     sampler = make_sampler(seed, n * shape.views)
-    k = dr.arange(mi.UInt32, n * shape.views) // dr.opaque(mi.UInt32, n)
+    k = dr.arange(mi.UInt32, n * shape.views) // n
     cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k))
-    image = direct_image(mi_scene, cameras, k, shape.views, edges, P, n, sampler, shape.sampling,
-                         distr=length_distribution(edges, P, count))
-    dr.backward(dr.sum(delta * image))
+    samples = direct_samples(mi_scene, cameras, k, edges, P, n, sampler, shape.sampling,
+                             distr=length_distribution(edges, P, count))
+    dr.backward(adjoint_sum(delta, samples))
     return count  # (a frozen function returns something)
 
 
@@ -235,16 +235,16 @@ def primary_backward(shape: PrimaryShape, mi_scene, table: CameraTable, views: m
     mass = curve_mass(q0, q1, z0, z1, curve_cameras.near, columns["weight"])
     n = shape.spp * shape.width * shape.height
     sampler = make_sampler(seed, n * shape.views)
-    view = dr.arange(mi.UInt32, n * shape.views) // dr.opaque(mi.UInt32, n)
+    view = dr.arange(mi.UInt32, n * shape.views) // n
     cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, view))
     draw = draw_views(mass, start, count, view, stratified(sampler.next_1d(), n, view), n)
     none = dr.zeros(mi.Vector3f, shape.slots)  # no intersection curves (refused before)
     curves = CurveTable(p0, p1, columns["shape"], columns["face0"], columns["shape"], columns["face1"],
                         columns["strict"], columns["inner"], columns["weight"], none, none, columns["fold0"],
                         columns["fold1"], False, shape.folds)
-    image = curves_image(mi_scene, cameras, view, shape.views, curves, q0, q1, draw, sampler, shape.width,
-                         shape.height, shape.max_depth, shape.hide_background, None)
-    dr.backward(dr.sum(delta * image))
+    v, pixel, ok = curve_values(mi_scene, cameras, view, curves, q0, q1, draw, sampler, shape.width, shape.height,
+                                shape.max_depth, shape.hide_background, None)
+    dr.backward(adjoint_sum(delta, [(v, pixel, ok)]))
     return count
 
 
@@ -295,6 +295,18 @@ def unpacked_curves(packed: mi.UInt32, slots: int, views: int) -> tuple:
     start, count = dr.gather(mi.UInt32, packed, view + offset), dr.gather(mi.UInt32, packed, view + offset + views)
     dr.eval(columns, start, count)  # one kernel (left lazy, the later kernels would gather them again per use)
     return columns, start, count
+
+
+def adjoint_sum(delta: mi.Float, samples) -> mi.Float:
+    """Σ δ·I of the image I that the lanes' contributions ``samples`` ((v, pixel, mask) each, v a
+    colour, the pixel's index in the views' joined image) add up to, without forming I:
+    Σ_lanes Σ_c δ[3·pixel + c]·v_c. Its reverse pass gives each lane δ at its pixel, as the
+    scattered image's would (no image to zero, no scatter)."""
+    total = mi.Float(0.0)
+    for v, pixel, ok in samples:
+        for c in range(3):
+            total += dr.select(ok, dr.gather(mi.Float, delta, pixel * 3 + c, ok) * v[c], 0.0)
+    return dr.sum(total)
 
 
 class Recording:

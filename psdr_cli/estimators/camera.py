@@ -257,12 +257,14 @@ def table_camera_rays(table: CameraTable, views: mi.UInt32, sampler: mi.Sampler,
     """:func:`views_camera_rays` with the cameras as data: lane i belongs to the batch's view
     ``views[i // (W·H·spp)]`` (a row of ``table``) and to its pixel (i mod W·H·spp) // spp, at the
     film point (x, y) + ξ; the same samples are drawn (ξ, then the unused wavelength sample) and the
-    perspective camera's weight is 1."""
+    perspective camera's weight is 1. The lane counts are literals: its caller records it once per
+    film and sample count (:mod:`psdr_cli.frozen_batch`), where an opaque scalar would be a memset
+    at every replay."""
     width, height = table.width, table.height
     per_view = width * height * spp
     idx = dr.arange(mi.UInt32, per_view * dr.width(views))
-    k = idx // dr.opaque(mi.UInt32, per_view)
-    pixel = (idx - k * dr.opaque(mi.UInt32, per_view)) // dr.opaque(mi.UInt32, spp)
+    k = idx // per_view
+    pixel = (idx - k * per_view) // spp
     pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
     sampler.next_1d()  # the wavelength sample of Mitsuba's sample_ray
     return LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k))(pos)

@@ -213,16 +213,27 @@ def views_direct_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_s
 def direct_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges, P, n_samples: int,
                  sampler: mi.Sampler, technique: str, guides=None, distr=None) -> mi.Float:
     """The direct boundary contributions of ``count`` views as one flat image, view-major (count·W·H·3),
-    each lane's sample added to its view's part (``view``: each lane's view, None for one view):
-    Σ over the techniques of v − detach(v), v from :func:`direct_motion` with weight W·H / N.
-    ``distr``: the edges' length distribution (default: :func:`.boundary_sampling.edge_distribution`)."""
+    each lane's sample added to its view's part (:func:`direct_samples`)."""
+    img = dr.zeros(mi.Float, camera.width * camera.height * 3 * count)
+    for v, pixel, ok in direct_samples(scene, camera, view, edges, P, n_samples, sampler, technique, guides, distr):
+        for c in range(3):
+            dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
+    return img
+
+
+def direct_samples(scene: mi.Scene, camera, view, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
+                   technique: str, guides=None, distr=None) -> list:
+    """Each technique's (v − detach(v), pixel, mask) per lane, v from :func:`direct_motion` with
+    weight W·H / N and the pixel in its view's part of the views' joined image (``view``: each
+    lane's view, None for one view); none without edges. ``distr``: the edges' length
+    distribution (default: :func:`.boundary_sampling.edge_distribution`)."""
     width, height = camera.width, camera.height
-    img = dr.zeros(mi.Float, width * height * 3 * count)
     if edges.count == 0:
-        return img
+        return []
     distr = edge_distribution(edges, P) if distr is None else distr
     env_motion = environment_motion(scene)
     scale = dr.opaque(mi.Float, (width * height) / n_samples)
+    out = []
     for t in (("light", "dir") if technique == "mis" else (technique,)):
         u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
         if isinstance(guides, SampleLog):
@@ -233,10 +244,8 @@ def direct_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges
             guides.record(t, u1, u2, size, g)
         if view is not None:
             pixel += view * (width * height)
-        v = v - dr.detach(v)
-        for c in range(3):
-            dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
-    return img
+        out.append((v - dr.detach(v), pixel, ok))
+    return out
 
 
 def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,

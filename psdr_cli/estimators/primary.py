@@ -650,19 +650,27 @@ def camera_origins_of(sensors) -> np.ndarray:
 
 def curves_image(scene, cameras, view, count: int, table: CurveTable, q0, q1, draw: Draw, sampler, width: int,
                  height: int, max_depth: int, hide_background: bool, coverage) -> mi.Float:
-    """The drawn curve points' contributions (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] added to
-    their pixels: a flat W·H·3 image per view, ``count`` views end to end (lane i's view
-    ``view[i]``; None: one view), primal 0."""
+    """The drawn curve points' contributions (:func:`curve_values`) added to their pixels: a flat
+    W·H·3 image per view, ``count`` views end to end, primal 0."""
+    v, pixel, ok = curve_values(scene, cameras, view, table, q0, q1, draw, sampler, width, height, max_depth,
+                                hide_background, coverage)
+    img = dr.zeros(mi.Float, width * height * 3 * count)
+    for c in range(3):
+        dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
+    return img
+
+
+def curve_values(scene, cameras, view, table: CurveTable, q0, q1, draw: Draw, sampler, width: int, height: int,
+                 max_depth: int, hide_background: bool, coverage) -> tuple:
+    """(v, pixel, mask) per lane: the drawn curve point's contribution
+    v = (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] (AD, primal 0; :func:`curve_samples`) and its pixel
+    in its view's part of the views' joined image (lane i's view ``view[i]``; None: one view)."""
     delta, pixel, n_s, q, ok = curve_samples(scene, cameras, table, q0, q1, draw, sampler, width, height, max_depth,
                                              hide_background, coverage)
     if view is not None:
         pixel += view * (width * height)
     v = delta * dr.dot(n_s, q)
-    v = v - dr.detach(v)
-    img = dr.zeros(mi.Float, width * height * 3 * count)
-    for c in range(3):
-        dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
-    return img
+    return v - dr.detach(v), pixel, ok
 
 
 def curve_samples(scene, cameras, curves: CurveTable, q0, q1, draw: Draw, sampler, width: int, height: int,
