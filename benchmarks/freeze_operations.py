@@ -28,7 +28,10 @@ import mitsuba as mi  # noqa: E402
 
 mi.set_variant("llvm_ad_rgb")
 
+import iteration_time  # noqa: E402
+from psdr_cli import backend, iteration  # noqa: E402
 from psdr_cli.estimators.passes import make_sampler  # noqa: E402
+from psdr_cli.frozen_batch import FrozenBatch  # noqa: E402
 
 
 def operations(history) -> list:
@@ -80,9 +83,6 @@ def probes() -> dict:
 
 def iteration_operations() -> dict:
     """One frozen demo iteration's operations per part (see the module docstring)."""
-    import iteration_time
-    from psdr_cli import backend, iteration
-    from psdr_cli.frozen_batch import FrozenBatch
     parts = {}
     with tempfile.TemporaryDirectory() as tmp:
         exp, _, problem, _, engine, stage = iteration_time.setup(1, Path(tmp))

@@ -43,12 +43,13 @@ import mitsuba as mi
 import numpy as np
 
 from .estimate import has_guide, term_passes
-from .estimators.boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
+from .estimators.boundary_sampling import (SEARCH_STEPS, BoundaryEdges, length_distribution, sensor_origins,
+                                           vertex_buffer)
 from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_camera_rays
 from .estimators.direct import direct_samples
 from .estimators.interior import radiance
-from .estimators.primary import (CurveTable, camera_origins_of, crossing_count, curve_mass, curve_values,
-                                 draw_views, drawable, mesh_normals, primary_edge_ids, shape_id, stratified)
+from .estimators.primary import (CurveTable, camera_edge_ids, crossing_count, curve_pass, drawable, edge_shape_ids,
+                                 view_starts)
 from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from .estimators.registry import term as registry_term
@@ -226,25 +227,20 @@ def primary_backward(shape: PrimaryShape, mi_scene, table: CameraTable, views: m
     the rest of weight 0), their end points vertex ids into the concatenated vertex buffers of
     ``shape.names``; each curve is projected into its own view's camera."""
     columns, start, count = unpacked_curves(packed, shape.slots, shape.views)
-    params = mi.traverse(mi_scene)
-    P = dr.concat([params[f"{n}.vertex_positions"] for n in shape.names]) if len(shape.names) > 1 else \
-        params[f"{shape.names[0]}.vertex_positions"]
-    p0, p1 = (dr.gather(mi.Point3f, P, columns[a]) for a in ("v0", "v1"))
-    curve_cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, columns["view"]))
-    (q0, z0), (q1, z1) = curve_cameras.project(p0), curve_cameras.project(p1)
-    mass = curve_mass(q0, q1, z0, z1, curve_cameras.near, columns["weight"])
+    P = vertex_buffer(mi.traverse(mi_scene), shape.names)
+    none = dr.zeros(mi.Vector3f, shape.slots)  # no intersection curves (refused before)
+    curves = CurveTable(dr.gather(mi.Point3f, P, columns["v0"]), dr.gather(mi.Point3f, P, columns["v1"]),
+                        columns["shape"], columns["face0"], columns["shape"], columns["face1"], columns["strict"],
+                        columns["inner"], columns["weight"], none, none, columns["fold0"], columns["fold1"], False,
+                        shape.folds)
     n = shape.spp * shape.width * shape.height
     sampler = make_sampler(seed, n * shape.views)
     view = dr.arange(mi.UInt32, n * shape.views) // n
     cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, view))
-    draw = draw_views(mass, start, count, view, stratified(sampler.next_1d(), n, view), n)
-    none = dr.zeros(mi.Vector3f, shape.slots)  # no intersection curves (refused before)
-    curves = CurveTable(p0, p1, columns["shape"], columns["face0"], columns["shape"], columns["face1"],
-                        columns["strict"], columns["inner"], columns["weight"], none, none, columns["fold0"],
-                        columns["fold1"], False, shape.folds)
-    v, pixel, ok = curve_values(mi_scene, cameras, view, curves, q0, q1, draw, sampler, shape.width, shape.height,
-                                shape.max_depth, shape.hide_background, None)
-    dr.backward(adjoint_sum(delta, [(v, pixel, ok)]))
+    curve_cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, columns["view"]))
+    samples = curve_pass(mi_scene, cameras, view, curve_cameras, curves, start, count, n, sampler, shape.width,
+                         shape.height, shape.max_depth, shape.hide_background, None)
+    dr.backward(adjoint_sum(delta, [samples]))
     return count
 
 
@@ -256,29 +252,27 @@ CURVE_COLUMNS = (("v0", 1, "u"), ("v1", 1, "u"), ("face0", 1, "u"), ("face1", 1,
 
 
 def packed_curves(parts, ids: np.ndarray, slots: int) -> tuple:
-    """(packed, folds): the primary curves ``parts`` of the batch's views (each the columns of
-    :func:`.estimators.primary.primary_edge_ids`), end to end and padded to ``slots`` entries of
+    """(packed, folds): the primary curves ``parts`` of the batch's views (each
+    :func:`.estimators.primary.camera_edge_ids`), end to end and padded to ``slots`` entries of
     weight 0, as one UInt32 array: each component of :data:`CURVE_COLUMNS` in turn (end-point
     vertex ids v0, v1, the two face indices, the edge object's registry id (``ids`` per object),
     strict, inner, the weight w_e and the fold normals as float bits, the curve's view, its
     position in the batch), then each view's first curve and count; and whether some curve
     folds back. One upload, freed as one (an array mapped from numpy is released by a host
     function after the kernels that read it: one operation per array)."""
-    cols = [np.concatenate([p[i] for p in parts]) for i in range(10)]
-    counts = drawable([len(p[0]) for p in parts])
-    values = {"v0": cols[0], "v1": cols[1], "face0": cols[2], "face1": cols[3], "shape": ids[cols[4]],
-              "strict": cols[5], "inner": cols[6], "weight": cols[7], "fold0": cols[8], "fold1": cols[9],
-              "view": np.repeat(np.arange(len(parts)), counts)}
-    pad = slots - len(cols[0])
+    counts = drawable([len(p["v0"]) for p in parts])
+    values = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+    values["shape"] = ids[values["mesh"]]
+    values["view"] = np.repeat(np.arange(len(parts)), counts)
+    total = int(counts.sum())
     blocks = []
     for name, width, kind in CURVE_COLUMNS:
-        a = np.asarray(values[name]).reshape(len(cols[0]), width)
-        a = np.concatenate([a, np.zeros((pad, width), a.dtype)])
+        a = np.asarray(values[name]).reshape(total, width)
+        a = np.concatenate([a, np.zeros((slots - total, width), a.dtype)])
         a = a.astype(np.float32).view(np.uint32) if kind == "f" else a.astype(np.uint32)
         blocks.extend(a[:, c] for c in range(width))
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    blocks += [starts.astype(np.uint32), np.asarray(counts, np.uint32)]
-    return jit_array(mi.UInt32, np.concatenate(blocks)), bool(np.any(cols[8]))
+    blocks += [view_starts(counts).astype(np.uint32), counts.astype(np.uint32)]
+    return jit_array(mi.UInt32, np.concatenate(blocks)), bool(np.any(values["fold0"]))
 
 
 def unpacked_curves(packed: mi.UInt32, slots: int, views: int) -> tuple:
@@ -319,10 +313,15 @@ class Recording:
         self.scene_id, self.fns = None, {}
         self.earlier = 0  # recordings of earlier scenes' functions
 
+    def reset(self):
+        """Drop the functions (a new scene or stage)."""
+        self.earlier = self.n_recordings
+        self.scene_id, self.fns = None, {}
+
     def __call__(self, shape, *args):
         if shape.scene_id != self.scene_id:
-            self.earlier = self.n_recordings
-            self.scene_id, self.fns = shape.scene_id, {}
+            self.reset()
+            self.scene_id = shape.scene_id
         if shape not in self.fns:
             bound = _bind(self.body, shape)
             self.fns[shape] = dr.freeze(bound, warn_after=1000) if self.enabled else bound
@@ -347,7 +346,7 @@ class FrozenBatch:
         self.scene_id = self.stage = self.scene = None
         self.slots = 0  # the edge slots of the direct part: the most this scene needed
         self.curve_slots = 0  # the curve slots of the primary part: the most this scene needed
-        self.origins = self.shape_ids = None
+        self.origins = None
         self.table = self.targets = None
 
     def structure(self, problem, stage, views, settings, cfg) -> BatchShape:
@@ -364,8 +363,9 @@ class FrozenBatch:
         self.scene = problem.scene.mi_scene  # held: its id cannot name another scene meanwhile
         self.slots = self.curve_slots = 0
         self.table = CameraTable.of(problem.scene.sensors, width, height)
-        self.origins = camera_origins_of(problem.scene.sensors)
-        self.shape_ids = {s.id(): shape_id(s) for s in problem.scene.mi_scene.shapes()}
+        self.origins = sensor_origins(problem.scene.sensors)
+        for part in (self.interior, self.direct_part, self.primary_part):
+            part.reset()  # (a recording keyed by a scene's id must not outlive it: ids are reused)
         self.targets = jit_array(mi.Float, np.concatenate([np.ravel(np.asarray(a, np.float32))
                                                              for a in stage.arrays]))
 
@@ -425,23 +425,20 @@ class FrozenBatch:
         width, height = problem.scene.resolution
         with dr.suspend_grad():
             P = dr.detach(edges.positions(mi.traverse(problem.scene.mi_scene)))
-        V = edges.remembered("vertices", [P], lambda: np.asarray(P, np.float64).reshape(-1, 3))
-        normals = edges.remembered("normals", [P], lambda: mesh_normals(edges, V))
-        parts = [primary_edge_ids(edges, V, self.origins[v], settings.max_depth >= 2,
-                                  settings.estimator.primary_sampling, normals) for v in views]
-        counts = [len(p[0]) for p in parts]
-        if not sum(counts):
+        parts = [camera_edge_ids(edges, P, self.origins[v], settings.max_depth >= 2,
+                                 settings.estimator.primary_sampling) for v in views]
+        total = sum(len(p["v0"]) for p in parts)
+        if not total:
             return 0  # no curve in any view: the term adds nothing
-        self.curve_slots = max(self.curve_slots, edge_slots(sum(counts)))  # never fewer (see direct)
-        packed, folds = packed_curves(parts, np.array([self.shape_ids[n] for n in edges.names], np.int64),
-                                      self.curve_slots)
+        self.curve_slots = max(self.curve_slots, edge_slots(total))  # never fewer (see direct)
+        packed, folds = packed_curves(parts, edge_shape_ids(problem.scene.mi_scene, edges), self.curve_slots)
         shape = PrimaryShape(id(problem.scene.mi_scene), width, height, len(views),
                              term_passes(PRIMARY_TERM, settings, width * height)[0], self.curve_slots,
                              tuple(edges.names), settings.max_depth, bool(problem.scene.config.hide_background),
                              folds)
         seed = views_seed(settings.seed, views, iteration, registry_term(PRIMARY_TERM).stream)
         self.primary_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed), packed, delta)
-        return sum(counts)
+        return total
 
     @property
     def n_recordings(self) -> int:

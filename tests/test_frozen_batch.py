@@ -229,10 +229,10 @@ def test_a_frozen_run_resumes_exactly_across_a_remesh(tmp_path, monkeypatch):
     assert (runs["whole"][1] / "final.ply").read_bytes() == (runs["stopped"][1] / "final.ply").read_bytes()
 
 
-def perturbed_shapes(seed: int, trials: int = 4):
+def perturbed_shapes(seed: int, trials: int = 4, deform=None):
     """The part tests' set-up: yields (problem, engine, a recorded and a traced FrozenBatch, the
-    trial, the sphere's vertices jittered, their edge table, a batch, a fixed δ) on a prepared
-    problem, in the optimisation's thread setting."""
+    trial, the sphere's vertices jittered (and ``deform(trial, V)`` when given), their edge table,
+    a batch, a fixed δ) on a prepared problem, in the optimisation's thread setting."""
     exp, problem, engine, stage = setup()
     frozen, traced = FrozenBatch(), FrozenBatch(enabled=False)
     V0 = np.asarray(problem.vertices())
@@ -243,12 +243,23 @@ def perturbed_shapes(seed: int, trials: int = 4):
             fb.prepare(problem, stage)
         for trial in range(trials):
             V = V0 + rng.normal(0.0, 0.01, V0.shape)
+            V = deform(trial, V) if deform is not None else V
             problem.scene.objects["bunny"].vertices = V
             edges = edge_list(problem.scene, engine.settings.estimator, False)
             views = iteration.batch_views(0, trial, len(stage.arrays), exp.optimize.batch_size)
             yield problem, engine, frozen, traced, trial, V, edges, views, delta
     problem.applied = None
     problem.release()
+
+
+def moved_vertex(V, k: float):
+    """``V`` with its first vertex moved to centre + k·(v − centre) (the sphere's centre): k = 0.1
+    sinks it into a deep dimple whose faces fold back against their neighbours (n0·n1 < 0); k =
+    −1.3 pushes it through the far side (intersection curves)."""
+    centre = np.array([0.0, 0.0, 0.42])
+    V = V.copy()
+    V[0] = centre + k * (V[0] - centre)
+    return V
 
 
 def vertex_leaf_written(problem, V):
@@ -290,27 +301,53 @@ def test_the_direct_part_replays_right_for_any_number_of_edges():
     assert frozen.direct_part.n_recordings <= 2
 
 
+#: Per trial of the primary part's test: the settings' changes (sampling, depth) and the dimple
+PRIMARY_TRIALS = ({}, {"primary_sampling": "jump"}, {"max_depth": 1}, {"dimple": True})
+
+
 def test_the_primary_part_replays_right_for_any_number_of_curves():
     """The primary term's recorded part (each view's curves selected on the host, the batch's
     curves as arrays padded to a power of two, drawn on the device) against the same part traced,
     on shapes whose curve lists differ in length: the same gradient each time, and no recording per
     count; and against the term's traced pass (``estimate_views``), which projects with the same
-    camera table: the same up to rounding. The vertices are written as the loop writes them."""
-    counts = []
-    for problem, engine, frozen, traced, trial, V, edges, views, delta in perturbed_shapes(3):
+    camera table: the same up to rounding. The trials cover edge weights other than 1 (``jump``
+    sampling on the flat-shaded sphere: a wrongly packed weight would change 1/p), one scattering
+    depth (smooth-silhouette selection) and folds (a dimple: the fold normals' recording).
+    The vertices are written as the loop writes them."""
+    counts, folds = [], []
+    deform = lambda trial, V: moved_vertex(V, 0.1) if PRIMARY_TRIALS[trial].get("dimple") else V  # noqa: E731
+    for problem, engine, frozen, traced, trial, V, edges, views, delta in perturbed_shapes(3, deform=deform):
+        change = {k: v for k, v in PRIMARY_TRIALS[trial].items() if k != "dimple"}
+        settings = engine.settings
+        if "max_depth" in change:
+            settings = replace(settings, max_depth=change["max_depth"])
+        if "primary_sampling" in change:
+            settings = settings.with_estimator(primary_sampling=change["primary_sampling"])
         grads = []
         for fb in (frozen, traced, None):  # None: the term's traced pass
             leaf = vertex_leaf_written(problem, V)
             if fb is None:
-                images = engine.images(problem, edges, views, trial, terms=("primary",))
+                images = Engine(settings).images(problem, edges, views, trial, terms=("primary",))
                 dr.backward(dr.sum(delta * dr.concat(images)))
             else:
-                assert fb.serves_primary(problem, views, engine.settings, edges)
-                counts.append(fb.primary(problem, views, trial, engine.settings, edges, delta))
+                assert fb.serves_primary(problem, views, settings, edges)
+                counts.append(fb.primary(problem, views, trial, settings, edges, delta))
             grads.append(np.asarray(dr.grad(leaf), np.float64))
         assert_replayed(grads[:2])
         # the same arithmetic: rounding only (measured ≤ 6·10⁻⁸; half the term would give 0.5)
         error = np.abs(grads[1] - grads[2]).sum() / np.abs(grads[2]).sum()
-        assert error <= 1e-5, error
+        assert error <= 1e-5, (trial, error)
+        folds.append(any(shape.folds for shape in frozen.primary_part.fns))
     assert len(set(counts)) > 1, counts
-    assert frozen.primary_part.n_recordings <= 2
+    assert folds == [False, False, False, True], folds  # the dimple's folds were recorded
+    # one recording per structure: plain, depth 1 (max_depth is recorded) and folds; not per count
+    assert frozen.primary_part.n_recordings <= 4
+
+
+def test_the_primary_part_leaves_intersection_curves_to_the_traced_term():
+    """A vertex pushed through the far side of the sphere: its faces cross the sphere's, the
+    primary term's curves include intersection curves, and the recorded part refuses."""
+    pierced = perturbed_shapes(4, 1, lambda trial, V: moved_vertex(V, -1.3))
+    for problem, engine, frozen, _, _, V, edges, views, _ in pierced:
+        vertex_leaf_written(problem, V)
+        assert not frozen.serves_primary(problem, views, engine.settings, edges)

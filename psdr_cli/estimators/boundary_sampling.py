@@ -45,11 +45,17 @@ def normalize(v):
 
 
 def camera_origins(mi_scene: mi.Scene) -> np.ndarray:
-    """(n, 3) positions of the scene's sensors: a closed mesh around one of them is a room, whose
-    free space is its inside. Remembered for the Dr.Jit variables that hold them (a moved sensor
-    holds new ones; the entry keeps them alive, so their indices are not reused meanwhile): read
-    again, each sensor's translation was a kernel of its own, every iteration of an optimisation."""
-    translations = [s.world_transform().translation() for s in mi_scene.sensors()]
+    """(n, 3) positions of the scene's sensors (:func:`sensor_origins`): a closed mesh around one
+    of them is a room, whose free space is its inside."""
+    return sensor_origins(mi_scene.sensors())
+
+
+def sensor_origins(sensors) -> np.ndarray:
+    """(n, 3) positions of ``sensors`` (float64). Remembered for the Dr.Jit variables that hold
+    them (a moved sensor holds new ones; the entry keeps them alive, so their indices are not
+    reused meanwhile): read again, each sensor's translation was a kernel of its own, every
+    iteration of an optimisation."""
+    translations = [s.world_transform().translation() for s in sensors]
     key = tuple(t[c].index for t in translations for c in range(3))
     if 0 in key or key not in _ORIGINS:  # index 0: not a Dr.Jit variable, not remembered
         if len(_ORIGINS) >= 64:
@@ -58,7 +64,7 @@ def camera_origins(mi_scene: mi.Scene) -> np.ndarray:
     return _ORIGINS[key][1].copy()
 
 
-#: camera_origins per tuple of the sensors' translation variables: (those variables, origins)
+#: sensor_origins per tuple of the sensors' translation variables: (those variables, origins)
 _ORIGINS: dict = {}
 
 
@@ -125,9 +131,14 @@ class BoundaryEdges:
         return np.unique(np.r_[cdf[self.chains.starts], 1.0])
 
     def positions(self, params) -> mi.Float:
-        """Flat (AD) buffer of the vertex positions of all edge objects."""
-        bufs = [params[f"{n}.vertex_positions"] for n in self.names]
-        return bufs[0] if len(bufs) == 1 else dr.concat(bufs)
+        """Flat (AD) buffer of the vertex positions of all edge objects (:func:`vertex_buffer`)."""
+        return vertex_buffer(params, self.names)
+
+
+def vertex_buffer(params, names) -> mi.Float:
+    """The vertex positions of the objects ``names`` end to end, flat (AD), from their parameters."""
+    bufs = [params[f"{n}.vertex_positions"] for n in names]
+    return bufs[0] if len(bufs) == 1 else dr.concat(bufs)
 
 
 @dataclass

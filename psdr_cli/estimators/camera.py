@@ -101,6 +101,10 @@ class Projection:
         cx, cy = self.centre
         return mi.Point2f(self.width * (cx - 0.5 * x), self.height * (cy - 0.5 * aspect * y)), z
 
+    def project(self, p):
+        """:meth:`__call__` (the name :class:`LaneCameras` gives it)."""
+        return self(p)
+
     def importance(self, p):
         """Importance W_e of the pinhole toward world points ``p`` (no visibility, no film test):
         1 / (A cos³θ d²) with A = (2 tan(f/2))² / a the film's area at distance 1, θ the angle to

@@ -50,7 +50,7 @@ from . import interior
 from ..intersections import Segments, intersection_segments, segment_points
 from ..jitarray import concat, jit_array
 from ..topology import face_normals
-from .boundary_sampling import BoundaryEdges
+from .boundary_sampling import BoundaryEdges, sensor_origins
 from .camera import CameraTable, LaneCameras, Projection, SensorCamera, film_pixel, sensor_groups
 from .term import Term, boundary_pass
 
@@ -185,18 +185,32 @@ def concat_points(a: mi.Point3f, b: mi.Point3f) -> mi.Point3f:
     return concat([a, b])
 
 
+#: The columns :func:`primary_edge_ids` returns, in its order.
+EDGE_ID_COLUMNS = ("v0", "v1", "face0", "face1", "mesh", "strict", "inner", "weight", "fold0", "fold1")
+
+
+def camera_edge_ids(edges: BoundaryEdges, P, camera_origin, scattering: bool, sampling: str) -> dict:
+    """:func:`primary_edge_ids` by column name (:data:`EDGE_ID_COLUMNS`) for the vertex buffer
+    ``P`` (read to the host and its row normals computed once for the views of a pass)."""
+    V = edges.remembered("vertices", [P], lambda: np.asarray(dr.detach(P), np.float64).reshape(-1, 3))
+    normals = edges.remembered("normals", [P], lambda: mesh_normals(edges, V))
+    return dict(zip(EDGE_ID_COLUMNS, primary_edge_ids(edges, V, camera_origin, scattering, sampling, normals)))
+
+
+def edge_shape_ids(scene: mi.Scene, edges: BoundaryEdges) -> np.ndarray:
+    """The Mitsuba registry id (:func:`shape_id`) of each edge object, in the order of ``edges.names``."""
+    shapes = {s.id(): s for s in scene.shapes()}
+    return np.array([shape_id(shapes[n]) for n in edges.names], np.int64)
+
+
 def mesh_edge_curves(scene: mi.Scene, edges: BoundaryEdges, P, camera_origin, scattering: bool,
                      sampling: str = "length") -> Curves:
     """Primary mesh edges of the edge objects (see :func:`primary_edge_ids`)."""
-    V = edges.remembered("vertices", [P], lambda: np.asarray(dr.detach(P), np.float64).reshape(-1, 3))
-    normals = edges.remembered("normals", [P], lambda: mesh_normals(edges, V))  # once for the views of a pass
-    v0, v1, f0, f1, m, strict, inner, weight, n0, n1 = primary_edge_ids(edges, V, camera_origin, scattering,
-                                                                        sampling, normals)
-    shapes = {s.id(): s for s in scene.shapes()}
-    ids = np.array([shape_id(shapes[n]) for n in edges.names], np.int64)[m] if len(m) else m
+    c = camera_edge_ids(edges, P, camera_origin, scattering, sampling)
+    ids = edge_shape_ids(scene, edges)[c["mesh"]] if len(c["mesh"]) else c["mesh"]
     gather = lambda i: dr.gather(mi.Point3f, P, jit_array(mi.UInt32, i))  # noqa: E731
-    return Curves(gather(v0), gather(v1), ids, f0, ids, f1, strict.astype(bool), inner.astype(bool), weight=weight,
-                  fold0=n0, fold1=n1)
+    return Curves(gather(c["v0"]), gather(c["v1"]), ids, c["face0"], ids, c["face1"], c["strict"].astype(bool),
+                  c["inner"].astype(bool), weight=c["weight"], fold0=c["fold0"], fold1=c["fold1"])
 
 
 def mesh_shapes(scene: mi.Scene, names) -> list:
@@ -580,10 +594,15 @@ def drawable(counts) -> np.ndarray:
     return counts
 
 
+def view_starts(counts) -> np.ndarray:
+    """Where each view's curves start in the joined list (``counts`` per view): their exclusive prefix sum."""
+    return np.concatenate([[0], np.cumsum(counts, dtype=np.int64)[:-1]])
+
+
 def view_ranges(counts) -> tuple:
     """(start, count) of each view's curves in the joined list (``counts`` per view), as UInt32 arrays."""
     counts = drawable(counts)
-    return jit_array(mi.UInt32, np.concatenate([[0], np.cumsum(counts)[:-1]])), jit_array(mi.UInt32, counts)
+    return jit_array(mi.UInt32, view_starts(counts)), jit_array(mi.UInt32, counts)
 
 
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
@@ -613,7 +632,7 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
     images = [dr.zeros(mi.Float, width * height * 3) for _ in sensors]
     if edges.count == 0 and not edges.meshes:
         return images
-    origins = camera_origins_of(sensors)
+    origins = sensor_origins(sensors)
     parts = [None] * count  # a sensor listed several times (passes of one view) selects its curves once
     for group in sensor_groups(sensors):
         curves = primary_curves(scene, edges, P, origins[group[0]], max_depth >= 2, sampling)
@@ -624,40 +643,34 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
         return images
     curves = join_curves(live)
     if count == 1:
-        view, cameras = None, SensorCamera(sensors[0], width, height)
-        proj = Projection(sensors[0])
-        (q0, z0), (q1, z1), near = proj(curves.p0), proj(curves.p1), proj.near
+        view, cameras, projector = None, SensorCamera(sensors[0], width, height), Projection(sensors[0])
     else:
         table = CameraTable.of(sensors, width, height)
         view = dr.arange(mi.UInt32, n_samples * count) // dr.opaque(mi.UInt32, n_samples)
         cameras = LaneCameras.from_table(table, view)
         owner = np.repeat(np.arange(count), [len(c) if c is not None else 0 for c in parts])
-        curve_cameras = LaneCameras.from_table(table, jit_array(mi.UInt32, owner))
-        (q0, z0), (q1, z1), near = curve_cameras.project(curves.p0), curve_cameras.project(curves.p1), \
-            curve_cameras.near
+        projector = LaneCameras.from_table(table, jit_array(mi.UInt32, owner))
     start, counts = view_ranges([len(c) if c is not None else 0 for c in parts])
-    draw = draw_views(curve_mass(q0, q1, z0, z1, near, jit_array(mi.Float, curves.weight)), start, counts, view,
-                      stratified(sampler.next_1d(), n_samples, view), n_samples)
-    img = curves_image(scene, cameras, view, count, curve_table(curves), q0, q1, draw, sampler, width, height,
-                       max_depth, hide_background, coverage)
-    return [img] if count == 1 else interior.split_views(img, count)
-
-
-def camera_origins_of(sensors) -> np.ndarray:
-    """(n, 3) camera positions of ``sensors`` (float64)."""
-    return np.array([np.ravel(s.world_transform().translation()) for s in sensors], np.float64).reshape(-1, 3)
-
-
-def curves_image(scene, cameras, view, count: int, table: CurveTable, q0, q1, draw: Draw, sampler, width: int,
-                 height: int, max_depth: int, hide_background: bool, coverage) -> mi.Float:
-    """The drawn curve points' contributions (:func:`curve_values`) added to their pixels: a flat
-    W·H·3 image per view, ``count`` views end to end, primal 0."""
-    v, pixel, ok = curve_values(scene, cameras, view, table, q0, q1, draw, sampler, width, height, max_depth,
-                                hide_background, coverage)
+    v, pixel, ok = curve_pass(scene, cameras, view, projector, curve_table(curves), start, counts, n_samples, sampler,
+                              width, height, max_depth, hide_background, coverage)
     img = dr.zeros(mi.Float, width * height * 3 * count)
     for c in range(3):
         dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
-    return img
+    return [img] if count == 1 else interior.split_views(img, count)
+
+
+def curve_pass(scene, cameras, view, projector, curves: CurveTable, start, count, n_samples: int, sampler,
+               width: int, height: int, max_depth: int, hide_background: bool, coverage) -> tuple:
+    """(v, pixel, mask) per lane of one pass over ``curves`` (:func:`curve_values`): the end points
+    projected by ``projector`` (:class:`.camera.Projection` for one view, :class:`.camera.LaneCameras`
+    with each curve's camera), weighed (:func:`curve_mass`) and drawn per lane among its view's
+    (``start``, ``count``; :func:`draw_views` at :func:`stratified` uniforms: the sampler's first
+    dimension). The traced pass and the recorded one (:mod:`psdr_cli.frozen_batch`) both run this."""
+    (q0, z0), (q1, z1) = projector.project(curves.p0), projector.project(curves.p1)
+    mass = curve_mass(q0, q1, z0, z1, projector.near, curves.weight)
+    draw = draw_views(mass, start, count, view, stratified(sampler.next_1d(), n_samples, view), n_samples)
+    return curve_values(scene, cameras, view, curves, q0, q1, draw, sampler, width, height, max_depth,
+                        hide_background, coverage)
 
 
 def curve_values(scene, cameras, view, table: CurveTable, q0, q1, draw: Draw, sampler, width: int, height: int,
