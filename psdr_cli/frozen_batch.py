@@ -1,13 +1,13 @@
 """The part of an optimisation iteration that Dr.Jit records once and replays (``dr.freeze``,
 issue 38): for the mini-batch of views v₁…v_B, the adjoint render P (``optimize.adjoint_spp``
-samples per pixel), the L1 loss and its adjoint
+samples per pixel; without one, the interior render's own primal), the L1 loss and its adjoint
 
-    ℓ = Σ |P − T| / (3·W·H·B),    δ = sign(P − T) / (3·W·H·B),
+    ℓ = Σ |P − T| / (3·W·H·B),    δ = sign(P − T) / (3·W·H·B)   (0 where P = T without an adjoint render),
 
 and the interior term's reverse pass, the backward of Σ δ·I_interior into the scene's leaf
 buffers (:meth:`psdr_cli.problem.Problem.apply_leaves`). This is the derivative the traced loop
-takes of ``losses.l1.l1_loss`` with an adjoint render (mean over the views of mean
-sign(P − T)·∂I), split by term. Once the iteration's edge table is there, two boundary terms'
+takes of ``losses.l1.l1_loss`` (mean over the views of mean sign(P − T)·∂I; Dr.Jit's derivative
+of |x| is 0 at x = 0), split by term. Once the iteration's edge table is there, two boundary terms'
 backward passes are recorded and replayed too: the direct term's Σ δ·I_direct (unguided; the
 edges enter as arrays padded to a power of two, :func:`padded_edges`, and are drawn ∝ length by
 :class:`.estimators.boundary_sampling.LengthDistribution`, whose kernels do not depend on their
@@ -139,7 +139,7 @@ def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
 
 def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
     """Why the frozen part cannot serve this run (None: it can). It needs psdr's interior term
-    with a batch of ``batch`` views in one AD pass, an adjoint render, the L1 loss alone (no pixel
+    with a batch of ``batch`` views in one AD pass, the L1 loss alone (no pixel
     weights or masks), the shape as the only unknown (its vertex buffer written by the large-steps
     solve: the case the tests replay; a buffer written from a host array before each call replayed
     wrong results on Dr.Jit 1.5, ``benchmarks/freeze_direct_probe.py``) and Mitsuba's perspective
@@ -148,8 +148,6 @@ def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
         return "optimize.freeze is false"
     if engine.name != "psdr" or FROZEN_TERM not in engine.terms:
         return "the interior term is not psdr's"
-    if not cfg.adjoint_spp:
-        return "no adjoint render (optimize.adjoint_spp)"
     if stage.weights or stage.masks is not None:
         return "pixel weights or masks"
     if list(problem.opt.keys()) != ["u"]:
@@ -166,15 +164,20 @@ def batch_loss(shape: BatchShape, mi_scene, table: CameraTable, targets: mi.Floa
                interior_seed: mi.UInt32, adjoint_seeds: list):
     """(ℓ, δ) of the module docstring, the interior term's backward pass run here. ``targets``
     holds every view's target (flat W·H·3 each, view-major), ``views`` the batch's indices into it
-    and into ``table``; ``adjoint_seeds`` one seed per pass of ``shape.adjoint_passes``."""
+    and into ``table``; ``adjoint_seeds`` one seed per pass of ``shape.adjoint_passes``. Without
+    adjoint passes P is the interior render's own primal, and δ is 0 where P = T (the derivative
+    of |I − T| that the traced loss takes there)."""
     n = 3 * shape.width * shape.height
-    spp_adjoint = sum(shape.adjoint_passes)
+    image = pass_sums(shape, mi_scene, table, views, shape.spp, interior_seed, ad=True) / shape.spp
     with dr.suspend_grad():
-        P = None
-        for spp, seed in zip(shape.adjoint_passes, adjoint_seeds):
-            sums = pass_sums(shape, mi_scene, table, views, spp, seed, ad=False)
-            P = sums if P is None else P + sums
-        P = P / spp_adjoint
+        if shape.adjoint_passes:
+            P = None
+            for spp, seed in zip(shape.adjoint_passes, adjoint_seeds):
+                sums = pass_sums(shape, mi_scene, table, views, spp, seed, ad=False)
+                P = sums if P is None else P + sums
+            P = P / sum(shape.adjoint_passes)
+        else:
+            P = dr.detach(image)
         lane = dr.arange(mi.UInt32, n * shape.views)
         k = lane // n  # (literals here and below: recorded per structure; an opaque scalar is a memset per replay)
         T = dr.gather(mi.Float, targets, dr.gather(mi.UInt32, views, k) * n + (lane - k * n))
@@ -182,7 +185,8 @@ def batch_loss(shape: BatchShape, mi_scene, table: CameraTable, targets: mi.Floa
         scale = 1.0 / (n * shape.views)
         loss = dr.sum(dr.abs(residual)) * scale
         delta = dr.sign(residual) * scale
-    image = pass_sums(shape, mi_scene, table, views, shape.spp, interior_seed, ad=True) / shape.spp
+        if not shape.adjoint_passes:
+            delta = dr.select(residual == 0, 0.0, delta)
     dr.backward(dr.sum(delta * image))
     return loss, delta
 
@@ -352,8 +356,8 @@ class FrozenBatch:
     def structure(self, problem, stage, views, settings, cfg) -> BatchShape:
         width, height = problem.scene.resolution
         spp = term_passes(FROZEN_TERM, settings, width * height)[0]  # one pass per iteration, as ad_images
-        return BatchShape(id(problem.scene.mi_scene), width, height, len(views), spp,
-                          tuple(passes_for(cfg.adjoint_spp, width * height * len(views))),
+        adjoint = tuple(passes_for(cfg.adjoint_spp, width * height * len(views))) if cfg.adjoint_spp else ()
+        return BatchShape(id(problem.scene.mi_scene), width, height, len(views), spp, adjoint,
                           settings.max_depth, bool(problem.scene.config.hide_background))
 
     def prepare(self, problem, stage):
