@@ -310,7 +310,9 @@ def adjoint_sum(delta: mi.Float, samples) -> mi.Float:
 class Recording:
     """``dr.freeze(body)`` bound to one structure (``shape``) per function; the functions of one
     scene are kept (a structure that comes back, such as curves that fold back or not, replays),
-    a new scene drops them. ``enabled`` false calls the body traced (the fallback)."""
+    a new scene drops them. ``enabled`` false calls the body traced (the fallback). A Ctrl-C
+    while a call records reaches the caller as KeyboardInterrupt (Dr.Jit reports it as a
+    RuntimeError caused by it), and the function is recorded afresh at its next call."""
 
     def __init__(self, body, enabled: bool = True):
         self.body, self.enabled = body, enabled
@@ -329,7 +331,13 @@ class Recording:
         if shape not in self.fns:
             bound = _bind(self.body, shape)
             self.fns[shape] = dr.freeze(bound, warn_after=1000) if self.enabled else bound
-        return self.fns[shape](*args)
+        try:
+            return self.fns[shape](*args)
+        except BaseException as error:
+            self.fns.pop(shape, None)  # a recording cut short is not replayed
+            if isinstance(error.__cause__, KeyboardInterrupt):  # Dr.Jit wraps what stopped a recording
+                raise error.__cause__ from None
+            raise
 
     @property
     def n_recordings(self) -> int:

@@ -4,7 +4,7 @@ scene after a remesh, another film) is recorded again and still gives the traced
 loop's iteration with it is the traced iteration of before, up to rounding."""
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import drjit as dr
@@ -19,7 +19,7 @@ from psdr_cli import api, backend, iteration, meshes
 from psdr_cli.engines import Engine
 from psdr_cli.estimate import Settings
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.frozen_batch import FrozenBatch, refusal
+from psdr_cli.frozen_batch import FrozenBatch, Recording, refusal
 from psdr_cli.jitarray import jit_array
 from psdr_cli.problem import Problem, Shape, adam_export
 from psdr_cli.run_folder.log import read_log
@@ -355,3 +355,30 @@ def test_the_primary_part_leaves_intersection_curves_to_the_traced_term():
     for problem, engine, frozen, _, _, V, edges, views, _ in pierced:
         vertex_leaf_written(problem, V)
         assert not frozen.serves_primary(problem, views, engine.settings, edges)
+
+
+@dataclass(frozen=True)
+class ProbeShape:
+    """A structure for :class:`Recording` (what it needs of one: a scene id, hashable)."""
+    scene_id: int
+
+
+def test_ctrl_c_while_recording_is_an_interrupt_and_the_next_call_records_afresh():
+    """Dr.Jit reports an exception raised while a frozen function records as a RuntimeError; a
+    Ctrl-C there must reach the optimisation loop as KeyboardInterrupt (it saves and exits 130;
+    the real process: test_optimize.py::test_ctrl_c_saves_and_exits_cleanly, when its signal
+    lands during a recording), and the function cut short is not replayed."""
+    backend.activate(psdr_cli.load_experiment(CONFIG))
+    interrupts = [True]
+
+    def body(shape, x):
+        y = x * shape.scene_id
+        if interrupts and interrupts.pop():
+            raise KeyboardInterrupt
+        return y
+
+    recording = Recording(body)
+    with pytest.raises(KeyboardInterrupt):
+        recording(ProbeShape(3), mi.Float([1.0, 2.0]))
+    assert np.array_equal(np.asarray(recording(ProbeShape(3), mi.Float([1.0, 2.0]))), [3.0, 6.0])
+    assert np.array_equal(np.asarray(recording(ProbeShape(3), mi.Float([4.0, 5.0]))), [12.0, 15.0])
