@@ -72,9 +72,12 @@ table2: $(STAMP)
 		configs/paper/$(SCALE)/fig10_shadow.yaml --out docs/results/table2.md
 
 # The suite runs on every core (pytest-xdist; PYTEST_WORKERS=0 runs it in one process).
+# LANES=4|8|16 runs it with Dr.Jit's CPU kernels at that SIMD width (PSDR_LLVM_LANES; default: the
+# host's own, 16 with AVX-512, 8 with AVX2), as another machine would (docs/testing.md).
 PYTEST_WORKERS ?= auto
+LANES  ?=
 test: $(DEPS)
-	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup tests
+	$(if $(LANES),PSDR_LLVM_LANES=$(LANES)) $(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup tests
 
 clean:
 	rm -rf $(VENV) runs build *.egg-info

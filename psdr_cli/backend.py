@@ -13,6 +13,7 @@ import re
 import subprocess
 from contextlib import contextmanager
 
+from . import llvm_target
 from .config.vocabularies import VARIANTS
 from .errors import PsdrError
 
@@ -78,6 +79,8 @@ def default_cache_dir() -> str:
 #: Why the user's ``DRJIT_LIBLLVM_PATH`` cannot be used (set by :func:`configure_environment`,
 #: reported by :func:`select_variant` when an LLVM variant is asked for), or None.
 _unusable_llvm: str | None = None
+#: Why PSDR_LLVM_LANES cannot be applied (reported when an LLVM variant is selected), or None.
+_unusable_lanes: str | None = None
 
 
 def unusable_llvm_reason(path: str) -> str | None:
@@ -103,7 +106,7 @@ def configure_environment() -> None:
     Dr.Jit sees it (Dr.Jit would print its own loader errors at import) and reported as one line
     when an LLVM variant is selected; CUDA variants run without it.
     """
-    global _unusable_llvm
+    global _unusable_llvm, _unusable_lanes
     user_path = os.environ.get("DRJIT_LIBLLVM_PATH", "").strip()
     if user_path:
         _unusable_llvm = unusable_llvm_reason(user_path)
@@ -114,6 +117,7 @@ def configure_environment() -> None:
         lib = find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    _unusable_lanes = lanes_reason()
     if "DRJIT_CACHE_DIR" not in os.environ:
         cache = default_cache_dir()
         try:
@@ -123,9 +127,21 @@ def configure_environment() -> None:
             pass  # Dr.Jit falls back to its own default (~/.drjit)
 
 
+def lanes_reason() -> str | None:
+    """Applies ``PSDR_LLVM_LANES`` (:mod:`psdr_cli.llvm_target`) before Dr.Jit compiles anything;
+    returns None, or the one-line reason it cannot, reported when an LLVM variant is selected."""
+    try:
+        lanes = llvm_target.requested_lanes()
+    except ValueError as exc:
+        return str(exc)
+    return None if lanes is None else llvm_target.force_lanes(lanes)
+
+
 def _require_llvm() -> None:
     if _unusable_llvm:
         raise PsdrError(_unusable_llvm)
+    if _unusable_lanes:
+        raise PsdrError(_unusable_lanes)
     path = os.environ.get("DRJIT_LIBLLVM_PATH")
     if path:
         reason = unusable_llvm_reason(path)

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 import psdr_cli  # noqa: F401  (prepares Dr.Jit before any test imports it)
-from psdr_cli import backend
+from psdr_cli import backend, llvm_target
 import mitsuba as mi
 
 #: Mitsuba's log level in a new process (tests may lower it; run_psdr restores it per call)
@@ -33,6 +33,30 @@ bit_reproducible = pytest.mark.skipif(
     suite_runs_on_cuda(), reason="CUDA's atomic scatter-adds are not bit-reproducible (docs/optimize.md)")
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def suite_lanes() -> int | None:
+    """The SIMD lanes the suite's LLVM kernels run with: ``PSDR_LLVM_LANES`` (4, 8 or 16; psdr_cli
+    applies it at import, in this process and in every ``psdr`` process a test starts, which
+    inherits the variable), None for the host's own target (docs/testing.md, "Vector widths")."""
+    try:
+        return llvm_target.requested_lanes()
+    except ValueError as exc:
+        raise pytest.UsageError(str(exc)) from None
+
+
+def pytest_configure(config):
+    """A suite asked to run at a vector width runs at it, or not at all."""
+    lanes = suite_lanes()
+    if lanes is not None and llvm_target.current_target()[1] != lanes:
+        raise pytest.UsageError(backend.lanes_reason() or f"PSDR_LLVM_LANES={lanes}: Dr.Jit compiles for "
+                                                          f"{llvm_target.current_target()}")
+
+
+def pytest_report_header(config):
+    cpu, width = llvm_target.current_target()
+    source = "PSDR_LLVM_LANES" if suite_lanes() is not None else "the host's own"
+    return f"Dr.Jit LLVM target: {cpu}, {width} lanes ({source})"
 
 #: A small valid experiment: diffuse sphere on a floor under an area light, one camera.
 BASE = {

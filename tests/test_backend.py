@@ -88,3 +88,43 @@ def test_grad_without_parameter_is_a_one_line_error(tmp_path, write_cfg, run_psd
     proc = run_psdr("grad", write_cfg(experiment()), cwd=tmp_path)
     assert proc.returncode == 2 and "parameter: missing" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()
+
+
+def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding():
+    """PSDR_LLVM_LANES sets Dr.Jit's LLVM target at import, for every kernel of the process: the
+    target reads back, and 1/√x rounds as that target rounds (with 16 lanes from AVX-512's
+    vrsqrt14, with 8 and 4 lanes from vrsqrtps: the two disagree in the last bits)."""
+    import subprocess
+    import sys
+    from psdr_cli import llvm_target
+    code = ("import psdr_cli; from psdr_cli import backend, llvm_target; backend.select_variant('llvm_ad_rgb'); "
+            "import drjit as dr, mitsuba as mi, numpy as np; x = dr.arange(mi.Float, 4096) * 0.37 + 1; "
+            "print(llvm_target.current_target()[1], np.asarray(dr.rsqrt(x)).tobytes().hex())")
+    flags = llvm_target.cpu_flags()
+    out = {}
+    for lanes, (cpu, _, flag) in llvm_target.TARGETS.items():
+        if flag not in flags:
+            continue
+        env = dict(os.environ, PSDR_LLVM_LANES=str(lanes))
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        width, values = r.stdout.split()
+        assert int(width) == lanes
+        out[lanes] = values
+    assert 8 in out or 4 in out  # every x86-64 CPU this runs on has SSE4.2
+    if 16 in out and 8 in out:
+        assert out[16] != out[8]
+
+
+def test_a_bad_or_unreachable_vector_width_is_one_line(monkeypatch, tmp_path, write_cfg):
+    from psdr_cli import llvm_target
+    monkeypatch.setenv("PSDR_LLVM_LANES", "12")
+    with pytest.raises(ValueError, match="PSDR_LLVM_LANES: expected one of 4, 8, 16"):
+        llvm_target.requested_lanes()
+    monkeypatch.setattr(llvm_target, "cpu_flags", lambda: {"sse2"})
+    assert "this CPU has no AVX512F" in llvm_target.force_lanes(16)
+    # a new process: one line, exit 2, nothing rendered
+    r = run_cli("render", write_cfg(experiment()), "--out", tmp_path / "r", cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "error: PSDR_LLVM_LANES: expected one of 4, 8, 16 (SIMD lanes of Dr.Jit's CPU kernels) or unset, got '12'"]
+    assert not (tmp_path / "r").exists()
