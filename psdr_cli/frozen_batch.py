@@ -36,6 +36,7 @@ Parameters (experiment keys)
 """
 from __future__ import annotations
 
+import gc
 from dataclasses import dataclass
 
 import drjit as dr
@@ -310,9 +311,15 @@ def adjoint_sum(delta: mi.Float, samples) -> mi.Float:
 class Recording:
     """``dr.freeze(body)`` bound to one structure (``shape``) per function; the functions of one
     scene are kept (a structure that comes back, such as curves that fold back or not, replays),
-    a new scene drops them. ``enabled`` false calls the body traced (the fallback). A Ctrl-C
-    while a call records reaches the caller as KeyboardInterrupt (Dr.Jit reports it as a
-    RuntimeError caused by it), and the function is recorded afresh at its next call."""
+    a new scene drops them. ``enabled`` false calls the body traced (the fallback).
+
+    A Ctrl-C at any moment of a call reaches the caller as KeyboardInterrupt (Dr.Jit reports one
+    that stops a recording as a RuntimeError caused by one, through up to four layers of its own
+    errors), and the function is recorded afresh at its next call. Python's cyclic garbage
+    collector does not run during a call: a collection while Dr.Jit records may free an array
+    mapped from numpy whose release is a host function, which a recording cannot hold, and Dr.Jit
+    then aborts the process (seen after interrupted recordings, whose tracebacks leave such
+    cycles)."""
 
     def __init__(self, body, enabled: bool = True):
         self.body, self.enabled = body, enabled
@@ -331,13 +338,19 @@ class Recording:
         if shape not in self.fns:
             bound = _bind(self.body, shape)
             self.fns[shape] = dr.freeze(bound, warn_after=1000) if self.enabled else bound
+        collecting = gc.isenabled()
+        gc.disable()
         try:
             return self.fns[shape](*args)
         except BaseException as error:
             self.fns.pop(shape, None)  # a recording cut short is not replayed
-            if isinstance(error.__cause__, KeyboardInterrupt):  # Dr.Jit wraps what stopped a recording
-                raise error.__cause__ from None
+            interrupt = interrupt_in(error)
+            if interrupt is not None and interrupt is not error:  # Dr.Jit wraps what stopped a recording
+                raise KeyboardInterrupt() from None
             raise
+        finally:
+            if collecting:
+                gc.enable()
 
     @property
     def n_recordings(self) -> int:
@@ -456,6 +469,18 @@ class FrozenBatch:
     def n_recordings(self) -> int:
         """Recordings made so far (0 when not enabled)."""
         return self.interior.n_recordings + self.direct_part.n_recordings + self.primary_part.n_recordings
+
+
+def interrupt_in(error: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt among ``error`` and the errors it was raised from or during (its
+    ``__cause__`` and ``__context__`` chain), or None."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return error
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return None
 
 
 def opaque(value: int) -> mi.UInt32:
