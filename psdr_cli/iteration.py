@@ -55,7 +55,8 @@ class Loop:
 @dataclass
 class Step:
     """What one iteration measured: its loss, whether its update was skipped, and the times
-    (``time.perf_counter``) at which guiding, rendering and the update began and it ended."""
+    (``time.perf_counter``) at which guiding, rendering and the update began and it ended
+    (``t_render == t_guide`` when the iteration built no guide)."""
     loss: float
     skipped: bool
     t_guide: float
@@ -153,10 +154,11 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     edges = None
     t_guide = time.perf_counter()
     anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
-    if stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0):
+    build = stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0)
+    if build:
         edges = ahead.edges() if ahead is not None else None
         guides.refresh(problem, edges, stage, loop)
-    t_render = time.perf_counter()
+    t_render = time.perf_counter() if build else t_guide  # no guide built: no guiding time
     if frozen:
         loss = frozen_loss(problem, loop, stage, guides, views, it, ahead, edges)
         if dr.grad_enabled(loss):

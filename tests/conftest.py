@@ -18,6 +18,11 @@ import mitsuba as mi
 #: Mitsuba's log level in a new process (tests may lower it; run_psdr restores it per call)
 MITSUBA_LOG_LEVEL = mi.log_level()
 
+# One Dr.Jit thread in the optimisation loop, in this process and the psdr processes tests start:
+# the checks that runs are bit-reproducible (resume, recorded against traced) hold with one thread
+# only, and a user's PSDR_OPTIMIZE_THREADS (docs/optimize.md) would turn them red.
+os.environ["PSDR_OPTIMIZE_THREADS"] = "1"
+
 
 def suite_runs_on_cuda() -> bool:
     """True when the tests run on a CUDA variant (``PSDR_VARIANT``, or ``auto`` with a GPU)."""

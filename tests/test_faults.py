@@ -196,7 +196,7 @@ def test_help_still_prints_the_usage(capsys):
 def test_usage_error_through_the_real_command_line(tmp_path):
     """``python -m psdr_cli`` passes the exit code on (the console script does the same)."""
     proc = subprocess.run([sys.executable, "-m", "psdr_cli", "render", "--nope"], capture_output=True, text=True,
-                          cwd=tmp_path, env=dict(os.environ, COLUMNS="200"))
+                          cwd=tmp_path, env=dict(os.environ, COLUMNS="200"), timeout=120)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and "No such option: --nope" in lines[0], proc.stderr
 

@@ -274,7 +274,10 @@ def test_the_frozen_iteration_is_the_traced_iteration(adjoint_spp):
     render or without one, the sign then taken from the AD render itself; two spheres, one in the
     other's shadow, so that the direct term counts) with the recorded parts and without them: the
     same loss, gradient and update, up to the rounding of the camera rays (the table's rays
-    against Mitsuba's sensor objects)."""
+    against Mitsuba's sensor objects). Measured at 16, 8 and 4 lanes (PSDR_LLVM_LANES): the loss
+    ≤ 5.3·10⁻⁷ apart (bound 10⁻⁵), the gradient's L1 ≤ 1.7·10⁻⁷ (bound 10⁻⁴), every update
+    within the 10⁻³ (bound 99 %): a single iteration does not amplify the rays' rounding as the
+    loop does (test_a_frozen_loop_is_the_traced_loop_while_the_shape_moves)."""
     a, moved_a, ga = iteration_gradient(True, 3, adjoint_spp)
     b, moved_b, gb = iteration_gradient(False, 3, adjoint_spp)
     assert not a.skipped and not b.skipped
