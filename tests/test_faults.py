@@ -10,8 +10,10 @@ import fcntl
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -330,19 +332,34 @@ def test_a_killed_holder_releases_the_lock(tmp_path):
 
 
 def test_two_optimize_processes_on_one_run(tmp_path):
-    """Two real `psdr optimize` processes started together: one runs, the other is refused."""
+    """Two real `psdr optimize` processes started together: one runs, the other is refused. The run
+    asks for 10⁶ iterations, which no machine finishes before the other process has started (150,
+    as before, could end first on a fast machine, and the second then found the run finished); the
+    refused one exits, then the running one is stopped with a Ctrl-C (it saves and exits 130)."""
     cfg = write_small(tmp_path)
     env = dict(os.environ, COLUMNS="200")
-    # enough iterations that the first still holds the lock when the second has imported Mitsuba
-    # (3 iterations took under a second: the second then found the run finished and redid it)
-    procs = [subprocess.Popen([sys.executable, "-m", "psdr_cli", "optimize", str(cfg), "--iterations", "150"],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    results = [(p.wait(timeout=600), p.communicate()[1]) for p in procs]
-    codes = sorted(c for c, _ in results)
-    assert codes == [0, 2], results
-    refused = next(e for c, e in results if c == 2)
-    assert "is writing this run" in refused and "Traceback" not in refused
-    assert iterations_logged(tmp_path / "runs" / "small") == list(range(150))
+    procs = [subprocess.Popen([sys.executable, "-m", "psdr_cli", "optimize", str(cfg), "--iterations", "1000000"],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) for _ in range(2)]
+    try:
+        deadline = time.monotonic() + 600  # a hang guard only
+        while all(p.poll() is None for p in procs) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        refused = next(p for p in procs if p.poll() is not None)
+        running = next(p for p in procs if p is not refused)
+        assert refused.wait() == 2, refused.communicate()
+        assert "is writing this run" in refused.communicate()[1] and running.poll() is None
+        while iterations_logged(tmp_path / "runs" / "small") == [] and time.monotonic() < deadline:
+            time.sleep(0.05)  # (a Ctrl-C before the first iteration is saved is a plain interrupt)
+        running.send_signal(signal.SIGINT)
+        _, err = running.communicate(timeout=120)
+        assert running.returncode == 130 and "Traceback" not in err, err
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    done = iterations_logged(tmp_path / "runs" / "small")
+    assert done == list(range(len(done))) and len(done) >= 1
 
 
 TORN_TAILS = {"torn_row": b"3,0", "row_cut_to_number": b"3", "nul_bytes": b"\x00" * 64,
