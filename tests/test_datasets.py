@@ -5,6 +5,7 @@ import json
 import os
 import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -491,3 +492,86 @@ def test_bad_json(tmp_path):
     expect_error(lambda: read_frames(t2), "transforms.json", "frames[0]", f"w = {W + 1}")
     rewrite_json(t2 / "transforms.json", lambda d: d.pop("frames"))
     expect_error(lambda: read_frames(t2), "transforms.json", "frames", "non-empty list")
+
+
+# --- COLMAP models that pycolmap reads without a word (issue 56) --------------------------------
+
+def edit_images_txt(folder: Path, image_id: int, edit) -> Path:
+    """``edit(tokens)`` applied to the pose line of image ``image_id`` in the model's images.txt."""
+    path = folder / "sparse" / "0" / "images.txt"
+    lines = path.read_text().split("\n")
+    for i, line in enumerate(lines):
+        if line.split()[:1] == [str(image_id)]:
+            lines[i] = " ".join(edit(line.split()))
+    path.write_text("\n".join(lines))
+    return folder
+
+
+def with_quaternion(scale: float = 1.0, decimals: int | None = None, zero: bool = False):
+    def edit(tokens):
+        q = [0.0] * 4 if zero else [scale * float(t) for t in tokens[1:5]]
+        tokens[1:5] = [repr(v) if decimals is None else f"{v:.{decimals}f}" for v in q]
+        return tokens
+    return edit
+
+
+@pytest.mark.parametrize("camera_line, key, value", [
+    (f"1 PINHOLE {W} {H} 0 0 {W / 2} {H / 2}", "fx", "0"),
+    (f"1 PINHOLE {W} {H} -14 14 {W / 2} {H / 2}", "fx", "-14"),
+    (f"1 SIMPLE_PINHOLE {W} {H} 1e-06 {W / 2} {H / 2}", "f", "1e-06"),
+], ids=["zero", "negative", "below-a-pixel"])
+def test_a_colmap_camera_without_a_focal_length_is_named_by_file_camera_and_parameter(tmp_path, camera_line, key, value):
+    c = write_colmap(tmp_path / "c", camera_line=camera_line)
+    expect_error(lambda: read_frames(c), "cameras.txt", f"camera 1 {key}", value)
+
+
+def test_a_camera_pycolmap_refuses_is_named_by_its_file(tmp_path):
+    c = write_colmap(tmp_path / "c", camera_line=f"1 PINHOLE {W} {H} 14 14 nan {H / 2}")
+    expect_error(lambda: read_frames(c), "cameras.txt", "not a readable COLMAP model")
+
+
+def test_a_truncated_cameras_bin_is_one_line(tmp_path):
+    b = binary_copy(write_colmap(tmp_path / "c"), tmp_path / "b")
+    path = b / "sparse" / "0" / "cameras.bin"
+    path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+    expect_error(lambda: read_frames(b), "cameras.bin", "camera 1")
+
+
+def test_pycolmaps_own_errors_are_one_line_naming_the_model(tmp_path):
+    c = edit_images_txt(write_colmap(tmp_path / "c"), 2, lambda t: t[:8] + ["7"] + t[9:])  # no camera 7
+    expect_error(lambda: read_frames(c), "images.txt", "not a readable COLMAP model", "7")
+
+
+def test_a_zero_quaternion_is_refused_and_unnormalised_ones_are_normalised(tmp_path, recwarn):
+    c = edit_images_txt(write_colmap(tmp_path / "zero"), 2, with_quaternion(zero=True))
+    expect_error(lambda: read_frames(c), "images.txt", "image 2 (001.png) quaternion", "0 0 0 0")
+    clean = read_frames(write_colmap(tmp_path / "clean"))
+    for name, edit, warned in (("scaled", with_quaternion(scale=2.0), True),
+                               ("rounded", with_quaternion(decimals=4), False)):
+        folder = write_colmap(tmp_path / name)
+        for image_id in range(1, len(CAMERAS) + 1):
+            edit_images_txt(folder, image_id, edit)
+        recwarn.clear()
+        frames = read_frames(folder)
+        for a, b in zip(frames, clean):  # 4 decimals: rotations 10⁻⁴ apart
+            assert np.allclose(a.cam_to_world[:3, :3], b.cam_to_world[:3, :3], atol=3e-4), name
+        messages = [str(w.message) for w in recwarn.list if "quaternion" in str(w.message)]
+        assert len(messages) == int(warned), (name, messages)
+        if warned:
+            assert "images.txt" in messages[0] and "normalised" in messages[0] and "(the farthest: " in messages[0]
+
+
+def test_an_image_without_its_points_line_and_two_images_of_one_name_are_refused(tmp_path):
+    c = write_colmap(tmp_path / "c")
+    path = c / "sparse" / "0" / "images.txt"
+    lines = path.read_text().split("\n")
+    i = next(k for k, line in enumerate(lines) if line.startswith("2 "))
+    path.write_text("\n".join(lines[: i + 1] + lines[i + 2:]))  # image 2's (empty) points line removed
+    expect_error(lambda: read_frames(c), "images.txt", f"line {i + 1}", "image '2' has no line of 2D points")
+    d = edit_images_txt(write_colmap(tmp_path / "d"), 3, lambda t: t[:9] + ["000.png"])
+    expect_error(lambda: read_frames(d), "images.txt", "image 3 (000.png)", "image 1")
+    # the last image's points line missing at the end of the file: COLMAP drops that image too
+    e = write_colmap(tmp_path / "e")
+    path = e / "sparse" / "0" / "images.txt"
+    path.write_text(path.read_text().rstrip("\n") + "\n")
+    expect_error(lambda: read_frames(e), "images.txt", "image '4' has no line of 2D points (the file ends")

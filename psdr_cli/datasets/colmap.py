@@ -15,21 +15,34 @@ RADIAL          f, cx, cy, k1, k2              (k1, k2, 0, 0)
 OPENCV          fx, fy, cx, cy, k1, k2, p1, p2 (k1, k2, p1, p2)
 =============== ============================== ==========================
 
-(all-zero coefficients become ()). Any other model is refused. Images are those of the model
+(all-zero coefficients become ()). Any other model is refused, and so is a focal length below one
+pixel or a principal point that is not a finite number. Images are those of the model
 with a pose, sorted by name, found as ``<images>/<name>`` (a missing file is refused; files in
 the folder that the model does not register are ignored). A mask folder, when given, must hold
 a mask for every image: ``<masks>/<name>.png`` (COLMAP's own convention, e.g. ``a.jpg.png``),
 else ``<masks>/<name with its extension replaced by .png>`` (e.g. ``a.png``), tried in this
 order. A model without ``points3D`` is read as if it had no points.
+
+Poses are read as COLMAP reads them: a quaternion of any nonzero length is normalised (one warning
+when some are more than :data:`QUATERNION_TOLERANCE` from length 1, e.g. written with 4 decimals
+or scaled); a zero or non-finite quaternion is refused. Two images of one name are refused, and
+so is an ``images.txt`` image whose second line (its 2D points, possibly empty) is missing: COLMAP
+would read the next image's pose line as those points, or meet the end of the file, and drop an
+image without a word.
 """
 from __future__ import annotations
 
+import math
+import re
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from ..errors import PsdrWarning
 from .frames import DatasetError, Frame, check_same_size, distortion_tuple, rigid_matrix
 from .images import has_alpha, image_dimensions
 
@@ -43,6 +56,13 @@ MODELS = {
 }
 
 MODEL_FILES = ("rigs", "cameras", "frames", "images", "points3D")
+
+#: pycolmap's messages about the cameras file ("Check failed: line_stream >> camera.camera_id ...",
+#: "camera.VerifyParams()", "Camera model does not exist"); any other names the images file.
+CAMERA_FILE_ERROR = re.compile(r"\bcamera\.|camera model", re.IGNORECASE)
+
+#: How far from 1 a pose quaternion's length may be before its normalisation is reported.
+QUATERNION_TOLERANCE = 1e-3
 
 
 def model_format(model: Path) -> str | None:
@@ -77,17 +97,78 @@ def read_reconstruction(model: Path):
                     shutil.copyfile(model / f"{name}.{ext}", Path(tmp) / f"{name}.{ext}")
             (Path(tmp) / f"points3D.{ext}").write_bytes(bytes(8) if ext == "bin" else b"")  # no points
             return pycolmap.Reconstruction(tmp)
-    except (ValueError, RuntimeError, OSError) as exc:
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises IndexError, KeyError, ... for bad models
         detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise DatasetError(model / f"images.{ext}", "", f"not a readable COLMAP model ({detail[:160]})") from None
+        file = model / f"{'cameras' if CAMERA_FILE_ERROR.search(detail) else 'images'}.{ext}"
+        raise DatasetError(file, "", f"not a readable COLMAP model ({detail[:160]})") from None
 
 
-def cam_from_world(image) -> np.ndarray:
-    """The 3×4 world-to-camera matrix of a pycolmap image (a property in older pycolmap, a
-    method in newer ones)."""
+def cam_from_world(image, file: Path, where: str) -> tuple:
+    """(the 4×4 world-to-camera matrix of a pycolmap image with its quaternion normalised, the
+    quaternion's length as read). A zero or non-finite quaternion is a :class:`DatasetError`."""
     pose = image.cam_from_world
-    pose = pose() if callable(pose) else pose
-    return np.asarray(pose.matrix(), np.float64)
+    pose = pose() if callable(pose) else pose  # (a property in older pycolmap, a method in newer ones)
+    q = np.asarray(pose.rotation.quat, np.float64)  # x, y, z, w as read from the file
+    length = float(np.linalg.norm(q))
+    if not np.isfinite(q).all() or length < 1e-6:
+        w, x, y, z = q[3], q[0], q[1], q[2]
+        raise DatasetError(file, f"{where} quaternion", f"QW QX QY QZ = {w:g} {x:g} {y:g} {z:g}: expected a "
+                                                        f"rotation (a nonzero quaternion; COLMAP normalises it)")
+    w2c = np.eye(4)
+    w2c[:3, :3] = Rotation.from_quat(q / length).as_matrix()
+    w2c[:3, 3] = np.asarray(pose.translation, np.float64)
+    return w2c, length
+
+
+def warn_unnormalised(file: Path, lengths: dict):
+    """One warning when some quaternions' lengths (image name → length) are more than
+    :data:`QUATERNION_TOLERANCE` from 1."""
+    off = {name: n for name, n in lengths.items() if abs(n - 1.0) > QUATERNION_TOLERANCE}
+    if off:
+        name, n = max(off.items(), key=lambda item: abs(item[1] - 1.0))
+        warnings.warn(f"{file}: {len(off)} pose quaternion(s) not of length 1 (the farthest: {name}, "
+                      f"{n:.6g}); normalised, as COLMAP does", PsdrWarning, stacklevel=3)
+
+
+def check_points_lines(file: Path):
+    """Refuses an ``images.txt`` in which an image's pose line is not followed by its line of 2D
+    points (``x y point3D_id`` triples or an empty line), read as COLMAP reads the file: the pose
+    line is the next line that is neither empty nor a comment, the points line the one after it."""
+    lines = file.read_text(encoding="utf-8", errors="replace").splitlines()
+    i = 0
+    while i < len(lines):
+        line = lines[i].strip()
+        i += 1
+        if not line or line.startswith("#"):
+            continue
+        if i >= len(lines) or not is_points_line(lines[i]):
+            after = "the file ends" if i >= len(lines) else f"line {i + 1} is another pose line"
+            raise DatasetError(file, f"line {i}", f"image '{line.split()[0]}' has no line of 2D points ({after}; "
+                                                  f"expected two lines per image, the second empty when there are "
+                                                  f"no points: COLMAP would drop the image)")
+        i += 1
+
+
+def is_points_line(line: str) -> bool:
+    """Whether ``line`` can be an images.txt line of 2D points: empty, or numbers in triples."""
+    tokens = line.split()
+    if len(tokens) % 3:
+        return False
+    try:
+        [float(t) for t in tokens]
+    except ValueError:
+        return False
+    return True
+
+
+def check_unique_names(images, file: Path):
+    """Refuses two registered images of one name (two poses for one photograph)."""
+    first = {}
+    for im in sorted(images, key=lambda im: im.image_id):
+        if im.name in first:
+            raise DatasetError(file, f"image {im.image_id} ({im.name})", f"the name of image {first[im.name]} too "
+                                                                         f"(expected one pose per photograph)")
+        first[im.name] = im.image_id
 
 
 def camera_intrinsics(camera, file: Path, camera_id: int) -> tuple:
@@ -97,6 +178,10 @@ def camera_intrinsics(camera, file: Path, camera_id: int) -> tuple:
         raise DatasetError(file, f"camera {camera_id}", f"model {model} is not supported "
                                                         f"(expected one of {', '.join(MODELS)})")
     p = dict(zip(MODELS[model], (float(v) for v in camera.params)))
+    for key, value in p.items():
+        if not math.isfinite(value) or (key in ("f", "fx", "fy") and value < 1.0):
+            raise DatasetError(file, f"camera {camera_id} {key}", f"{value:g}: expected "
+                                                                  f"{'a focal length of at least 1 px' if key[0] == 'f' else 'a finite number'}")
     fx, fy = p.get("fx", p.get("f")), p.get("fy", p.get("f"))
     dist = distortion_tuple(p.get("k1", 0.0), p.get("k2", 0.0), p.get("p1", 0.0), p.get("p2", 0.0))
     return fx, fy, p["cx"], p["cy"], dist
@@ -119,9 +204,13 @@ def read_colmap(model, images, masks=None) -> list[Frame]:
     rec = read_reconstruction(model)
     ext = model_format(model)
     cameras_file, images_file = model / f"cameras.{ext}", model / f"images.{ext}"
+    if ext == "txt":
+        check_points_lines(images_file)
     posed = sorted((im for im in rec.images.values() if image_has_pose(im)), key=lambda im: im.name)
     if not posed:
         raise DatasetError(images_file, "", "no registered images (expected a model with posed images)")
+    check_unique_names(posed, images_file)
+    lengths = {}
     if not images.is_dir():
         raise DatasetError(images, "", f"not a folder (expected the images of {images_file})")
     if masks is not None and not Path(masks).is_dir():
@@ -142,10 +231,12 @@ def read_colmap(model, images, masks=None) -> list[Frame]:
             if mask is None:
                 raise DatasetError(masks, where, f"no mask {im.name}.png or {Path(im.name).with_suffix('.png')} "
                                                  f"(expected a mask for every image)")
-        w2c = rigid_matrix(cam_from_world(im), images_file, f"{where} pose")
+        w2c, lengths[im.name] = cam_from_world(im, images_file, where)
+        w2c = rigid_matrix(w2c, images_file, f"{where} pose")
         frames.append(Frame(name=im.name, image=path, mask=mask, cam_to_world=np.linalg.inv(w2c),
                             fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, distortion=dist,
                             split="train", source=images_file, has_alpha=has_alpha(path)))
+    warn_unnormalised(images_file, lengths)
     return check_same_size(frames)
 
 
