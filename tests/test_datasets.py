@@ -575,3 +575,22 @@ def test_an_image_without_its_points_line_and_two_images_of_one_name_are_refused
     path = e / "sparse" / "0" / "images.txt"
     path.write_text(path.read_text().rstrip("\n") + "\n")
     expect_error(lambda: read_frames(e), "images.txt", "image '4' has no line of 2D points (the file ends")
+
+
+@pytest.mark.parametrize("value, hint", [(40, "looks like degrees (0.6981 rad)"), (3.14159, "between 1° and 170°"),
+                                         (0.001, "between 1° and 170°")], ids=["degrees", "180-degrees", "tiny"])
+def test_a_field_of_view_outside_1_to_170_degrees_is_named_by_file_and_key(tmp_path, value, hint):
+    b = write_blender(tmp_path / "b", splits=("train",))
+    rewrite_json(b / "transforms_train.json", lambda d: d.update(camera_angle_x=value))
+    expect_error(lambda: read_frames(b), "transforms_train.json", "camera_angle_x", hint)
+    t = write_transforms(tmp_path / "t", extra={"fl_x": None, "fl_y": None, "camera_angle_x": value})
+    expect_error(lambda: read_frames(t), "transforms.json", "camera_angle_x", hint)
+    t2 = write_transforms(tmp_path / "t2", frame_extra={2: {"camera_angle_x": value}}, extra={"fl_x": None})
+    expect_error(lambda: read_frames(t2), "transforms.json", "frames[2].camera_angle_x", hint)
+
+
+def test_a_focal_length_below_a_pixel_is_named_by_file_and_key(tmp_path):
+    t = write_transforms(tmp_path / "t", fl=(1e-6, 1e-6))
+    expect_error(lambda: read_frames(t), "transforms.json", "fl_x", "1e-06", "at least 1 px")
+    t2 = write_transforms(tmp_path / "t2", frame_extra={1: {"fl_y": 0.5}})
+    expect_error(lambda: read_frames(t2), "transforms.json", "frames[1].fl_y", "at least 1 px")

@@ -1,9 +1,9 @@
 """The NeRF-synthetic ("Blender") format: a folder with ``transforms_train.json``,
 ``transforms_val.json`` and ``transforms_test.json`` (any of them), one per split.
 
-Each file holds ``camera_angle_x``, the horizontal field of view in radians, and ``frames``,
-each with ``file_path`` (relative to the folder, ``./`` allowed, the extension optional: .png
-by default) and ``transform_matrix``, the camera-to-world matrix in OpenGL camera axes (x
+Each file holds ``camera_angle_x``, the horizontal field of view in radians (between 1° and
+170°), and ``frames``, each with ``file_path`` (relative to the folder, ``./`` allowed, the
+extension optional: .png by default) and ``transform_matrix``, the camera-to-world matrix in OpenGL camera axes (x
 right, y up, z backward), turned into OpenCV axes by flipping its y and z columns. The image
 size comes from each image's header; pixels are square and the principal point is the image
 centre: fx = fy = (W/2) / tan(camera_angle_x / 2), cx = W/2, cy = H/2 (pixel-corner origin).
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .frames import SPLITS, DatasetError, Frame, check_same_size, focal_from_fov, opengl_to_opencv, rigid_matrix
 from .images import has_alpha, image_dimensions
-from .jsonfile import frame_list, image_path, number, read_json, relative_path
+from .jsonfile import field_of_view, frame_list, image_path, read_json, relative_path
 
 
 def split_file(folder: Path, split: str) -> Path:
@@ -52,7 +52,7 @@ def read_split(folder: Path, file: Path, split: str) -> list[Frame]:
     data = read_json(file)
     if "camera_angle_x" not in data:
         raise DatasetError(file, "camera_angle_x", "missing (expected the horizontal field of view in radians)")
-    fov = number(data["camera_angle_x"], file, "camera_angle_x", positive=True)
+    fov = field_of_view(data["camera_angle_x"], file, "camera_angle_x")
     return [blender_frame(folder, file, split, i, entry, fov) for i, entry in enumerate(frame_list(data, file))]
 
 

@@ -36,6 +36,29 @@ def number(value, file, key: str, *, positive: bool = False) -> float:
     return float(value)
 
 
+#: The fields of view a camera may have, in radians: more than 1°, less than 170°.
+FOV_RANGE = (math.radians(1.0), math.radians(170.0))
+
+
+def field_of_view(value, file, key: str) -> float:
+    """``value`` as a field of view in radians inside :data:`FOV_RANGE`, else a
+    :class:`DatasetError` (which calls a value from 3.2 to 180 "degrees, by the look of it")."""
+    fov = number(value, file, key, positive=True)
+    if FOV_RANGE[0] < fov < FOV_RANGE[1]:
+        return fov
+    hint = f"; {fov:g} looks like degrees ({math.radians(fov):.4g} rad)" if 3.2 <= fov <= 180.0 else ""
+    raise DatasetError(file, key, f"{fov:g}: expected a field of view in radians between 1° and 170° "
+                                  f"({FOV_RANGE[0]:.4f} to {FOV_RANGE[1]:.4f}){hint}")
+
+
+def focal_length(value, file, key: str) -> float:
+    """``value`` as a focal length of at least one pixel, else a :class:`DatasetError`."""
+    focal = number(value, file, key, positive=True)
+    if focal < 1.0:
+        raise DatasetError(file, key, f"{focal:g}: expected a focal length of at least 1 px")
+    return focal
+
+
 def frame_list(data: dict, file) -> list:
     """The non-empty list under ``frames``, each entry an object."""
     frames = data.get("frames")

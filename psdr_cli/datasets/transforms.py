@@ -2,8 +2,9 @@
 
 Intrinsics (``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``, ``k1``–``k4``, ``p1``, ``p2``,
 ``camera_model``) are read from each frame, else from the top level (per-frame values override).
-Focal lengths: ``fl_x``, else from ``camera_angle_x`` as (w/2) / tan(angle/2); ``fl_y``, else
-from ``camera_angle_y`` likewise with h; a missing one equals the other. ``cx``, ``cy`` default
+Focal lengths (at least 1 px): ``fl_x``, else from ``camera_angle_x`` (radians, between 1° and
+170°) as (w/2) / tan(angle/2); ``fl_y``, else from ``camera_angle_y`` likewise with h; a missing
+one equals the other. ``cx``, ``cy`` default
 to w/2, h/2 (pixel-corner origin, as both programs use). ``w`` and ``h`` default to the image's
 size and, when given, must equal it.
 
@@ -46,7 +47,7 @@ from .frames import (
     rigid_matrix,
 )
 from .images import has_alpha, image_dimensions
-from .jsonfile import frame_list, image_path, number, read_json, relative_path
+from .jsonfile import field_of_view, focal_length, frame_list, image_path, number, read_json, relative_path
 
 FILE_NAME = "transforms.json"
 
@@ -169,11 +170,14 @@ def image_size_checked(entry: dict, data: dict, image: Path, file: Path, i: int,
 
 def focal_lengths(entry: dict, data: dict, file: Path, i: int, width: int, height: int) -> tuple[float, float]:
     """(fx, fy) by the rules of the module docstring."""
+    def named(key):  # a frame's own value is named by the frame
+        return f"frames[{i}].{key}" if key in entry else key
+
     def focal(key, angle_key, size):
         if setting(entry, data, key) is not None:
-            return number(setting(entry, data, key), file, key, positive=True)
+            return focal_length(setting(entry, data, key), file, named(key))
         if setting(entry, data, angle_key) is not None:
-            return focal_from_fov(size, number(setting(entry, data, angle_key), file, angle_key, positive=True))
+            return focal_from_fov(size, field_of_view(setting(entry, data, angle_key), file, named(angle_key)))
         return None
 
     fx, fy = focal("fl_x", "camera_angle_x", width), focal("fl_y", "camera_angle_y", height)
