@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import meshes
 from ..dataset_scene import dataset_frames, to_normalised
+from ..datasets.masks import check_masks
 from ..datasets.views import load_views
 from ..errors import PsdrError
 from ..visual_hull import visual_hull
@@ -31,10 +32,12 @@ def undistortion_cache(exp):
 
 def dataset_views(exp):
     """The views of the experiment's cameras (``target_dataset.split``), decoded at the film's size,
-    with their cameras moved into the normalised frame."""
+    with their cameras moved into the normalised frame; masks that cannot be right are refused
+    (:mod:`psdr_cli.datasets.masks`)."""
     dataset = exp.optimize.target_dataset
     _, chosen = dataset_frames(dataset, dataset.split)
     views = load_views(chosen, downsample=dataset.downsample, linear=dataset.linear, cache=undistortion_cache(exp))
+    check_masks(views)
     for view in views:
         if view.image.shape[:2] != (exp.scene.height, exp.scene.width):
             raise PsdrError(f"{view.name}: the photograph is {view.image.shape[1]}×{view.image.shape[0]} pixels "
