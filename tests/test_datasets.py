@@ -594,3 +594,26 @@ def test_a_focal_length_below_a_pixel_is_named_by_file_and_key(tmp_path):
     expect_error(lambda: read_frames(t), "transforms.json", "fl_x", "1e-06", "at least 1 px")
     t2 = write_transforms(tmp_path / "t2", frame_extra={1: {"fl_y": 0.5}})
     expect_error(lambda: read_frames(t2), "transforms.json", "frames[1].fl_y", "at least 1 px")
+
+
+def test_rounded_matrices_and_a_byte_order_mark_are_read(tmp_path):
+    """Matrices written with 4 or 3 decimals (RᵀR up to ~3·10⁻³ from I) are read as the nearest
+    rotation, equal to the exact cameras to the rounding; a UTF-8 byte order mark is read; a shear
+    beyond a rounded matrix's (1 %) is still refused."""
+    exact = read_frames(write_transforms(tmp_path / "exact"))
+    for decimals in (4, 3):
+        t = write_transforms(tmp_path / f"d{decimals}")
+        rewrite_json(t / "transforms.json", lambda d: [f.update(transform_matrix=np.round(
+            np.array(f["transform_matrix"]), decimals).tolist()) for f in d["frames"]])
+        for a, b in zip(read_frames(t), exact):
+            R = a.cam_to_world[:3, :3]
+            assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+            assert np.allclose(a.cam_to_world, b.cam_to_world, atol=2 * 10.0 ** -decimals)
+    bom = write_transforms(tmp_path / "bom")
+    path = bom / "transforms.json"
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert len(read_frames(bom)) == len(exact)
+    sheared = write_transforms(tmp_path / "sheared")
+    rewrite_json(sheared / "transforms.json", lambda d: d["frames"][0].update(
+        transform_matrix=(np.array(d["frames"][0]["transform_matrix"]) @ np.diag([1.01, 1, 1, 1])).tolist()))
+    expect_error(lambda: read_frames(sheared), "frames[0].transform_matrix", "RᵀR differs from I")

@@ -16,7 +16,7 @@ def read_json(path: Path) -> dict:
     if not path.is_file():
         raise DatasetError(path, "", "file not found (expected a JSON camera file)")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # (a byte order mark, as some editors write, is read)
     except json.JSONDecodeError as exc:
         raise DatasetError(path, f"line {exc.lineno} column {exc.colno}",
                            f"not valid JSON ({exc.msg})") from None
