@@ -617,3 +617,14 @@ def test_rounded_matrices_and_a_byte_order_mark_are_read(tmp_path):
     rewrite_json(sheared / "transforms.json", lambda d: d["frames"][0].update(
         transform_matrix=(np.array(d["frames"][0]["transform_matrix"]) @ np.diag([1.01, 1, 1, 1])).tolist()))
     expect_error(lambda: read_frames(sheared), "frames[0].transform_matrix", "RᵀR differs from I")
+
+
+@pytest.mark.parametrize("coefficients, what", [
+    ("-1.5 0 0 0", "turns back at radius"),  # r − 1.5 r³ peaks at r = 0.47, inside the corners (0.71)
+    ("50 0 0 0", "scale the image by"),      # folds nothing, but zooms the photograph 13×
+], ids=["folding", "zooming"])
+def test_a_lens_model_that_cannot_be_the_lenses_is_refused(tmp_path, coefficients, what):
+    c = write_colmap(tmp_path / "c", camera_line=f"1 OPENCV {W} {H} {F} {F} {W / 2} {H / 2} {coefficients}")
+    expect_error(lambda: load_views(read_frames(c), cache=tmp_path / "cache"), "images.txt", "000.png", "distortion",
+                 what)
+    assert not list((tmp_path / "cache").glob("*.exr"))  # refused before anything is written

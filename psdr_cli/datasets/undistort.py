@@ -20,6 +20,11 @@ EXR convention) and, for a separate mask file, a one-channel (Y) EXR remapped wi
 image and mask files, the intrinsics, the coefficients and the ``linear`` flag; each file is
 written to a temporary name and renamed into place (:func:`psdr_cli.fileio.write_exr`). When
 both already exist they are reused as they are.
+
+A lens model that cannot be the lens's is refused before anything is resampled: one whose radial
+part r ↦ r·(1 + k1·r² + k2·r⁴ + k3·r⁶) turns back before it reaches the image's corners (the
+undistortion would fold the image onto itself), and one whose undistortion would change the
+image's scale by more than :data:`MAX_ZOOM` (k1 = 50 zoomed a photograph 13×).
 """
 from __future__ import annotations
 
@@ -36,6 +41,45 @@ from .images import read_image, read_mask
 
 #: Bumped when the cached files would come out differently.
 CACHE_VERSION = 1
+
+#: Largest change of scale (fx″/fx or fx/fx″) the undistortion of a plausible lens model makes.
+MAX_ZOOM = 2.0
+
+
+def corner_radius(frame: Frame) -> float:
+    """The largest normalised radius |((u − cx)/fx, (v − cy)/fy)| of the image's four corners."""
+    u = np.array([0.0, frame.width]) - frame.cx
+    v = np.array([0.0, frame.height]) - frame.cy
+    return float(np.sqrt((u[:, None] / frame.fx) ** 2 + (v[None, :] / frame.fy) ** 2).max())
+
+
+def radial_turn(distortion: tuple, reach: float) -> float | None:
+    """The normalised radius at which the radial model r·(1 + k1 r² + k2 r⁴ + k3 r⁶) stops growing
+    before its value reaches ``reach``, or None when it grows all the way there."""
+    k1, k2, _, _, k3 = (tuple(distortion) + (0.0,) * 5)[:5]
+    r = np.linspace(0.0, 1.0, 20001) * max(4.0 * reach, 4.0)
+    r2 = r * r
+    g = r * (1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 ** 3)
+    growing = np.diff(g) > 0
+    reached = np.nonzero(g >= reach)[0]
+    end = reached[0] if len(reached) else len(g) - 1
+    turns = np.nonzero(~growing[:end])[0]
+    return float(r[turns[0]]) if len(turns) else (None if len(reached) else float(r[np.argmax(g)]))
+
+
+def check_lens(frame: Frame, intrinsics: tuple):
+    """Refuses a lens model that cannot be the lens's (module docstring)."""
+    names = ", ".join(f"{k} = {c:g}" for k, c in zip(("k1", "k2", "p1", "p2", "k3"), frame.distortion) if c)
+    turn = radial_turn(frame.distortion, corner_radius(frame))
+    if turn is not None:
+        raise DatasetError(frame.source or frame.image, f"{frame.where} distortion",
+                           f"{names}: the lens model turns back at radius {turn:.3g} (normalised), inside the "
+                           f"image (corners at {corner_radius(frame):.3g}): undistorting would fold the image")
+    zoom = intrinsics[0] / frame.fx
+    if not 1.0 / MAX_ZOOM <= zoom <= MAX_ZOOM:
+        raise DatasetError(frame.source or frame.image, f"{frame.where} distortion",
+                           f"{names}: undistorting would scale the image by {zoom:.3g} (expected a lens model "
+                           f"that changes it by at most {MAX_ZOOM:g}×)")
 
 
 def cache_key(frame: Frame, linear: bool) -> str:
@@ -97,6 +141,7 @@ def undistort_frame(frame: Frame, cache, *, linear: bool = False) -> Frame:
         return frame
     cache = Path(cache)
     intrinsics = pinhole_intrinsics(frame)
+    check_lens(frame, intrinsics)
     stem = f"{Path(frame.image).stem}-{cache_key(frame, linear)}"
     image_out = cache / f"{stem}.exr"
     mask_out = cache / f"{stem}.mask.exr" if frame.mask is not None else None
