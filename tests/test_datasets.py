@@ -628,3 +628,18 @@ def test_a_lens_model_that_cannot_be_the_lenses_is_refused(tmp_path, coefficient
     expect_error(lambda: load_views(read_frames(c), cache=tmp_path / "cache"), "images.txt", "000.png", "distortion",
                  what)
     assert not list((tmp_path / "cache").glob("*.exr"))  # refused before anything is written
+
+
+def test_a_model_in_both_forms_that_disagree_is_read_in_binary_with_a_warning(tmp_path, recwarn):
+    text = write_colmap(tmp_path / "c")
+    both = binary_copy(text, tmp_path / "both")
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        shutil.copy(text / "sparse" / "0" / name, both / "sparse" / "0" / name)
+    binary = read_frames(both)
+    assert not [w for w in recwarn.list if "disagree" in str(w.message)]  # the same model twice: no word
+    edit_images_txt(both, 2, lambda t: t[:5] + [repr(float(t[5]) + 0.5)] + t[6:])  # image 2 moved in the text form
+    recwarn.clear()
+    frames = read_frames(both)
+    messages = [str(w.message) for w in recwarn.list if "disagree" in str(w.message)]
+    assert len(messages) == 1 and "cameras.bin/images.bin" in messages[0] and "001.png" in messages[0], messages
+    assert all(np.array_equal(a.cam_to_world, b.cam_to_world) for a, b in zip(frames, binary))  # COLMAP's choice

@@ -28,7 +28,8 @@ when some are more than :data:`QUATERNION_TOLERANCE` from length 1, e.g. written
 or scaled); a zero or non-finite quaternion is refused. Two images of one name are refused, and
 so is an ``images.txt`` image whose second line (its 2D points, possibly empty) is missing: COLMAP
 would read the next image's pose line as those points, or meet the end of the file, and drop an
-image without a word.
+image without a word. A folder with both forms is read in the binary one, as COLMAP does, with a
+warning when the text form disagrees with it.
 """
 from __future__ import annotations
 
@@ -79,28 +80,64 @@ def is_model(folder: Path) -> bool:
     return Path(folder).is_dir() and model_format(Path(folder)) is not None
 
 
-def read_reconstruction(model: Path):
-    """The pycolmap reconstruction of ``model``; a model without points3D is completed with an
-    empty one in a temporary copy. Unreadable files are a :class:`DatasetError`. pycolmap is
-    imported here, for the COLMAP datasets only (it adds a third of a second to every start)."""
+def read_reconstruction(model: Path, ext: str | None = None):
+    """The pycolmap reconstruction of ``model`` in its ``ext`` form ('bin' or 'txt'; default: the
+    one COLMAP reads, :func:`model_format`); a model without points3D is completed with an empty
+    one in a temporary copy. Unreadable files are a :class:`DatasetError`. pycolmap is imported
+    here, for the COLMAP datasets only (it adds a third of a second to every start)."""
     import pycolmap
-    ext = model_format(model)
-    if ext is None:
+    first = model_format(model)
+    if first is None:
         raise DatasetError(model, "", "no cameras.bin and images.bin, nor cameras.txt and images.txt "
                                       "(expected a COLMAP sparse model folder such as sparse/0)")
+    ext = ext or first
     try:
-        if (model / f"points3D.{ext}").is_file():
+        if ext == first and (model / f"points3D.{ext}").is_file():
             return pycolmap.Reconstruction(str(model))
         with tempfile.TemporaryDirectory(prefix="psdr-colmap-") as tmp:
             for name in MODEL_FILES:
                 if (model / f"{name}.{ext}").is_file():
                     shutil.copyfile(model / f"{name}.{ext}", Path(tmp) / f"{name}.{ext}")
-            (Path(tmp) / f"points3D.{ext}").write_bytes(bytes(8) if ext == "bin" else b"")  # no points
+            if not (model / f"points3D.{ext}").is_file():
+                (Path(tmp) / f"points3D.{ext}").write_bytes(bytes(8) if ext == "bin" else b"")  # no points
             return pycolmap.Reconstruction(tmp)
     except Exception as exc:  # noqa: BLE001 - pycolmap raises IndexError, KeyError, ... for bad models
         detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         file = model / f"{'cameras' if CAMERA_FILE_ERROR.search(detail) else 'images'}.{ext}"
         raise DatasetError(file, "", f"not a readable COLMAP model ({detail[:160]})") from None
+
+
+def forms_disagreement(binary, text) -> str | None:
+    """How the binary and text forms of one model (pycolmap reconstructions) disagree: images in
+    one form only, a pose or a camera's parameters more than 10⁻⁶ (relative) apart; None when
+    they agree."""
+    a = {im.name: im for im in binary.images.values()}
+    b = {im.name: im for im in text.images.values()}
+    if set(a) != set(b):
+        return f"images {', '.join(sorted(set(a) ^ set(b))[:3])} are in one form only"
+    for name in sorted(a):
+        pa, pb = (np.asarray((p() if callable(p) else p).matrix()) for p in (a[name].cam_from_world, b[name].cam_from_world))
+        if np.abs(pa - pb).max() > 1e-6 * (1.0 + np.abs(pa).max()):
+            return f"the pose of image {name} differs by {np.abs(pa - pb).max():.3g}"
+        ca, cb = binary.cameras[a[name].camera_id], text.cameras[b[name].camera_id]
+        if not np.allclose(np.asarray(ca.params), np.asarray(cb.params), rtol=1e-6, atol=1e-9):
+            return f"the parameters of image {name}'s camera differ"
+    return None
+
+
+def warn_if_forms_disagree(model: Path, rec):
+    """One warning when ``model`` holds both forms and they disagree (COLMAP reads the binary one)."""
+    if model_format(model) != "bin" or not all((model / f"{n}.txt").is_file() for n in ("cameras", "images")):
+        return
+    try:
+        text = read_reconstruction(model, "txt")
+    except DatasetError as exc:
+        text, why = None, f"the text form is not readable ({exc.message})"
+    else:
+        why = forms_disagreement(rec, text)
+    if why:
+        warnings.warn(f"{model}: cameras.bin/images.bin and cameras.txt/images.txt disagree ({why}); reading the "
+                      f"binary files, as COLMAP does", PsdrWarning, stacklevel=3)
 
 
 def cam_from_world(image, file: Path, where: str) -> tuple:
@@ -202,6 +239,7 @@ def read_colmap(model, images, masks=None) -> list[Frame]:
     if not model.is_dir():
         raise DatasetError(model, "", "not a folder (expected a COLMAP sparse model folder such as sparse/0)")
     rec = read_reconstruction(model)
+    warn_if_forms_disagree(model, rec)
     ext = model_format(model)
     cameras_file, images_file = model / f"cameras.{ext}", model / f"images.{ext}"
     if ext == "txt":
