@@ -137,7 +137,7 @@ def dataset_frames(dataset: DatasetConfig, split: str = "train"):
     checked (:func:`psdr_cli.datasets.views.read_frames`); every split is read so that the
     normalised frame does not depend on which is asked for."""
     frames = read_frames(dataset, where="optimize.target.dataset")
-    train, held_out = split_views(frames, dataset.holdout_every)
+    train, held_out = split_views(frames, dataset.holdout_every, f"{dataset.key}.holdout_every")
     chosen = train if split == "train" else held_out
     if not chosen:
         raise PsdrError(f"{dataset.path}: the dataset has no {'training' if split == 'train' else 'held-out'} views "
@@ -154,7 +154,7 @@ def dataset_scene(exp: Experiment, split: str = "train") -> Experiment:
     dataset = exp.optimize.target_dataset
     frames, chosen = dataset_frames(dataset, split)
     frame = normalisation(frames, str(dataset.path))
-    views = [processed_view(f, dataset.downsample) for f in chosen]
+    views = [processed_view(f, dataset.downsample, f"{dataset.key}.downsample") for f in chosen]
     width, height = views[0].width, views[0].height
     cameras = [normalised_camera(v, frame) for v in views]
     hidden = hides_background(exp, dataset, frames)
@@ -192,10 +192,10 @@ def hides_background(exp: Experiment, dataset: DatasetConfig, frames) -> bool:
     return True
 
 
-def processed_view(frame, k: int):
+def processed_view(frame, k: int, key: str):
     """A frame with the pinhole intrinsics and size of the image psdr fits (undistorted, square
-    pixels, downsampled by ``k``: :func:`psdr_cli.datasets.views.view_intrinsics`)."""
-    fx, fy, cx, cy, width, height = view_intrinsics(frame, downsample=k)
+    pixels, downsampled by ``k``, the experiment's ``key``: :func:`psdr_cli.datasets.views.view_intrinsics`)."""
+    fx, fy, cx, cy, width, height = view_intrinsics(frame, downsample=k, key=key)
     return replace(frame, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, distortion=())
 
 

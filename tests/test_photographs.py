@@ -316,6 +316,10 @@ def test_an_init_mesh_file_is_read_in_the_datasets_coordinates(tmp_path):
     (lambda d: d["optimize"]["target"]["dataset"].update(path="missing_folder"), "optimize.target.dataset.path: not found"),
     (lambda d: d["estimator"].update(engine="mitsuba"), "estimator.engine: 'mitsuba' cannot hide the background"),
     (lambda d: d["optimize"]["target"]["dataset"].update(holdout_every=1), "holdout_every"),
+    (lambda d: d["optimize"]["target"]["dataset"].update(holdout_every=100),  # named by the experiment's key
+     "photos.yaml: optimize.target.dataset.holdout_every: 100 is not usable (expected an integer from 2 to 20"),
+    (lambda d: d["optimize"]["target"]["dataset"].update(downsample=100),
+     "photos.yaml: optimize.target.dataset.downsample: 100 is not usable (expected an integer from 1 to 64"),
     (lambda d: d["optimize"]["target"].update(mesh={"shape": "sphere"}), "give one of 'images', 'mesh' and 'dataset'"),
     (lambda d: d["optimize"].update(variants=[{"label": "m", "engine": "mitsuba"}]), "'mitsuba' cannot hide"),
     (lambda d: d["scene"]["objects"].append({"name": "stand", "mesh": {"shape": "plane"}}),

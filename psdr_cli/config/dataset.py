@@ -13,7 +13,7 @@ from .vocabularies import BACKGROUNDS, DATASET_FORMATS
 class DatasetConfig:
     """``optimize.target.dataset``: photographs and their cameras (:mod:`psdr_cli.datasets`)."""
     path: Path
-    key: str                               # key path in the file, for error messages
+    key: str                               # "<experiment file>: <key path>", for error messages
     format: str = "auto"                   # auto | blender | transforms | colmap
     images: Path | None = None             # colmap: the image folder (default: <path>/images, <path>/../../images)
     masks: Path | None = None              # colmap: a folder of mask PNGs named after the images
@@ -38,7 +38,7 @@ def parse_dataset(base: Path) -> Parser:
         if isinstance(value, str):
             value = {"path": value}
         sec = Section(value, where)
-        d = DatasetConfig(path=sec.get("path", folder), key=where.path)
+        d = DatasetConfig(path=sec.get("path", folder), key=f"{where.file}: {where.path}")
         d.format = sec.get("format", choice(*DATASET_FORMATS), d.format)
         d.images = sec.get("images", folder, None)
         d.masks = sec.get("masks", folder, None)

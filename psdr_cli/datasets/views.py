@@ -216,22 +216,23 @@ def downsampled_geometry(geometry: tuple, factor: int) -> tuple:
     return fx / factor, fy / factor, cx / factor, cy / factor, width // factor, height // factor
 
 
-def view_intrinsics(frame: Frame, *, downsample: int = 1) -> tuple:
+def view_intrinsics(frame: Frame, *, downsample: int = 1, key: str = "downsample") -> tuple:
     """(fx, fy, cx, cy, width, height) of the view :func:`load_views` makes of ``frame``,
     computed from the frame alone (no image is decoded): undistortion, square pixels and
-    downsampling change them."""
+    downsampling change them. ``key`` names ``downsample`` in messages."""
     fx, fy, cx, cy = pinhole_intrinsics(frame) if frame.distortion else (frame.fx, frame.fy, frame.cx, frame.cy)
-    factor = check_factor(downsample, [frame])
+    factor = check_factor(downsample, [frame], key)
     return downsampled_geometry(square_geometry(fx, fy, cx, cy, frame.width, frame.height), factor)
 
 
-def check_factor(factor, frames: list[Frame]) -> int:
-    """``factor`` as an int ≥ 1 no larger than the smallest image side, else a PsdrError."""
+def check_factor(factor, frames: list[Frame], key: str = "downsample") -> int:
+    """``factor`` as an int ≥ 1 no larger than the smallest image side, else a PsdrError naming
+    ``key`` (e.g. 'exp.yaml: optimize.target.dataset.downsample')."""
     ok = isinstance(factor, (int, np.integer)) and not isinstance(factor, bool) and factor >= 1
     smallest = min(min(f.width, f.height) for f in frames) if frames else 1
     if not ok or factor > smallest:
-        raise DatasetError("load_views", "downsample",
-                           f"{factor!r} is not usable (expected an integer from 1 to {smallest})")
+        raise DatasetError(key, "", f"{factor!r} is not usable (expected an integer from 1 to {smallest}, "
+                                    f"the smallest image side)")
     return int(factor)
 
 
@@ -267,22 +268,24 @@ def load_view(frame: Frame, factor: int, linear: bool, cache) -> View:
                 source=frame.source)
 
 
-def load_views(frames: list[Frame], *, downsample: int = 1, linear: bool = False, cache=None) -> list[View]:
+def load_views(frames: list[Frame], *, downsample: int = 1, linear: bool = False, cache=None,
+               key: str = "downsample") -> list[View]:
     """The :class:`View` of every frame (module docstring). ``linear``: the 8/16-bit images are
     already linear (no sRGB decoding). ``cache``: the folder for undistorted images (needed only
     when a frame has lens distortion)."""
-    factor = check_factor(downsample, frames)
+    factor = check_factor(downsample, frames, key)
     return [load_view(frame, factor, linear, cache) for frame in frames]
 
 
-def split_views(views: list, holdout_every: int | None = None) -> Splits:
+def split_views(views: list, holdout_every: int | None = None, key: str | None = None) -> Splits:
     """(train, held_out) of ``views`` (:class:`View` or :class:`Frame` records, in dataset
     order). With ``holdout_every`` None, the dataset's own splits: its 'train' records, and its
     'test' records, else (a dataset without a test split) its 'val' records. With
     ``holdout_every`` = k, every k-th record counting from the first (index i with i mod k = 0,
     as mip-NeRF 360 holds out its test views) is held out as 'test' and the others are 'train',
     the dataset's own splits ignored. An empty training split, or a k outside 2..len(views), is a
-    :class:`DatasetError`; the held-out list may be empty (a dataset without val or test)."""
+    :class:`DatasetError` (naming ``key``, e.g. 'exp.yaml: optimize.target.dataset.holdout_every',
+    else the dataset); the held-out list may be empty (a dataset without val or test)."""
     where = next((v.source for v in views if getattr(v, "source", None) is not None), "dataset")
     if not views:
         raise DatasetError(where, "", "no views (expected at least one frame)")
@@ -292,8 +295,8 @@ def split_views(views: list, holdout_every: int | None = None) -> Splits:
     else:
         k = holdout_every
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or not 2 <= k <= len(views):
-            raise DatasetError(where, "holdout_every", f"{k!r} is not usable (expected an integer from 2 to "
-                                                       f"{len(views)}, the number of views)")
+            raise DatasetError(key or where, "" if key else "holdout_every",
+                               f"{k!r} is not usable (expected an integer from 2 to {len(views)}, the number of views)")
         train = [replace(v, split="train") for i, v in enumerate(views) if i % k]
         held_out = [replace(v, split="test") for i, v in enumerate(views) if i % k == 0]
     if not train:

@@ -36,7 +36,8 @@ def dataset_views(exp):
     (:mod:`psdr_cli.datasets.masks`)."""
     dataset = exp.optimize.target_dataset
     _, chosen = dataset_frames(dataset, dataset.split)
-    views = load_views(chosen, downsample=dataset.downsample, linear=dataset.linear, cache=undistortion_cache(exp))
+    views = load_views(chosen, downsample=dataset.downsample, linear=dataset.linear, cache=undistortion_cache(exp),
+                       key=f"{dataset.key}.downsample")
     check_masks(views)
     for view in views:
         if view.image.shape[:2] != (exp.scene.height, exp.scene.width):
