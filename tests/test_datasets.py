@@ -643,3 +643,14 @@ def test_a_model_in_both_forms_that_disagree_is_read_in_binary_with_a_warning(tm
     messages = [str(w.message) for w in recwarn.list if "disagree" in str(w.message)]
     assert len(messages) == 1 and "cameras.bin/images.bin" in messages[0] and "001.png" in messages[0], messages
     assert all(np.array_equal(a.cam_to_world, b.cam_to_world) for a, b in zip(frames, binary))  # COLMAP's choice
+
+
+def test_a_far_principal_point_is_named_by_file_and_key(tmp_path):
+    """A principal point more than an image size from the centre (psdr's cameras cannot hold it)
+    named by the camera file and key, not by an image later on."""
+    t = write_transforms(tmp_path / "t", extra={"cx": 5000.0})
+    expect_error(lambda: read_frames(t), "transforms.json", "cx", "5000", f"from {-W / 2:g} to {1.5 * W:g}")
+    t2 = write_transforms(tmp_path / "t2", frame_extra={3: {"cy": -40.0}})
+    expect_error(lambda: read_frames(t2), "transforms.json", "frames[3].cy", "-40")
+    c = write_colmap(tmp_path / "c", camera_line=f"1 PINHOLE {W} {H} {F} {F} {W / 2} 500")
+    expect_error(lambda: read_frames(c), "cameras.txt", "camera 1 cy", "500")

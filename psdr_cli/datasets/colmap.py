@@ -44,7 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import PsdrWarning
-from .frames import DatasetError, Frame, check_same_size, distortion_tuple, rigid_matrix
+from .frames import DatasetError, Frame, check_same_size, distortion_tuple, principal_coordinate, rigid_matrix
 from .images import has_alpha, image_dimensions
 
 #: Parameter names of the supported models, in COLMAP's order.
@@ -220,6 +220,8 @@ def camera_intrinsics(camera, file: Path, camera_id: int) -> tuple:
             raise DatasetError(file, f"camera {camera_id} {key}", f"{value:g}: expected "
                                                                   f"{'a focal length of at least 1 px' if key[0] == 'f' else 'a finite number'}")
     fx, fy = p.get("fx", p.get("f")), p.get("fy", p.get("f"))
+    principal_coordinate(p["cx"], camera.width, file, f"camera {camera_id} cx")
+    principal_coordinate(p["cy"], camera.height, file, f"camera {camera_id} cy")
     dist = distortion_tuple(p.get("k1", 0.0), p.get("k2", 0.0), p.get("p1", 0.0), p.get("p2", 0.0))
     return fx, fy, p["cx"], p["cy"], dist
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config.limits import MAX_PRINCIPAL_OFFSET
 from ..errors import PsdrError
 
 SPLITS = ("train", "val", "test")
@@ -104,6 +105,17 @@ def focal_from_fov(size: float, fov: float) -> float:
     """Focal length in pixels of a full field of view ``fov`` (radians) across ``size`` pixels:
     f = (size / 2) / tan(fov / 2)."""
     return 0.5 * size / np.tan(0.5 * fov)
+
+
+def principal_coordinate(value: float, size: int, file, key: str) -> float:
+    """``value`` (cx across ``size`` = the width, or cy across the height, in pixels) when the
+    principal point lies within :data:`~psdr_cli.config.limits.MAX_PRINCIPAL_OFFSET` image sizes of
+    the image's centre, as psdr's cameras need, else a :class:`DatasetError` naming ``key``."""
+    low, high = size * (0.5 - MAX_PRINCIPAL_OFFSET), size * (0.5 + MAX_PRINCIPAL_OFFSET)
+    if not low <= value <= high:
+        raise DatasetError(file, key, f"{value:g}: expected a principal point coordinate from {low:g} to {high:g} "
+                                      f"(within {MAX_PRINCIPAL_OFFSET:g} image size of the centre of the {size}-pixel side)")
+    return value
 
 
 def rigid_matrix(value, file, where: str) -> np.ndarray:

@@ -44,6 +44,7 @@ from .frames import (
     distortion_tuple,
     focal_from_fov,
     opengl_to_opencv,
+    principal_coordinate,
     rigid_matrix,
 )
 from .images import has_alpha, image_dimensions
@@ -139,8 +140,9 @@ def transforms_frame(file: Path, data: dict, i: int, entry: dict, world: np.ndar
     check_model(entry, data, file, i)
     width, height = image_size_checked(entry, data, image, file, i, where)
     fx, fy = focal_lengths(entry, data, file, i, width, height)
-    cx, cy = (number(setting(entry, data, k), file, f"frames[{i}].{k}") if setting(entry, data, k) is not None
-              else 0.5 * size for k, size in (("cx", width), ("cy", height)))
+    cx, cy = (principal_coordinate(number(setting(entry, data, k), file, named), size, file, named)
+              if setting(entry, data, k) is not None else 0.5 * size
+              for k, size, named in (("cx", width, key_of(entry, "cx", i)), ("cy", height, key_of(entry, "cy", i))))
     split = frame_split(rel, image.relative_to(file.parent).as_posix(), data, listed, file, where)
     return Frame(name=rel, image=image, mask=mask, cam_to_world=opengl_to_opencv(c2w), fx=fx, fy=fy, cx=cx, cy=cy,
                  width=width, height=height, distortion=distortion(entry, data, file, i), split=split, source=file,
@@ -168,10 +170,16 @@ def image_size_checked(entry: dict, data: dict, image: Path, file: Path, i: int,
     return width, height
 
 
+def key_of(entry: dict, key: str, i: int) -> str:
+    """How messages name ``key`` of frame ``i``: ``frames[i].key`` when the frame gives it, else the
+    top-level ``key``."""
+    return f"frames[{i}].{key}" if key in entry else key
+
+
 def focal_lengths(entry: dict, data: dict, file: Path, i: int, width: int, height: int) -> tuple[float, float]:
     """(fx, fy) by the rules of the module docstring."""
-    def named(key):  # a frame's own value is named by the frame
-        return f"frames[{i}].{key}" if key in entry else key
+    def named(key):
+        return key_of(entry, key, i)
 
     def focal(key, angle_key, size):
         if setting(entry, data, key) is not None:
