@@ -19,6 +19,7 @@ scaled by k and shifted by t gives the same normalised problem.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -26,6 +27,7 @@ import numpy as np
 from .config.dataset import DatasetConfig
 from .config.emitters import EmitterConfig
 from .config.experiment_file import Experiment
+from .config.limits import MAX_FILM
 from .config.objects import ObjectConfig, TransformConfig
 from .datasets.images import has_alpha
 from .datasets.views import read_frames, split_views, view_intrinsics
@@ -155,7 +157,7 @@ def dataset_scene(exp: Experiment, split: str = "train") -> Experiment:
     frames, chosen = dataset_frames(dataset, split)
     frame = normalisation(frames, str(dataset.path))
     views = [processed_view(f, dataset.downsample, f"{dataset.key}.downsample") for f in chosen]
-    width, height = views[0].width, views[0].height
+    width, height = film_size(views[0], chosen[0], dataset)
     cameras = [normalised_camera(v, frame) for v in views]
     hidden = hides_background(exp, dataset, frames)
     scene = replace(exp.scene, width=width, height=height, cameras=cameras, hide_background=hidden)
@@ -190,6 +192,19 @@ def hides_background(exp: Experiment, dataset: DatasetConfig, frames) -> bool:
                         f"photographs are fitted on: with masks the scene holds only the reconstructed object "
                         f"(or set optimize.target.dataset.background: visible)")
     return True
+
+
+def film_size(view, frame, dataset: DatasetConfig) -> tuple[int, int]:
+    """(width, height) of the film a dataset's ``view`` (of ``frame``) sets, if psdr's film can
+    hold it (:data:`~psdr_cli.config.limits.MAX_FILM` per side), else a one-line PsdrError naming
+    the photograph, the size its header gives and the downsampling that would fit."""
+    if max(view.width, view.height) <= MAX_FILM:
+        return view.width, view.height
+    factor = dataset.downsample * math.ceil(max(view.width, view.height) / MAX_FILM)
+    file, key = dataset.key.split(": ", 1)
+    raise PsdrError(f"{frame.image}: the photographs are {frame.width}×{frame.height} pixels (by the image header), "
+                    f"{view.width}×{view.height} after downsampling by {dataset.downsample}: psdr's film holds at "
+                    f"most {MAX_FILM} pixels a side (set {key}.downsample to {factor} or more in {file})")
 
 
 def processed_view(frame, k: int, key: str):

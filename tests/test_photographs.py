@@ -519,3 +519,30 @@ def test_masks_that_cannot_be_right_are_refused_by_view(tmp_path, change, index,
     name = json.loads((dataset / "transforms_train.json").read_text())["frames"][index]["file_path"].lstrip("./")
     assert "transforms_train.json" in message and f"frame {name} mask" in message and what in message
     assert "\n" not in message
+
+
+def test_a_corrupt_photograph_is_one_line_and_libpng_says_nothing_of_its_own(tmp_path, run_psdr):
+    """A PNG whose compressed data is damaged: libpng's own complaint ("libpng error: ...") went to
+    the terminal before psdr's line; it is now part of that one line."""
+    dataset = shutil.copytree(DATA / "blender", tmp_path / "data")
+    path = dataset / "train" / "r_001.png"
+    data = bytearray(path.read_bytes())
+    data[200:260] = b"\x13" * 60  # inside the image data
+    path.write_bytes(bytes(data))
+    r = run_psdr("optimize", write(tmp_path, experiment_data(dataset, iterations=1)))
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert "r_001.png" in lines[0] and "cannot be decoded (libpng error" in lines[0]
+
+
+def test_photographs_too_large_for_the_film_name_the_photograph_and_the_downsampling(tmp_path, run_psdr):
+    """Image headers claiming 20000² were blamed on optimize.target.spp, a key the user never set."""
+    dataset = shutil.copytree(DATA / "blender", tmp_path / "data")
+    for path in dataset.rglob("*.png"):
+        data = bytearray(path.read_bytes())
+        data[16:24] = (20000).to_bytes(4, "big") * 2  # the IHDR width and height
+        path.write_bytes(bytes(data))
+    r = run_psdr("optimize", write(tmp_path, experiment_data(dataset, iterations=1)))
+    assert r.returncode == 2 and "target.spp" not in r.stderr, r.stderr
+    assert "20000×20000 pixels (by the image header)" in r.stderr
+    assert "set optimize.target.dataset.downsample to 3 or more in" in r.stderr

@@ -14,7 +14,11 @@
 """
 from __future__ import annotations
 
+import os
 import struct
+import sys
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -42,14 +46,34 @@ def integer_scale(pixels: np.ndarray) -> float:
     return 1.0
 
 
-def quiet_imdecode(data: np.ndarray) -> np.ndarray | None:
-    """``cv2.imdecode(data, IMREAD_UNCHANGED)`` with OpenCV's warnings about damaged files held
-    back (the caller reports them in one line); the log level is restored afterwards."""
+@contextmanager
+def held_stderr(held: list):
+    """Runs the block with the process's standard error (file descriptor 2, where libpng and
+    libjpeg print their complaints about a damaged file) going to a temporary file; its text is
+    appended to ``held`` afterwards."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            held.append(tmp.read().decode("utf-8", "replace"))
+
+
+def quiet_imdecode(data: np.ndarray, held: list) -> np.ndarray | None:
+    """``cv2.imdecode(data, IMREAD_UNCHANGED)`` with OpenCV's warnings and the image libraries'
+    own lines about damaged files held back in ``held`` (the caller reports them in one line);
+    the log level is restored afterwards."""
     logging = cv2.utils.logging
     level = logging.getLogLevel()
     logging.setLogLevel(min(level, logging.LOG_LEVEL_ERROR))
     try:
-        return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        with held_stderr(held):
+            return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     finally:
         logging.setLogLevel(level)
 
@@ -62,9 +86,11 @@ def decode(path: Path, where: str = "") -> np.ndarray:
     if not path.is_file():
         raise DatasetError(path, where, f"file not found ({EXPECTED})")
     data = np.fromfile(path, dtype=np.uint8)
-    pixels = quiet_imdecode(data) if data.size else None
+    held = []
+    pixels = quiet_imdecode(data, held) if data.size else None
     if pixels is None or pixels.size == 0:
-        raise DatasetError(path, where, f"cannot be decoded ({EXPECTED})")
+        said = " ".join(" ".join(held).split())[:160]
+        raise DatasetError(path, where, f"cannot be decoded ({f'{said}; ' if said else ''}{EXPECTED})")
     return pixels
 
 
