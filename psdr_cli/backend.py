@@ -117,7 +117,6 @@ def configure_environment() -> None:
         lib = find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
-    _unusable_lanes = lanes_reason()
     if "DRJIT_CACHE_DIR" not in os.environ:
         cache = default_cache_dir()
         try:
@@ -125,6 +124,7 @@ def configure_environment() -> None:
             os.environ["DRJIT_CACHE_DIR"] = cache
         except OSError:
             pass  # Dr.Jit falls back to its own default (~/.drjit)
+    _unusable_lanes = lanes_reason()  # last: it imports drjit, which reads the variables above
 
 
 def lanes_reason() -> str | None:
@@ -132,9 +132,9 @@ def lanes_reason() -> str | None:
     returns None, or the one-line reason it cannot, reported when an LLVM variant is selected."""
     try:
         lanes = llvm_target.requested_lanes()
-    except ValueError as exc:
-        return str(exc)
-    return None if lanes is None else llvm_target.force_lanes(lanes)
+        return None if lanes is None else llvm_target.force_lanes(lanes)
+    except Exception as exc:  # noqa: BLE001 - a bad value, or Dr.Jit's library not loadable: one line later
+        return str(exc) if isinstance(exc, ValueError) else f"PSDR_LLVM_LANES: cannot set Dr.Jit's target ({exc})"
 
 
 def _require_llvm() -> None:

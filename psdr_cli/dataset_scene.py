@@ -201,10 +201,11 @@ def film_size(view, frame, dataset: DatasetConfig) -> tuple[int, int]:
     if max(view.width, view.height) <= MAX_FILM:
         return view.width, view.height
     factor = dataset.downsample * math.ceil(max(view.width, view.height) / MAX_FILM)
-    file, key = dataset.key.split(": ", 1)
+    file, _, key = dataset.key.rpartition(": ")
     raise PsdrError(f"{frame.image}: the photographs are {frame.width}×{frame.height} pixels (by the image header), "
                     f"{view.width}×{view.height} after downsampling by {dataset.downsample}: psdr's film holds at "
-                    f"most {MAX_FILM} pixels a side (set {key}.downsample to {factor} or more in {file})")
+                    f"most {MAX_FILM} pixels a side (set {key}.downsample to {factor} or more"
+                    f"{f' in {file}' if file else ''})")
 
 
 def processed_view(frame, k: int, key: str):

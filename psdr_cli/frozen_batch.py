@@ -339,8 +339,8 @@ class Recording:
             bound = _bind(self.body, shape)
             self.fns[shape] = dr.freeze(bound, warn_after=1000) if self.enabled else bound
         collecting = gc.isenabled()
-        gc.disable()
         try:
+            gc.disable()
             return self.fns[shape](*args)
         except BaseException as error:
             self.fns.pop(shape, None)  # a recording cut short is not replayed
@@ -472,14 +472,13 @@ class FrozenBatch:
 
 
 def interrupt_in(error: BaseException) -> KeyboardInterrupt | None:
-    """The KeyboardInterrupt among ``error`` and the errors it was raised from or during (its
-    ``__cause__`` and ``__context__`` chain), or None."""
-    seen = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
+    """The KeyboardInterrupt among ``error`` and the errors it was raised from (``__cause__``) or
+    during (``__context__``, unless suppressed), at most five deep, or None."""
+    for _ in range(5):
+        if error is None or isinstance(error, KeyboardInterrupt):
             return error
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
+        error = error.__cause__ if error.__cause__ is not None else (
+            None if error.__suppress_context__ else error.__context__)
     return None
 
 

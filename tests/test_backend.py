@@ -90,12 +90,13 @@ def test_grad_without_parameter_is_a_one_line_error(tmp_path, write_cfg, run_psd
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()
 
 
-def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding():
+def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding(tmp_path):
     """PSDR_LLVM_LANES sets Dr.Jit's LLVM target at import, for every kernel of the process: the
     target reads back, and 1/√x rounds as that target rounds (with 16 lanes from AVX-512's
     vrsqrt14, with 8 lanes from AVX's vrsqrtps: the two disagree in the last bits). Each width's
     kernels include a fused multiply-add (4 lanes without FMA made LLVM call fmaf, and Dr.Jit
-    aborted)."""
+    aborted). The kernels go to psdr's cache folder (applying the width imports Dr.Jit, which reads
+    the folder then: it went to Dr.Jit's own default when the width was applied first)."""
     import subprocess
     import sys
     from psdr_cli import llvm_target
@@ -107,9 +108,11 @@ def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding():
     for lanes, (cpu, _, flag) in llvm_target.TARGETS.items():
         if flag not in flags:
             continue
-        env = dict(os.environ, PSDR_LLVM_LANES=str(lanes))
+        env = dict(os.environ, PSDR_LLVM_LANES=str(lanes), XDG_CACHE_HOME=str(tmp_path / str(lanes)))
+        env.pop("DRJIT_CACHE_DIR", None)
         r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr
+        assert list((tmp_path / str(lanes) / "psdr" / "drjit").glob("*.llvm.*")), lanes
         width, values = r.stdout.split()
         assert int(width) == lanes
         out[lanes] = values

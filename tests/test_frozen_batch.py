@@ -504,3 +504,26 @@ def test_ctrl_c_while_recording_is_an_interrupt_and_the_next_call_records_afresh
         recording(ProbeShape(3), mi.Float([1.0, 2.0]))
     assert np.array_equal(np.asarray(recording(ProbeShape(3), mi.Float([1.0, 2.0]))), [3.0, 6.0])
     assert np.array_equal(np.asarray(recording(ProbeShape(3), mi.Float([4.0, 5.0]))), [12.0, 15.0])
+
+
+def test_only_an_interrupt_that_caused_the_error_is_an_interrupt():
+    """interrupt_in follows what an error was raised from, and what it was raised during unless
+    that was suppressed: an error of its own raised while a Ctrl-C was being handled is not one."""
+    from psdr_cli.frozen_batch import interrupt_in
+
+    def raised(during_interrupt: bool, suppress: bool):
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as interrupt:
+                if during_interrupt and suppress:
+                    raise RuntimeError("own error") from None
+                if during_interrupt:
+                    raise RuntimeError("own error")
+                raise RuntimeError("record(): error encountered while recording") from interrupt
+        except RuntimeError as error:
+            return error
+    assert isinstance(interrupt_in(raised(False, False)), KeyboardInterrupt)  # raised from it
+    assert isinstance(interrupt_in(raised(True, False)), KeyboardInterrupt)   # raised while it stopped the call
+    assert interrupt_in(raised(True, True)) is None                             # explicitly not from it
+    assert interrupt_in(RuntimeError("plain")) is None

@@ -80,10 +80,10 @@ def is_model(folder: Path) -> bool:
     return Path(folder).is_dir() and model_format(Path(folder)) is not None
 
 
-def read_reconstruction(model: Path, ext: str | None = None):
+def read_reconstruction(model: Path, ext: str | None = None, points: bool = True):
     """The pycolmap reconstruction of ``model`` in its ``ext`` form ('bin' or 'txt'; default: the
-    one COLMAP reads, :func:`model_format`); a model without points3D is completed with an empty
-    one in a temporary copy. Unreadable files are a :class:`DatasetError`. pycolmap is imported
+    one COLMAP reads, :func:`model_format`); a model without points3D, or read without them
+    (``points`` false), is completed with an empty one in a temporary copy. Unreadable files are a :class:`DatasetError`. pycolmap is imported
     here, for the COLMAP datasets only (it adds a third of a second to every start)."""
     import pycolmap
     first = model_format(model)
@@ -92,13 +92,14 @@ def read_reconstruction(model: Path, ext: str | None = None):
                                       "(expected a COLMAP sparse model folder such as sparse/0)")
     ext = ext or first
     try:
-        if ext == first and (model / f"points3D.{ext}").is_file():
+        has_points = points and (model / f"points3D.{ext}").is_file()
+        if ext == first and has_points:
             return pycolmap.Reconstruction(str(model))
         with tempfile.TemporaryDirectory(prefix="psdr-colmap-") as tmp:
             for name in MODEL_FILES:
-                if (model / f"{name}.{ext}").is_file():
+                if (model / f"{name}.{ext}").is_file() and (name != "points3D" or has_points):
                     shutil.copyfile(model / f"{name}.{ext}", Path(tmp) / f"{name}.{ext}")
-            if not (model / f"points3D.{ext}").is_file():
+            if not has_points:
                 (Path(tmp) / f"points3D.{ext}").write_bytes(bytes(8) if ext == "bin" else b"")  # no points
             return pycolmap.Reconstruction(tmp)
     except Exception as exc:  # noqa: BLE001 - pycolmap raises IndexError, KeyError, ... for bad models
@@ -130,7 +131,7 @@ def warn_if_forms_disagree(model: Path, rec):
     if model_format(model) != "bin" or not all((model / f"{n}.txt").is_file() for n in ("cameras", "images")):
         return
     try:
-        text = read_reconstruction(model, "txt")
+        text = read_reconstruction(model, "txt", points=False)
     except DatasetError as exc:
         text, why = None, f"the text form is not readable ({exc.message})"
     else:

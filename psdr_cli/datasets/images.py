@@ -52,8 +52,12 @@ def held_stderr(held: list):
     libjpeg print their complaints about a damaged file) going to a temporary file; its text is
     appended to ``held`` afterwards."""
     sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as tmp:
+    try:
+        saved, tmp = os.dup(2), tempfile.TemporaryFile()
+    except OSError:  # no standard error to hold, or nowhere to hold it: the block runs as it is
+        yield
+        return
+    with tmp:
         os.dup2(tmp.fileno(), 2)
         try:
             yield
