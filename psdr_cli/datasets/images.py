@@ -53,11 +53,16 @@ def held_stderr(held: list):
     appended to ``held`` afterwards."""
     sys.stderr.flush()
     try:
-        saved, tmp = os.dup(2), tempfile.TemporaryFile()
-    except OSError:  # no standard error to hold, or nowhere to hold it: the block runs as it is
+        tmp = tempfile.TemporaryFile()
+    except OSError:  # nowhere to hold it: the block runs as it is
         yield
         return
     with tmp:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no standard error to hold
+            yield
+            return
         os.dup2(tmp.fileno(), 2)
         try:
             yield
