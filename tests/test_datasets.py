@@ -17,7 +17,7 @@ from psdr_cli.datasets import Frame, load_views, read_frames, split_views, view_
 from psdr_cli.datasets import undistort as undistort_module
 from psdr_cli.datasets.frames import opencv_matrix, opengl_to_opencv
 from psdr_cli.datasets.images import downsample, read_image, read_mask, srgb_to_linear
-from psdr_cli.errors import PsdrError
+from psdr_cli.errors import PsdrError, PsdrWarning
 from psdr_cli.fileio import write_exr
 
 W, H, F = 16, 12, 14.0  # image size and focal length (pixels) of the small datasets
@@ -373,22 +373,90 @@ def rewrite_json(path, change):
     path.write_text(json.dumps(data))
 
 
-def test_missing_files_and_frames(tmp_path):
+def skipped(call, count: int, total: int, *parts):
+    """Run ``call`` (frames read): one warning line that counts the skipped frames and names the
+    first; returns the frames."""
+    with pytest.warns(PsdrWarning) as caught:
+        frames = call()
+    lines = [str(w.message) for w in caught if issubclass(w.category, PsdrWarning)]
+    assert len(lines) == 1 and "\n" not in lines[0], lines
+    assert f"{count} of {total} frames skipped, their image is missing" in lines[0], lines[0]
+    for part in parts:
+        assert part in lines[0], lines[0]
+    assert len(frames) == total - count
+    return frames
+
+
+def test_frames_whose_image_is_missing_are_skipped_with_one_warning(tmp_path):
+    """As instant-ngp and nerfstudio do, in every format: the frames left keep their cameras; a
+    dataset with no image left is one line."""
     b = write_blender(tmp_path / "b", splits=("train",))
+    total = len(list((b / "train").glob("*.png")))
     (b / "train" / "r_2.png").unlink()
-    expect_error(lambda: read_frames(b), "transforms_train.json", "frames[2] (train/r_2)", "not found")
+    (b / "train" / "r_3.png").unlink()
+    frames = skipped(lambda: read_frames(b), 2, total, "transforms_train.json", "frames[2] (train/r_2)")
+    assert "train/r_2" not in [f.name for f in frames]
     t = write_transforms(tmp_path / "t")
     (t / "images" / "001.png").unlink()
-    expect_error(lambda: read_frames(t), "transforms.json", "frames[1] (images/001.png)", "not found")
+    skipped(lambda: read_frames(t), 1, len(json.loads((t / "transforms.json").read_text())["frames"]),
+            "frames[1] (images/001.png)")
+    c = write_colmap(tmp_path / "c")
+    (c / "images" / "002.png").unlink()
+    skipped(lambda: read_frames(c), 1, len(list((c / "images").glob("*.png"))) + 1, "images.txt", "image 3 (002.png)")
+    for image in (b / "train").glob("*.png"):
+        image.unlink()
+    expect_error(lambda: read_frames(b), "transforms_train.json", f"none of its {total} frames has its image",
+                 "frames[0] (train/r_0)")
+
+
+def fox_like_transforms(folder: Path, missing=(1, 4), frames: int = 6) -> Path:
+    """A capture laid out as instant-ngp's fox example is (our own numbers): one camera block at
+    the top level (fl_x, fl_y, cx, cy, w, h, k1, k2, p1, p2, camera_angle_x, aabb_scale), portrait
+    1080×1920 JPEGs in ``images/``, a ``sharpness`` per frame, and some listed frames without an
+    image (``missing``)."""
+    (folder / "images").mkdir(parents=True)
+    data = {"camera_angle_x": 1.16, "camera_angle_y": 1.82, "fl_x": 1402.5, "fl_y": 1398.0, "k1": 0.041,
+            "k2": -0.037, "p1": 0.0012, "p2": -0.0007, "cx": 541.3, "cy": 957.8, "w": 1080.0, "h": 1920.0,
+            "aabb_scale": 4, "frames": []}
+    for i in range(frames):
+        angle = 2 * np.pi * i / frames
+        eye = np.array([2.5 * np.cos(angle), 2.5 * np.sin(angle), 0.4])
+        back = eye / np.linalg.norm(eye)  # OpenGL: the camera looks along -z, at the origin
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        M = np.eye(4)
+        M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = right, np.cross(back, right), back, eye
+        name = f"images/{i + 1:04d}.jpg"
+        data["frames"].append({"file_path": name, "sharpness": 30.0 + i, "transform_matrix": M.tolist()})
+        if i not in missing:
+            image = np.full((1920, 1080, 3), 40 + 20 * i, np.uint8)
+            cv2.imwrite(str(folder / name), image)
+    (folder / "transforms.json").write_text(json.dumps(data, indent=1))
+    return folder
+
+
+def test_a_fox_like_capture_loads_without_its_missing_frames(tmp_path):
+    """instant-ngp's example layout: the frames with an image load (portrait, the top-level camera
+    block with its distortion), the others are skipped with one warning."""
+    folder = fox_like_transforms(tmp_path / "fox")
+    frames = skipped(lambda: read_frames(folder), 2, 6, "frames[1] (images/0002.jpg)")
+    assert [f.name for f in frames] == ["images/0001.jpg", "images/0003.jpg", "images/0004.jpg", "images/0006.jpg"]
+    for f in frames:
+        assert (f.width, f.height) == (1080, 1920)
+        assert (f.fx, f.fy, f.cx, f.cy) == pytest.approx((1402.5, 1398.0, 541.3, 957.8))
+        assert f.distortion == pytest.approx((0.041, -0.037, 0.0012, -0.0007))
+    fx, fy, cx, cy, width, height = view_intrinsics(frames[0], downsample=4)
+    assert width < height and fx == pytest.approx(fy)  # square pixels, portrait, after undistortion
+
+
+def test_missing_files_and_frames(tmp_path):
     rewrite_json(write_transforms(tmp_path / "t2") / "transforms.json",
                  lambda d: d["frames"][0].update(mask_path="masks/none.png"))
     expect_error(lambda: read_frames(tmp_path / "t2"), "transforms.json", "frames[0].mask_path", "not found")
     rewrite_json(write_transforms(tmp_path / "t3") / "transforms.json",
                  lambda d: d.update(val_filenames=["images/nothing.png"]))
     expect_error(lambda: read_frames(tmp_path / "t3"), "transforms.json", "val_filenames[0]", "no frame")
-    c = write_colmap(tmp_path / "c")
-    (c / "images" / "002.png").unlink()
-    expect_error(lambda: read_frames(c), "images.txt", "image 3 (002.png)", "not found")
+    b = write_blender(tmp_path / "b", splits=("train",))
     c2 = write_colmap(tmp_path / "c2")
     (c2 / "masks").mkdir()
     expect_error(lambda: read_frames({"path": c2, "masks": c2 / "masks"}), "masks", "000.png", "expected a mask")

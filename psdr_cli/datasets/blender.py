@@ -11,9 +11,11 @@ The images are RGBA PNGs whose alpha is the mask (so ``mask`` is None).
 """
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
-from .frames import SPLITS, DatasetError, Frame, check_same_size, focal_from_fov, opengl_to_opencv, rigid_matrix
+from .frames import (SPLITS, DatasetError, Frame, check_same_size, focal_from_fov, frames_with_images, opengl_to_opencv,
+                     rigid_matrix)
 from .images import has_alpha, image_dimensions
 from .jsonfile import field_of_view, frame_list, image_path, read_json, relative_path
 
@@ -53,7 +55,8 @@ def read_split(folder: Path, file: Path, split: str) -> list[Frame]:
     if "camera_angle_x" not in data:
         raise DatasetError(file, "camera_angle_x", "missing (expected the horizontal field of view in radians)")
     fov = field_of_view(data["camera_angle_x"], file, "camera_angle_x")
-    return [blender_frame(folder, file, split, i, entry, fov) for i, entry in enumerate(frame_list(data, file))]
+    return frames_with_images(file, [partial(blender_frame, folder, file, split, i, entry, fov)
+                                     for i, entry in enumerate(frame_list(data, file))])
 
 
 def blender_frame(folder: Path, file: Path, split: str, i: int, entry: dict, fov: float) -> Frame:

@@ -38,13 +38,16 @@ import re
 import shutil
 import tempfile
 import warnings
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import PsdrWarning
-from .frames import DatasetError, Frame, check_same_size, distortion_tuple, principal_coordinate, rigid_matrix
+from .frames import (DatasetError, Frame, check_same_size, distortion_tuple, frames_with_images, principal_coordinate,
+                     rigid_matrix)
 from .images import has_alpha, image_dimensions
 
 #: Parameter names of the supported models, in COLMAP's order.
@@ -256,29 +259,43 @@ def read_colmap(model, images, masks=None) -> list[Frame]:
         raise DatasetError(images, "", f"not a folder (expected the images of {images_file})")
     if masks is not None and not Path(masks).is_dir():
         raise DatasetError(masks, "", "not a folder (expected a folder of mask files)")
-    frames = []
-    for im in posed:
-        where = f"image {im.image_id} ({im.name})"
-        camera = rec.cameras[im.camera_id]
-        fx, fy, cx, cy, dist = camera_intrinsics(camera, cameras_file, im.camera_id)
-        path = images / im.name
-        width, height = image_dimensions(path, images_file, where)
-        if (width, height) != (camera.width, camera.height):
-            raise DatasetError(images_file, where, f"image {path} is {width}×{height}, expected "
-                                                   f"{camera.width}×{camera.height} like camera {im.camera_id}")
-        mask = None
-        if masks is not None:
-            mask = mask_file(Path(masks), im.name)
-            if mask is None:
-                raise DatasetError(masks, where, f"no mask {im.name}.png or {Path(im.name).with_suffix('.png')} "
-                                                 f"(expected a mask for every image)")
-        w2c, lengths[im.name] = cam_from_world(im, images_file, where)
-        w2c = rigid_matrix(w2c, images_file, f"{where} pose")
-        frames.append(Frame(name=im.name, image=path, mask=mask, cam_to_world=np.linalg.inv(w2c),
-                            fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, distortion=dist,
-                            split="train", source=images_file, has_alpha=has_alpha(path)))
+    files = ColmapFiles(cameras_file, images_file, images, masks)
+    frames = frames_with_images(images_file, [partial(colmap_frame, rec, im, files, lengths) for im in posed])
     warn_unnormalised(images_file, lengths)
     return check_same_size(frames)
+
+
+@dataclass(frozen=True)
+class ColmapFiles:
+    """Where a COLMAP model's frames come from: its cameras and images files, the image folder and
+    the mask folder (or None)."""
+    cameras: Path
+    images_file: Path
+    images: Path
+    masks: Path | None
+
+
+def colmap_frame(rec, im, files: ColmapFiles, lengths: dict) -> Frame:
+    """The frame of registered image ``im`` of ``rec`` (its quaternion's length into ``lengths``)."""
+    where = f"image {im.image_id} ({im.name})"
+    camera = rec.cameras[im.camera_id]
+    fx, fy, cx, cy, dist = camera_intrinsics(camera, files.cameras, im.camera_id)
+    path = files.images / im.name
+    width, height = image_dimensions(path, files.images_file, where)
+    if (width, height) != (camera.width, camera.height):
+        raise DatasetError(files.images_file, where, f"image {path} is {width}×{height}, expected "
+                                                     f"{camera.width}×{camera.height} like camera {im.camera_id}")
+    mask = None
+    if files.masks is not None:
+        mask = mask_file(Path(files.masks), im.name)
+        if mask is None:
+            raise DatasetError(files.masks, where, f"no mask {im.name}.png or {Path(im.name).with_suffix('.png')} "
+                                                   f"(expected a mask for every image)")
+    w2c, lengths[im.name] = cam_from_world(im, files.images_file, where)
+    w2c = rigid_matrix(w2c, files.images_file, f"{where} pose")
+    return Frame(name=im.name, image=path, mask=mask, cam_to_world=np.linalg.inv(w2c), fx=fx, fy=fy, cx=cx, cy=cy,
+                 width=width, height=height, distortion=dist, split="train", source=files.images_file,
+                 has_alpha=has_alpha(path))
 
 
 def image_has_pose(image) -> bool:

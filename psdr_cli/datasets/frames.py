@@ -17,13 +17,14 @@ Conventions of a :class:`Frame`:
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..config.limits import MAX_PRINCIPAL_OFFSET
-from ..errors import PsdrError
+from ..errors import PsdrError, PsdrWarning
 
 SPLITS = ("train", "val", "test")
 
@@ -46,6 +47,29 @@ class DatasetError(PsdrError):
     def __init__(self, file, where: str, message: str):
         self.file, self.where, self.message = str(file), where, message
         super().__init__(f"{self.file}: {where}: {message}" if where else f"{self.file}: {message}")
+
+
+class MissingImage(DatasetError):
+    """A frame whose image file does not exist (readers skip such frames: :func:`frames_with_images`)."""
+
+
+def frames_with_images(file, makers) -> list:
+    """The frame each of ``makers`` (callables) makes, skipping those whose image is missing, as
+    instant-ngp and nerfstudio do: one warning counts them and names the first; a dataset with
+    no image left is one :class:`DatasetError`."""
+    frames, missing = [], []
+    for make in makers:
+        try:
+            frames.append(make())
+        except MissingImage as exc:
+            missing.append(exc)
+    if missing and not frames:
+        raise DatasetError(file, "", f"none of its {len(missing)} frames has its image (the first: {missing[0].where}: "
+                                     f"{missing[0].message})")
+    if missing:
+        warnings.warn(f"{file}: {len(missing)} of {len(missing) + len(frames)} frames skipped, their image is missing "
+                      f"(the first: {missing[0].where}: {missing[0].message})", PsdrWarning, stacklevel=3)
+    return frames
 
 
 @dataclass(frozen=True, eq=False)

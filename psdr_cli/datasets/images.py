@@ -26,7 +26,7 @@ import numpy as np
 import OpenEXR
 
 from ..fileio import image_size, read_exr
-from .frames import DatasetError
+from .frames import DatasetError, MissingImage
 
 EXPECTED = "expected a readable PNG, JPEG or EXR image"
 
@@ -170,7 +170,7 @@ def image_dimensions(path, file, where: str) -> tuple[int, int]:
     missing or unreadable image is a :class:`DatasetError` naming ``file`` and ``where``."""
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(file, where, f"image {path} not found (expected an existing image file)")
+        raise MissingImage(file, where, f"image {path} not found (expected an existing image file)")
     size = image_size(path)
     if size is None:
         try:

@@ -6,7 +6,7 @@ import json
 import math
 from pathlib import Path
 
-from .frames import DatasetError
+from .frames import DatasetError, MissingImage
 
 
 def read_json(path: Path) -> dict:
@@ -83,7 +83,7 @@ def relative_path(value, file, key: str) -> str:
 
 def image_path(folder: Path, relative: str, file, key: str, default_suffix: str = ".png") -> Path:
     """The existing file ``folder / relative``; a path without an extension that does not exist
-    as written gets ``default_suffix``. A missing file is a :class:`DatasetError`."""
+    as written gets ``default_suffix``. A missing file is a :class:`MissingImage`."""
     path = folder / relative
     if path.is_file():
         return path
@@ -91,5 +91,5 @@ def image_path(folder: Path, relative: str, file, key: str, default_suffix: str 
         candidate = path.with_name(path.name + default_suffix)
         if candidate.is_file():
             return candidate
-        raise DatasetError(file, key, f"image {path} (or {candidate.name}) not found (expected an existing image file)")
-    raise DatasetError(file, key, f"image {path} not found (expected an existing image file)")
+        raise MissingImage(file, key, f"image {path} (or {candidate.name}) not found (expected an existing image file)")
+    raise MissingImage(file, key, f"image {path} not found (expected an existing image file)")

@@ -32,6 +32,7 @@ holds out frames itself).
 """
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +41,11 @@ from .frames import (
     SPLITS,
     DatasetError,
     Frame,
+    MissingImage,
     check_same_size,
     distortion_tuple,
     focal_from_fov,
+    frames_with_images,
     opengl_to_opencv,
     principal_coordinate,
     rigid_matrix,
@@ -73,8 +76,10 @@ def read_transforms(path, *, undo_applied_transform: bool = True) -> list[Frame]
     entries = frame_list(data, file)
     listed = listed_splits(data, file)
     world = world_fix(data, file) if undo_applied_transform else np.eye(4)
-    frames = [transforms_frame(file, data, i, entry, world, listed) for i, entry in enumerate(entries)]
-    names = {f.name for f in frames} | {f.image.relative_to(file.parent).as_posix() for f in frames}
+    frames = frames_with_images(file, [partial(transforms_frame, file, data, i, entry, world, listed)
+                                       for i, entry in enumerate(entries)])
+    names = {f.name for f in frames} | {f.image.relative_to(file.parent).as_posix() for f in frames} | \
+        {relative_path(e["file_path"], file, f"frames[{i}].file_path") for i, e in enumerate(entries)}  # skipped too
     for key, (name, _) in listed.items():
         if name not in names:
             raise DatasetError(file, key, f"'{name}' names no frame's file_path (expected the path of a listed frame)")
@@ -135,7 +140,10 @@ def transforms_frame(file: Path, data: dict, i: int, entry: dict, world: np.ndar
     mask = None
     if entry.get("mask_path") is not None:
         mask_rel = relative_path(entry["mask_path"], file, f"frames[{i}].mask_path")
-        mask = image_path(file.parent, mask_rel, file, f"frames[{i}].mask_path")
+        try:
+            mask = image_path(file.parent, mask_rel, file, f"frames[{i}].mask_path")
+        except MissingImage as exc:  # a missing mask is an error, not a frame to skip
+            raise DatasetError(file, exc.where, exc.message) from None
     c2w = world @ rigid_matrix(entry["transform_matrix"], file, f"frames[{i}].transform_matrix")
     check_model(entry, data, file, i)
     width, height = image_size_checked(entry, data, image, file, i, where)
