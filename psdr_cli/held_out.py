@@ -12,6 +12,10 @@ background is hidden, :mod:`psdr_cli.target_sources.camera_dataset`), both linea
            of a pixel's camera rays that hit the object).
 
 Each view also gets a target | render | |error| strip (PNG, sRGB).
+
+With ``align`` (a run that refined its training cameras), every held-out camera is first scored
+as given, then aligned to the recovered scene (a pose-only fit against its photograph:
+:mod:`psdr_cli.held_out_alignment`) and scored again; the strips show the aligned renders.
 """
 from __future__ import annotations
 
@@ -29,8 +33,9 @@ from .config.parameter import ParameterConfig
 from .config.scene_ids import emitter_id
 from .config.unknowns import MATERIAL_UNKNOWNS
 from .errors import PsdrError
-from .material_params import material_key
+from .material_params import material_key, material_texture_experiment, texture_experiment, texture_lookup
 from .estimators.coverage import hit_share, object_id
+from .held_out_alignment import align_views
 from .parameters import Parameter
 from .render import render_view
 from .scene import build_scene
@@ -51,9 +56,12 @@ class HeldOutResult:
     mesh: Path
     views: list = field(default_factory=list)   # of ViewScore
     strips: list = field(default_factory=list)
+    aligned: list = field(default_factory=list)  # of ViewScore, from the aligned cameras (align)
+    alignment: list = field(default_factory=list)  # (degrees, camera distances) each camera was moved
 
-    def mean(self, key: str) -> float | None:
-        values = [getattr(v, key) for v in self.views if getattr(v, key) is not None]
+    def mean(self, key: str, aligned: bool = False) -> float | None:
+        views = self.aligned if aligned else self.views
+        values = [getattr(v, key) for v in views if getattr(v, key) is not None]
         return float(np.mean(values)) if values else None
 
 
@@ -97,12 +105,37 @@ def error_strip(target: np.ndarray, render: np.ndarray) -> np.ndarray:
     return np.round(255 * fileio.srgb(np.concatenate([target, render, error], axis=1))).astype(np.uint8)
 
 
+def textured_experiment(exp, values: dict, uv):
+    """``exp`` with the textures a run recovered (``values``: the albedo's ``albedo.exr``, each
+    material's ``NAME.exr``) as the object's bitmaps, looked up like the run looked them up; as it
+    is without them or without the mesh's texture coordinates ``uv``."""
+    if uv is None:
+        return exp
+    albedo = values.get("albedo")
+    if isinstance(albedo, str):
+        exp = texture_experiment(exp, np.clip(read_texture(exp, albedo), 0.0, 1.0))
+    for name in MATERIAL_UNKNOWNS:
+        if isinstance(values.get(name), str):
+            texels = read_texture(exp, values[name])[..., :1]
+            exp = material_texture_experiment(exp, name, texels, texture_lookup(exp))
+    return exp
+
+
+def read_texture(exp, path) -> np.ndarray:
+    """(H, W, 3) texels of a recovered texture (a linear EXR the run wrote), or one line."""
+    try:
+        return np.asarray(fileio.read_rgb_exr(Path(path)), np.float64)
+    except Exception as exc:  # noqa: BLE001
+        raise PsdrError(f"{exp.file}: cannot read the recovered texture {path}: "
+                        f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
 def apply_values(scene, exp, values: dict):
     """Set the unknowns a run recovered (``optimize.json`` ``values``) in ``scene``: a constant
     albedo, constant materials (roughness, metallic, specular), the environment's rotation angle
     and a recovered environment map (``envmap``, the run's ``envmap.exr``: the texels of the
-    scene's ``envmap`` emitter, whose scale and rotation stay as given). A recovered texture needs
-    the run's UVs, which its meshes do not carry: it is not applied."""
+    scene's ``envmap`` emitter, whose scale and rotation stay as given). Recovered textures are
+    the scene's bitmaps already (:func:`textured_experiment`)."""
     params = mi.traverse(scene.mi_scene)
     name = exp.optimize.object
     for material in MATERIAL_UNKNOWNS:
@@ -142,26 +175,44 @@ def environment_texels(path: Path, exp):
     return mi.TensorXf(np.ascontiguousarray(np.concatenate([texels[:, -1:], texels, texels[:, :1]], axis=1)))
 
 
-def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values: dict | None = None) -> HeldOutResult:
+def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values: dict | None = None,
+               align: bool = False) -> HeldOutResult:
     """Render ``mesh`` (in the dataset's coordinates) with the recovered ``values``
     (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
-    the photographs; strips go to ``out`` when given."""
+    the photographs; strips go to ``out`` when given; with ``align``, scored again from the
+    aligned cameras (module docstring)."""
     test = dataset_scene(exp, split="test")
     views = dataset_views(test)
-    V, F = meshes.read_mesh_file(mesh)
-    scene = build_scene(test, objects={test.optimize.object: (to_normalised(V, test.optimize.target_dataset.frame), F)})
-    apply_values(scene, test, values or {})
+    V, F, uv = meshes.read_mesh_file_uv(mesh)
+    values = values or {}
+    test = textured_experiment(test, values, uv)
+    shape = (to_normalised(V, test.optimize.target_dataset.frame), F) + ((uv,) if uv is not None else ())
+    scene = build_scene(test, objects={test.optimize.object: shape})
+    apply_values(scene, test, values)
     result = HeldOutResult(Path(mesh))
     if out is not None:
         fileio.writable_folder(out)
-    for v, view in enumerate(views):
-        target = target_image(view, test.scene.hide_background)
-        render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
-        result.views.append(score_view(view.name, render, target, view.mask, coverage(scene, test.optimize.object, v)))
-        if out is not None:
+    targets = [target_image(view, test.scene.hide_background) for view in views]
+    if not views:
+        raise PsdrError(f"{exp.file}: optimize.target.dataset: no held-out views to score")
+    result.views = score_views(scene, test, views, targets, spp)
+    if align:
+        cams = align_views(scene, test, targets)
+        result.aligned = score_views(scene, test, views, targets, spp)
+        result.alignment = list(zip(*cams.errors()))
+    if out is not None:
+        for v, target in enumerate(targets):
+            render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
             path = out / f"{Path(mesh).stem}_view_{v:03d}.png"
             fileio.write_png(path, error_strip(target, render))
             result.strips.append(path)
-    if not result.views:
-        raise PsdrError(f"{exp.file}: optimize.target.dataset: no held-out views to score")
     return result
+
+
+def score_views(scene, test, views, targets: list, spp: int) -> list:
+    """:class:`ViewScore` of each held-out view rendered from the scene's cameras as they are."""
+    scores = []
+    for v, (view, target) in enumerate(zip(views, targets)):
+        render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
+        scores.append(score_view(view.name, render, target, view.mask, coverage(scene, test.optimize.object, v)))
+    return scores

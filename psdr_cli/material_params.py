@@ -59,3 +59,30 @@ def material_texture_experiment(exp, name: str, texels, lookup: BitmapConfig):
     bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, parameter: bitmap})
     objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
     return replace(exp, scene=replace(exp.scene, objects=objects))
+
+
+def texture_experiment(exp, texture):
+    """``exp`` with the optimised object's reflectance (diffuse) or base colour (principled)
+    replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``),
+    looked up with the object's own bitmap's ``filter_type`` and ``wrap_mode`` if it has one."""
+    if exp.scene.mitsuba is not None:
+        raise PsdrError(f"{exp.file}: optimize.albedo.texture: not available for objects of a Mitsuba XML scene")
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    name = {"diffuse": "reflectance", "principled": "base_color"}.get(obj.bsdf.type)
+    if name is None:
+        raise PsdrError(f"{exp.file}: optimize.albedo.texture: the object's BSDF '{obj.bsdf.type}' has no "
+                        f"reflectance or base_color (use diffuse or principled)")
+    bitmap = replace(texture_lookup(exp), data=np.asarray(texture, np.float32))
+    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
+    objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
+    return replace(exp, scene=replace(exp.scene, objects=objects))
+
+
+def texture_lookup(exp) -> BitmapConfig:
+    """The bitmap settings the recovered texture is looked up with: the object's own bitmap's
+    ``filter_type`` and ``wrap_mode`` (file, raw and data cleared), or bilinear and repeat."""
+    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
+    given = [v for k, v in obj.bsdf.params.items() if k in ("reflectance", "base_color")]
+    if given and isinstance(given[0], BitmapConfig):
+        return replace(given[0], file=None, raw=False, data=None)
+    return BitmapConfig()

@@ -471,13 +471,15 @@ def apply_transform(V, M):
     return V @ M[:3, :3].T + M[:3, 3]
 
 
-def write_ply(path, V, F):
-    """Binary PLY without normals or colours (opens in MeshLab and Blender); refuses non-finite
-    vertices."""
+def write_ply(path, V, F, uv=None):
+    """Binary PLY without normals or colours (opens in MeshLab and Blender), with per-vertex
+    texture coordinates ``uv`` (n, 2) as ``s, t`` when given (Mitsuba's convention, read back as
+    stored); refuses non-finite vertices."""
     if not np.isfinite(np.asarray(V, float)).all():
         bad = int((~np.isfinite(np.asarray(V, float))).any(axis=1).sum())
         raise PsdrError(f"{path}: not written: the mesh has {bad} vertices with NaN or infinite coordinates")
-    trimesh.Trimesh(V, F, process=False).export(str(path), file_type="ply")
+    visual = None if uv is None else trimesh.visual.TextureVisuals(uv=np.asarray(uv, np.float64))
+    trimesh.Trimesh(V, F, process=False, visual=visual).export(str(path), file_type="ply")
 
 
 # --------------------------------------------------------------------------------------------

@@ -12,7 +12,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import atlas
-from .config.objects import BitmapConfig, BsdfConfig
+from .camera_motion import check_camera_motion, with_all_edges
+from .camera_refinement import CameraCorrections
 from .config.optimize import OptimizeConfig, needs_uv, unwrap_size
 from .config.parameter import ParameterConfig
 from .config.scene import SceneConfig
@@ -20,7 +21,8 @@ from .config.scene_ids import emitter_id
 from .config.unknowns import MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS
 from .errors import PsdrError
 from .jitarray import jit_array
-from .material_params import bsdf_parameter, material_key, material_texture_experiment, object_bsdf
+from .material_params import (bsdf_parameter, material_key, material_texture_experiment, object_bsdf,
+                              texture_experiment, texture_lookup)
 from .meshes import weld_vertices
 from .parameters import Parameter
 from .remesh import remesh
@@ -98,6 +100,22 @@ class Problem:
         self.materials = {}  # name -> (scene key, (lo, hi))
         for m in self.cfg.material:
             self.init_material(m, values)
+        self.cameras = self.init_cameras(values) if self.cfg.cameras.mode == "on" else None
+
+    def init_cameras(self, values: dict) -> CameraCorrections:
+        """``optimize.cameras``: every view's pose correction. A moving camera moves every
+        discontinuity it sees, so every object's edges take part in the boundary terms; a shape
+        without an edge list in view is refused (:mod:`psdr_cli.camera_motion`)."""
+        with_all_edges(self.scene)
+        for view in range(len(self.scene.sensors)):
+            check_camera_motion(self.scene, view)
+        return CameraCorrections(self.cfg.cameras, self.params, len(self.scene.sensors), values)
+
+    def refine_cameras(self, moving: bool):
+        """Whether the next :meth:`apply` writes the cameras with their corrections' AD graph."""
+        if self.cameras is not None and self.cameras.attached != moving:
+            self.cameras.attached = moving
+            self.applied = None
 
     def scene_experiment(self, source: SceneSource, stage: int, values: dict) -> SceneSource:
         """The source the scene is built from: the film of ``stage`` and, for a recovered
@@ -179,6 +197,8 @@ class Problem:
         for k, saved in state.adam.items():
             if k in problem.opt.keys():
                 adam_import(problem.opt, k, saved)
+            elif problem.cameras and k.startswith("camera_") and k[7:] in problem.cameras.opt.keys():
+                adam_import(problem.cameras.opt, k[7:], saved)
         return problem
 
     def apply(self, leaves: bool | None = None):
@@ -192,12 +212,14 @@ class Problem:
         leaves = self.use_leaves if leaves is None else leaves
         if self.applied_current() and (self.leaves is not None) == leaves:
             return
-        current = [self.opt.state[k][0] for k in self.opt.keys()]
+        current = self.variables()
         self.applied = None
         self.applied_values = self.scene_values()
         self.leaves = {key: leaf(value) for key, value in self.applied_values.items()} if leaves else None
         for key, value in (self.leaves or self.applied_values).items():
             self.params[key] = value
+        if self.cameras:
+            self.cameras.write(self.params)
         if self.envmap:
             self.envmap.apply(self.opt["envmap_angle"])  # calls params.update()
         else:
@@ -207,9 +229,14 @@ class Problem:
     def applied_current(self) -> bool:
         """Whether the values :meth:`apply` wrote last are the optimiser's variables as they are
         now, their AD graph unused."""
-        current = [self.opt.state[k][0] for k in self.opt.keys()]
+        current = self.variables()
         return self.applied is not None and len(current) == len(self.applied) and \
             all(a is b for a, b in zip(current, self.applied))
+
+    def variables(self) -> list:
+        """The optimisers' variables as they are now (the shape's, the extra unknowns', the cameras')."""
+        cams = [self.cameras.opt.state[k][0] for k in self.cameras.opt.keys()] if self.cameras else []
+        return [self.opt.state[k][0] for k in self.opt.keys()] + cams
 
     def scene_values(self) -> dict:
         """{scene parameter: its value from the optimiser's variables (AD-attached)}: the vertices
@@ -286,9 +313,13 @@ class Problem:
                 self.params[key] = dr.detach(self.params[key])
             for k in (self.envmap.keys if self.envmap else ()):
                 self.params[k] = mi.AffineTransform4f(dr.detach(self.params[k].matrix))
+            if self.cameras:
+                self.cameras.detach(self.params)
             self.params.update()
         for k in list(self.opt.keys()):
             dr.disable_grad(self.opt[k])
+        for k in list(self.cameras.opt.keys()) if self.cameras else ():
+            dr.disable_grad(self.cameras.opt[k])
 
     def vertices(self) -> np.ndarray:
         return np.asarray(dr.detach(self.params[self.key]), np.float64).reshape(-1, 3)
@@ -320,6 +351,8 @@ class Problem:
         for name in self.materials:
             v = np.asarray(self.opt[name], np.float64)
             out[name] = v.reshape(self.opt[name].shape) if name in self.material_textures else v.ravel()
+        if self.cameras:
+            out.update(self.cameras.values())
         return out
 
     def material_image(self, name: str) -> np.ndarray:
@@ -328,6 +361,8 @@ class Problem:
 
     def export(self, iteration: int, seconds: float) -> State:
         adam = {k: adam_export(self.opt, k) for k in self.opt.keys()}
+        if self.cameras:
+            adam.update({f"camera_{k}": adam_export(self.cameras.opt, k) for k in self.cameras.opt.keys()})
         return State(iteration, self.vertices(), self.F, adam, self.values(), seconds,
                      np.asarray(self.opt["u"], np.float32), self.basis, uv=self.uv)
 
@@ -426,33 +461,6 @@ def stage_experiment(exp, stage: int):
     if k == 1:
         return exp
     return replace(exp, scene=replace(exp.scene, width=exp.scene.width // k, height=exp.scene.height // k))
-
-
-def texture_experiment(exp, texture):
-    """``exp`` with the optimised object's reflectance (diffuse) or base colour (principled)
-    replaced by an in-memory bitmap holding ``texture`` (H, W, 3) (``optimize.albedo.texture``),
-    looked up with the object's own bitmap's ``filter_type`` and ``wrap_mode`` if it has one."""
-    if exp.scene.mitsuba is not None:
-        raise PsdrError(f"{exp.file}: optimize.albedo.texture: not available for objects of a Mitsuba XML scene")
-    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
-    name = {"diffuse": "reflectance", "principled": "base_color"}.get(obj.bsdf.type)
-    if name is None:
-        raise PsdrError(f"{exp.file}: optimize.albedo.texture: the object's BSDF '{obj.bsdf.type}' has no "
-                        f"reflectance or base_color (use diffuse or principled)")
-    bitmap = replace(texture_lookup(exp), data=np.asarray(texture, np.float32))
-    bsdf = BsdfConfig(obj.bsdf.type, {**obj.bsdf.params, name: bitmap})
-    objects = [replace(o, bsdf=bsdf) if o.name == obj.name else o for o in exp.scene.objects]
-    return replace(exp, scene=replace(exp.scene, objects=objects))
-
-
-def texture_lookup(exp) -> BitmapConfig:
-    """The bitmap settings the recovered texture is looked up with: the object's own bitmap's
-    ``filter_type`` and ``wrap_mode`` (file, raw and data cleared), or bilinear and repeat."""
-    obj = next(o for o in exp.scene.objects if o.name == exp.optimize.object)
-    given = [v for k, v in obj.bsdf.params.items() if k in ("reflectance", "base_color")]
-    if given and isinstance(given[0], BitmapConfig):
-        return replace(given[0], file=None, raw=False, data=None)
-    return BitmapConfig()
 
 
 def adam_export(opt, key):

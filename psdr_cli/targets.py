@@ -54,7 +54,7 @@ def initial_state(exp, files: RunFiles, shape, warn) -> State:
             except Exception as exc:  # noqa: BLE001 - xatlas failed on the remeshed initial shape
                 raise PsdrError(f"{exp.file}: optimize: no UV atlas for the textures on the remeshed initial shape "
                                 f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-    write_mesh(files.checkpoint(0), dataset_coordinates(exp, V), F)
+    write_mesh(files.checkpoint(0), dataset_coordinates(exp, V), F, uv)
     return State(0, V, F, uv=uv)
 
 

@@ -14,7 +14,7 @@ from PIL import Image
 from conftest import bit_reproducible, write_raw_exr
 from psdr_cli import atlas, backend, cli, fileio, load_experiment, meshes
 from psdr_cli.config.optimize import OptimizeConfig
-from psdr_cli.problem import texture_experiment
+from psdr_cli.material_params import texture_experiment
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.log import read_log
 from psdr_cli.scene import build_scene

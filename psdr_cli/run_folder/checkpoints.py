@@ -17,11 +17,12 @@ from .layout import RunFiles
 CHECKPOINT_NAME = re.compile(r"iter_(\d+)\.ply")
 
 
-def write_mesh(path: Path, V, F):
-    """PLY written atomically (opens in MeshLab and Blender); refuses NaN or infinite vertices."""
+def write_mesh(path: Path, V, F, uv=None):
+    """PLY written atomically (opens in MeshLab and Blender), with the texture coordinates ``uv``
+    of a textured run; refuses NaN or infinite vertices."""
     fileio.check_finite(path, V, "mesh")
     with fileio.atomic_path(path) as tmp:
-        write_ply(tmp, V, F)
+        write_ply(tmp, V, F, uv)
 
 
 
@@ -36,13 +37,14 @@ def run_checkpoints(folder: Path):
 
 
 def write_checkpoint(files: RunFiles, iteration: int, V, F, texture=None, previews: dict | None = None,
-                     zoom: int = 1) -> Path:
-    """checkpoints/iter_NNNN.ply; with ``texture`` (the recovered albedo texture, linear RGB)
+                     zoom: int = 1, uv=None) -> Path:
+    """checkpoints/iter_NNNN.ply (with the texture coordinates ``uv`` of a textured run); with
+    ``texture`` (the recovered albedo texture, linear RGB)
     albedo.exr, albedo.png and its preview; per preview view {v: (target, current)} a target |
     current | |difference| strip with pixels enlarged ``zoom`` times (a downsampled stage's
     images at the film's size)."""
     path = files.checkpoint(iteration)
-    write_mesh(path, V, F)
+    write_mesh(path, V, F, uv)
     if texture is not None:
         fileio.write_rgb_exr(files.albedo, texture, {"psdr.iteration": str(iteration)})
         fileio.write_preview(files.albedo.with_suffix(".png"), texture)
