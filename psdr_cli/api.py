@@ -98,12 +98,13 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
 
 
 def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,
-             report: Path | None = None, progress=None):
+             report: Path | None = None, progress=None, align: str = "auto"):
     """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult
-    (for an experiment with a camera dataset: held-out view scores, a HeldOutReport)."""
+    (for an experiment with a camera dataset: held-out view scores, a HeldOutReport; ``align``:
+    whether the held-out cameras are fitted first: auto (when the run refined its cameras), on, off)."""
     dataset = evaluation.dataset_experiment(paths)
     if dataset is not None:
-        return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress)
+        return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress, align)
     inputs = evaluation.evaluate_inputs(paths, reference, samples, report)
     return evaluation.evaluate_meshes(inputs, json_out, progress)
 

@@ -344,10 +344,13 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
              reference: Optional[Path] = typer.Option(None, "--reference", help="Reference mesh (default: evaluate.reference, or the run's reference.ply)."),
              samples: Optional[int] = typer.Option(None, "--samples", help="Points sampled per surface (default 100000)."),
              json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON."),
-             report: Optional[Path] = typer.Option(None, "--report", help="Folder for a side-by-side report of the runs (default with optimize.variants: the experiment's run folder).")):
+             report: Optional[Path] = typer.Option(None, "--report", help="Folder for a side-by-side report of the runs (default with optimize.variants: the experiment's run folder)."),
+             align: str = typer.Option("auto", "--align", help="Held-out views: fit each held-out camera's pose to its photograph before scoring (auto: when the run refined its cameras; on; off).")):
     """Normalised Chamfer and Hausdorff distances to a reference mesh (tables, JSON, plots)."""
+    if align not in ("auto", "on", "off"):
+        raise PsdrError(f"--align: expected auto, on or off, got '{align}'")
     with Bar("evaluate") as bar:
-        res = api.evaluate(paths, reference, samples, json_out, report, progress=bar)
+        res = api.evaluate(paths, reference, samples, json_out, report, progress=bar, align=align)
     if hasattr(res, "folders"):  # a camera dataset: held-out views
         print_held_out(res)
         return
@@ -371,15 +374,20 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
 def print_held_out(res):
     """The table of ``psdr evaluate`` on a dataset experiment (held-out views)."""
     table = Table(title=f"psdr evaluate: held-out views of {res.experiment.name}")
-    cols = ("mesh", "iteration", "views", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU", "Chamfer-L1")
+    cols = ("mesh", "iteration", "views", "poses", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU",
+            "PSNR as given", "Chamfer-L1")
     for col in cols:
-        table.add_column(col, justify="left" if col == "mesh" else "right")
+        table.add_column(col, justify="left" if col in ("mesh", "poses") else "right")
     fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
     for r in res.rows:
-        table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), fmt(r["psnr"], ".2f"),
-                      fmt(r["psnr_mask"], ".2f"), fmt(r["ssim"], ".4f"), fmt(r["ssim_mask"], ".4f"),
-                      fmt(r["iou"], ".4f"), fmt(r.get("chamfer_l1"), ".5f"))
+        table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), r.get("poses", "as given"),
+                      fmt(r["psnr"], ".2f"), fmt(r["psnr_mask"], ".2f"), fmt(r["ssim"], ".4f"),
+                      fmt(r["ssim_mask"], ".4f"), fmt(r["iou"], ".4f"), fmt(r.get("as_given", r)["psnr"], ".2f"),
+                      fmt(r.get("chamfer_l1"), ".5f"))
     out.print(table)
+    if any(r.get("poses") == "aligned" for r in res.rows):
+        out.print("poses 'aligned': the run refined its cameras, so each held-out camera was fitted to its photograph "
+                  "with the recovered scene fixed before scoring ('PSNR as given': without that fit)")
     for folder in res.folders:
         out.print(f"report: {folder} (held_out.md, held_out.json, a target | render | error strip per view)")
 

@@ -85,14 +85,16 @@ class Engine:
 
     def images(self, problem, edges, views, iteration: int, guides=None, terms=None) -> list:
         """:meth:`image` of each of ``views``; psdr's terms that can trace the views as one
-        wavefront do (:func:`psdr_cli.estimate.ad_images`). ``terms``: a part of psdr's terms
-        (default: all of them)."""
+        wavefront do (:func:`psdr_cli.estimate.ad_images`), unless the cameras move (a wavefront
+        holds each lane's camera as constants). ``terms``: a part of psdr's terms (default: all
+        of them)."""
         if self.name == "mitsuba":
             if terms is not None:
                 raise ValueError("Engine.images: Mitsuba's integrators render every term at once")
             return [self.image(problem, edges, v, iteration, guides) for v in views]
+        moving = problem.cameras is not None and problem.cameras.attached
         return estimate.ad_images(problem.scene, edges, views, self.terms if terms is None else terms,
-                                  self.settings, pass_index=iteration, guides=guides)
+                                  self.settings, pass_index=iteration, guides=guides, one_by_one=moving)
 
     def coverage(self, problem, edges, view: int, iteration: int) -> mi.Float:
         """C_v of ``iteration``: the rendered coverage of a masked view (flat W·H, AD;

@@ -141,6 +141,8 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     cfg, engine, settings, warn = loop.cfg, loop.engine, loop.settings, loop.warn
     n_views, seed = len(stage.arrays), settings.seed
     views = batch_views(seed, it, n_views, cfg.batch_size)
+    cameras = problem.cameras is not None and problem.cameras.refining(it, loop.total)
+    problem.refine_cameras(cameras)  # optimize.cameras: the poses move from their start on
     frozen = loop.frozen is not None and refusal(problem, stage, cfg, engine, settings, len(views)) is None
     problem.use_leaves = frozen  # the form the loop's apply after the step writes (problem.py)
     if frozen:
@@ -174,14 +176,17 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     skipped = not all(np.isfinite(g).all() for g in grads) or not math.isfinite(loss_value)
     if skipped:
         warn(f"iteration {it}: non-finite gradient or loss; update skipped")
-        for k in problem.opt.keys():
-            dr.set_grad(problem.opt[k], 0.0)
+        for opt in (problem.opt, *([problem.cameras.opt] if problem.cameras else [])):
+            for k in opt.keys():
+                dr.set_grad(opt[k], 0.0)
     else:
         if cfg.learning_rate_final is not None:
             problem.opt.set_learning_rate(learning_rate_at(cfg, it, loop.total))
         clip_outliers(problem.opt, loop.clip)
         problem.opt.step()
         problem.after_step()  # ranges and the environment's mean (problem.py)
+        if cameras:  # each view's pose, its stops and the gauge (camera_refinement.py)
+            problem.cameras.step(it, loop.total, warn)
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
 
 

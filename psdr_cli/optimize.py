@@ -32,6 +32,10 @@ import numpy as np
 
 from . import backend, fileio
 from .config.experiment_file import Experiment, check_experiment
+from .camera_refinement import OPENCV_FLIP, with_camera_mode
+from .dataset_scene import dataset_frames
+from .datasets.frames import Frame
+from .estimators.camera import Projection
 from .engines import Engine
 from .errors import PsdrError
 from .estimate import Settings, guiding_line
@@ -41,6 +45,7 @@ from .losses.registry import PLOT_LABEL
 from .outlier_clip import clip_factor
 from .problem import Problem, SceneSource, remeshed_problem
 from .render import render_view
+from .run_folder.cameras import input_format, refined_poses, write_cameras
 from .run_folder.checkpoints import write_checkpoint, write_mesh
 from .run_folder.layout import RunFiles, keep_previous_run, lock_run
 from .run_folder.log import append_log, plot_loss, read_log, write_log
@@ -106,6 +111,7 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) ->
     """:func:`optimize` once the run folder is locked: the loop, from the saved or initial state."""
     cfg, requested = exp.optimize, total
     start = run_start(exp, files, total, resume, warn)
+    exp = with_camera_mode(exp, len(start.targets))  # optimize.cameras: auto decided
     it, seconds = start.state.iteration, start.state.seconds
     result = OptimizeResult(files.root, resumed_from=it)
     now, loop = start_loop(exp, start, total, warn)
@@ -227,8 +233,35 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
     if problem.environment:  # optimize.envmap: the map as the emitter uses it (before its scale)
         fileio.write_rgb_exr(files.envmap, problem.environment.radiance(problem.opt["envmap"]),
                              {"psdr.iteration": str(iteration)})
+    if problem.cameras:
+        save_cameras(exp, files, problem, iteration)
     return write_checkpoint(files, iteration, dataset_coordinates(exp, problem.vertices()), problem.F, texture,
-                            previews, problem.factor)
+                            previews, problem.factor, uv=problem.uv)
+
+
+def save_cameras(exp, files: RunFiles, problem, iteration: int):
+    """cameras.json and the refined cameras in the dataset's format (:mod:`psdr_cli.run_folder.cameras`)."""
+    cams = problem.cameras
+    dataset = exp.optimize.target_dataset
+    if dataset is not None:
+        frames = dataset_frames(dataset, "train")[1]
+        poses = refined_poses([f.cam_to_world for f in frames], cams.initial, cams.matrices(), dataset.frame)
+        kind, fmt = "dataset", input_format(frames)
+    else:
+        frames = [scene_frame(problem.scene.sensors[v], v) for v in range(cams.views)]
+        poses = [M @ OPENCV_FLIP for M in cams.matrices()]
+        kind, fmt = "scene", None
+    rotation, translation = cams.errors()
+    write_cameras(files.root, frames, poses, {"rotation": rotation, "translation": translation,
+                                              "stopped": cams.stopped}, iteration, kind, fmt)
+
+
+def scene_frame(sensor, view: int) -> Frame:
+    """A :class:`~psdr_cli.datasets.frames.Frame` of a scene's camera (no image): its intrinsics in pixels."""
+    proj = Projection(sensor)
+    f = proj.width / (2 * proj.tan_half)
+    return Frame(name=f"camera {view}", image=Path(""), mask=None, cam_to_world=np.eye(4), fx=f, fy=f,
+                 cx=proj.width * proj.centre[0], cy=proj.height * proj.centre[1], width=proj.width, height=proj.height)
 
 
 @dataclass
@@ -249,7 +282,7 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, end: RunEnd, w
     if cfg.seconds is not None and cfg.remesh.at and total < max(cfg.remesh.at) and total < end.requested:
         warn(f"the time budget ({cfg.seconds:g} s) ended the run at iteration {total}, before the remesh at "
              f"iteration {max(cfg.remesh.at)}: the final mesh has {len(problem.vertices())} vertices")
-    write_mesh(files.final, dataset_coordinates(exp, problem.vertices()), problem.F)
+    write_mesh(files.final, dataset_coordinates(exp, problem.vertices()), problem.F, problem.uv)
     result.final = files.final
     plot_loss(files, read_log(files.log, total), PLOT_LABEL)
     fileio.write_json(files.summary, {
@@ -266,6 +299,8 @@ def summary_values(problem, files: RunFiles) -> dict:
     for k, v in problem.values().items():
         if k == "envmap_log":
             out["envmap"] = str(files.envmap)
+        elif k.startswith("camera_"):
+            out["cameras"] = str(files.root / "cameras.json")
         elif k in problem.material_textures:
             out[k] = str(files.material(k))
         else:

@@ -152,8 +152,8 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch, freeze):
     real_images, real_batch = estimate.ad_images, FrozenBatch.__call__  # the loop's two paths
     calls = []
 
-    def poisoned_images(scene, edges, views, terms, settings, pass_index=0, guides=None):
-        images = real_images(scene, edges, views, terms, settings, pass_index, guides=guides)
+    def poisoned_images(scene, edges, views, terms, settings, pass_index=0, guides=None, one_by_one=False):
+        images = real_images(scene, edges, views, terms, settings, pass_index, guides=guides, one_by_one=one_by_one)
         return [img * (dr.nan if pass_index == 1 else 1.0) for img in images]
 
     def poisoned_batch(self, problem, stage, views, iteration, settings, cfg):

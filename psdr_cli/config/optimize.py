@@ -8,7 +8,7 @@ from pathlib import Path
 from .dataset import DatasetConfig, parse_dataset
 from .limits import MAX_FILM, MAX_ITERATIONS, MAX_SPP, MAX_VERTICES
 from .objects import MeshSpec, TransformConfig, parse_mesh, parse_transform
-from .unknowns import EnvmapUnknown, parse_envmap_unknown, parse_material, texture_size
+from .unknowns import CamerasUnknown, EnvmapUnknown, parse_cameras, parse_envmap_unknown, parse_material, texture_size
 from .values import Parser, Section, boolean, choice, integer, list_of, number, per_stage, reflectance, string, vector
 from .variants import run_variant_parser, unique_labels
 from .vocabularies import REMESH_METHODS
@@ -53,6 +53,7 @@ class OptimizeConfig:
     envmap_learning_rate: float = 0.01
     envmap: EnvmapUnknown | None = None    # the environment map itself as an unknown
     material: tuple = ()                   # of MaterialUnknown: roughness, metallic, specular
+    cameras: CamerasUnknown = field(default_factory=CamerasUnknown)  # pose refinement of the views
     seconds: float | None = None           # wall-clock budget of the optimisation (equal-time runs)
     outlier_clip: str | float = "auto"     # each gradient scaled to at most c times its running norm (outlier_clip.py)
     variants: tuple = ()                   # of Variant: one run folder each, <output>/<name>/<label>
@@ -116,6 +117,7 @@ def parse_optimize(base: Path) -> Parser:
             read_envmap_rotation(Section(sec.get("envmap_rotation", lambda v, _: v), where.child("envmap_rotation")), o)
         o.envmap = sec.get("envmap", parse_envmap_unknown(base), None)
         o.material = sec.get("material", parse_material, ())
+        o.cameras = sec.get("cameras", parse_cameras, o.cameras)
         o.seconds = sec.get("seconds", number(positive=True), None)
         o.outlier_clip = sec.get("outlier_clip", _outlier_clip, o.outlier_clip)
         if sec.has("variants"):

@@ -1,13 +1,14 @@
 """The unknowns of an optimisation besides the shape: ``optimize.envmap`` (the environment map
-itself) and ``optimize.material`` (scalar BSDF parameters)."""
+itself), ``optimize.material`` (scalar BSDF parameters) and ``optimize.cameras`` (pose
+corrections of the training views)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
 from .limits import MAX_FILM
-from .values import Parser, Section, choice, color, describe, integer, number
-from .vocabularies import ENVMAP_MEANS
+from .values import Parser, Section, boolean, choice, color, describe, integer, number
+from .vocabularies import CAMERA_MODES, ENVMAP_MEANS
 
 
 @dataclass
@@ -110,3 +111,43 @@ def parse_material(value, where) -> tuple:
     if not out:
         raise where.fail(f"expected at least one of {', '.join(MATERIAL_UNKNOWNS)}")
     return tuple(out)
+
+
+@dataclass
+class CamerasUnknown:
+    """``optimize.cameras``: a pose correction per training view (a rotation about the camera's
+    centre and a translation in units of its distance to the object), refined with the shape
+    (:mod:`psdr_cli.camera_refinement`). ``mode``: ``auto`` (on for camera datasets), ``on`` (a
+    mapping was given) or ``off``."""
+    mode: str = "auto"
+    rotation: bool = True                  # refine the orientations
+    translation: bool = True               # refine the positions
+    learning_rate: float = 2e-3            # Adam step: radians, and camera distances
+    learning_rate_final: float = 2e-4      # the step at the run's last iteration (a linear fall)
+    start: int | None = None               # first refined iteration (None: a fifth of the run)
+    warmup: int = 20                       # iterations over which the step ramps up from 0
+    max_rotation_deg: float = 3.0          # a view whose correction goes beyond stops (runaway)
+    max_translation: float = 0.05          # the same for the translation (camera distances)
+
+
+def parse_cameras(value, where) -> CamerasUnknown:
+    """``optimize.cameras: auto | on | off | {rotation, translation, learning_rate, start, warmup,
+    max_rotation_deg, max_translation}`` (a mapping turns refinement on)."""
+    if isinstance(value, bool):
+        return CamerasUnknown(mode="on" if value else "off")
+    if isinstance(value, str):
+        return CamerasUnknown(mode=choice(*CAMERA_MODES)(value, where))
+    sec = Section(value, where)
+    c = CamerasUnknown(mode="on")
+    c.rotation = sec.get("rotation", boolean, c.rotation)
+    c.translation = sec.get("translation", boolean, c.translation)
+    c.learning_rate = sec.get("learning_rate", number(positive=True, maximum=0.1), c.learning_rate)
+    c.learning_rate_final = sec.get("learning_rate_final", number(minimum=0, maximum=0.1), c.learning_rate / 10)
+    c.start = sec.get("start", integer(0), c.start)
+    c.warmup = sec.get("warmup", integer(0), c.warmup)
+    c.max_rotation_deg = sec.get("max_rotation_deg", number(positive=True, maximum=45), c.max_rotation_deg)
+    c.max_translation = sec.get("max_translation", number(positive=True, maximum=1), c.max_translation)
+    sec.done()
+    if not (c.rotation or c.translation):
+        raise where.fail("expected rotation or translation (or both) to be refined (or cameras: off)")
+    return c

@@ -46,5 +46,8 @@ DATASET_FORMATS = ("auto", "blender", "transforms", "colmap")
 #: What camera rays that leave a dataset's scene see (``optimize.target.dataset.background``).
 BACKGROUNDS = ("auto", "hidden", "visible")
 
+#: Whether the training views' poses are refined (``optimize.cameras``; ``auto``: for camera datasets).
+CAMERA_MODES = ("auto", "on", "off")
+
 #: Whether an optimised environment map keeps its mean (``optimize.envmap.mean``).
 ENVMAP_MEANS = ("auto", "fixed", "free")
