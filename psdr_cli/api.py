@@ -31,6 +31,9 @@ from .config.options import option_count
 from .guiding import stats
 from .mitsuba_scene import warn_stderr
 
+#: What ``psdr evaluate --relight`` scores under (:class:`psdr_cli.evaluate.Relight`).
+Relight = evaluation.Relight
+
 
 def load_experiment(path, warn=warn_stderr) -> Experiment:
     """Read and validate an experiment file, then its scene: a Mitsuba XML scene is read (one
@@ -98,11 +101,14 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
 
 
 def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,
-             report: Path | None = None, progress=None, align: str = "auto"):
+             report: Path | None = None, progress=None, align: str = "auto", relight=None):
     """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult
     (for an experiment with a camera dataset: held-out view scores, a HeldOutReport; ``align``:
-    whether the held-out cameras are fitted first: auto (when the run refined its cameras), on, off)."""
+    whether the held-out cameras are fitted first: auto (when the run refined its cameras), on, off;
+    ``relight``: an :class:`psdr_cli.evaluate.Relight`, to score the runs under other light instead)."""
     dataset = evaluation.dataset_experiment(paths)
+    if relight is not None:
+        return evaluation.evaluate_relit(dataset, relight, json_out, progress)
     if dataset is not None:
         return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress, align)
     inputs = evaluation.evaluate_inputs(paths, reference, samples, report)

@@ -345,12 +345,23 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
              samples: Optional[int] = typer.Option(None, "--samples", help="Points sampled per surface (default 100000)."),
              json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON."),
              report: Optional[Path] = typer.Option(None, "--report", help="Folder for a side-by-side report of the runs (default with optimize.variants: the experiment's run folder)."),
-             align: str = typer.Option("auto", "--align", help="Held-out views: fit each held-out camera's pose to its photograph before scoring (auto: when the run refined its cameras; on; off).")):
+             align: str = typer.Option("auto", "--align", help="Held-out views: fit each held-out camera's pose to its photograph before scoring (auto: when the run refined its cameras; on; off)."),
+             relight: Optional[Path] = typer.Option(None, "--relight", help="A camera dataset of the object under other light (the training capture's world frame): score the runs relit by --envmap from its cameras."),
+             envmap: Optional[Path] = typer.Option(None, "--envmap", help="With --relight: the lat-long EXR environment map of that light."),
+             envmap_scale: float = typer.Option(1.0, "--envmap-scale", help="With --relight: the map's radiance scale.")):
     """Normalised Chamfer and Hausdorff distances to a reference mesh (tables, JSON, plots)."""
     if align not in ("auto", "on", "off"):
         raise PsdrError(f"--align: expected auto, on or off, got '{align}'")
+    if (relight is None) != (envmap is None):
+        raise PsdrError("--relight and --envmap: give both (the photographs under the other light, and that light)")
+    if not (envmap_scale > 0 and envmap_scale < 1e30):
+        raise PsdrError(f"--envmap-scale: expected a number > 0, got {envmap_scale}")
+    light = api.Relight(relight, envmap, envmap_scale) if relight is not None else None
     with Bar("evaluate") as bar:
-        res = api.evaluate(paths, reference, samples, json_out, report, progress=bar, align=align)
+        res = api.evaluate(paths, reference, samples, json_out, report, progress=bar, align=align, relight=light)
+    if light is not None:
+        print_relit(res)
+        return
     if hasattr(res, "folders"):  # a camera dataset: held-out views
         print_held_out(res)
         return
@@ -369,6 +380,20 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
         out.print(f"plot: {p}")
     if res.report:
         out.print(f"report: {res.report} (evaluate.md, chamfer.png, meshes.png, evaluate.json)")
+
+
+def print_relit(res):
+    """The table of ``psdr evaluate --relight``."""
+    table = Table(title=f"psdr evaluate: {res.experiment.name} relit")
+    for col in ("mesh", "iteration", "views", "PSNR-H", "PSNR-L", "SSIM", "mask IoU"):
+        table.add_column(col, justify="left" if col == "mesh" else "right")
+    for r in res.rows:
+        table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), f"{r['psnr_h']:.2f}",
+                      f"{r['psnr_l']:.2f}", f"{r['ssim']:.4f}", f"{r['iou']:.4f}")
+    out.print(table)
+    out.print("each render scaled per channel by least squares in the mask before scoring (light × albedo is ambiguous)")
+    for folder in res.folders:
+        out.print(f"report: {folder} (relight.md, relight.json, a target | render | error strip per view)")
 
 
 def print_held_out(res):

@@ -135,10 +135,12 @@ def normalised_object(obj: ObjectConfig, frame: tuple, reconstructed: str) -> Ob
 
 
 def dataset_frames(dataset: DatasetConfig, split: str = "train"):
-    """The frames of ``split`` ('train' or 'test': the held-out views) of a dataset, read and
-    checked (:func:`psdr_cli.datasets.views.read_frames`); every split is read so that the
+    """The frames of ``split`` ('train', 'test': the held-out views, or 'all') of a dataset, read
+    and checked (:func:`psdr_cli.datasets.views.read_frames`); every split is read so that the
     normalised frame does not depend on which is asked for."""
     frames = read_frames(dataset, where="optimize.target.dataset")
+    if split == "all":
+        return frames, list(frames)
     train, held_out = split_views(frames, dataset.holdout_every, f"{dataset.key}.holdout_every")
     chosen = train if split == "train" else held_out
     if not chosen:

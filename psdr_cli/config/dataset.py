@@ -24,7 +24,7 @@ class DatasetConfig:
     silhouette: float = 1.0                # weight of the silhouette loss mean|C − M| of masked views (0: off)
     up: tuple | None = None                # the dataset world's up axis (None: found from the cameras)
     frame: tuple | None = None             # not a YAML key: (s, c) of the normalised frame, filled when loaded
-    split: str = "train"                   # not a YAML key: the views the scene's cameras are (train | test)
+    split: str = "train"                   # not a YAML key: the views the scene's cameras are (train | test | all)
 
 
 def parse_dataset(base: Path) -> Parser:
