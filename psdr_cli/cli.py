@@ -400,7 +400,7 @@ def print_held_out(res):
     """The table of ``psdr evaluate`` on a dataset experiment (held-out views)."""
     table = Table(title=f"psdr evaluate: held-out views of {res.experiment.name}")
     cols = ("mesh", "iteration", "views", "poses", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU",
-            "PSNR as given", "Chamfer-L1")
+            "PSNR as given", "Chamfer-L1", "depth err", "normal °")
     for col in cols:
         table.add_column(col, justify="left" if col in ("mesh", "poses") else "right")
     fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
@@ -408,7 +408,7 @@ def print_held_out(res):
         table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), r.get("poses", "as given"),
                       fmt(r["psnr"], ".2f"), fmt(r["psnr_mask"], ".2f"), fmt(r["ssim"], ".4f"),
                       fmt(r["ssim_mask"], ".4f"), fmt(r["iou"], ".4f"), fmt(r.get("as_given", r)["psnr"], ".2f"),
-                      fmt(r.get("chamfer_l1"), ".5f"))
+                      fmt(r.get("chamfer_l1"), ".5f"), fmt(r.get("depth_error"), ".2e"), fmt(r.get("normal_deg"), ".2f"))
     out.print(table)
     if any(r.get("poses") == "aligned" for r in res.rows):
         out.print("poses 'aligned': the run refined its cameras, so each held-out camera was fitted to its photograph "

@@ -30,6 +30,7 @@ from .errors import PsdrError
 from .experiment import load_experiment
 from .dataset_scene import dataset_frames
 from .held_out import score_mesh
+from .held_out_geometry import check_units
 from .relight import check_latlong, relight_mesh
 from .meshes import face_areas, read_mesh_file
 from .run_folder.checkpoints import run_checkpoints
@@ -273,7 +274,7 @@ def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples:
     ``auto`` when the run refined its cameras (the initial mesh is scored as given)."""
     values = run_values(exp.run_dir) if iteration > 0 else {}
     align = iteration > 0 and (align == "on" or (align == "auto" and "cameras" in values))
-    scores = score_mesh(exp, mesh, out=out, values=values, align=align)
+    scores = score_mesh(exp, mesh, out=out, values=values, align=align, reference=reference)
     keys = ("psnr", "psnr_mask", "ssim", "ssim_mask", "iou")
     row = {"mesh": str(mesh), "iteration": iteration, "views": len(scores.views),
            "poses": "aligned" if align else "as given", **{k: scores.mean(k, aligned=align) for k in keys}}
@@ -282,6 +283,7 @@ def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples:
         row["alignment_deg"] = [float(r) for r, _ in scores.alignment]
     if reference is not None:
         row.update(asdict(distance(load(mesh), reference, samples)))
+        row.update({k: scores.geometry_mean(k) for k in ("depth_error", "normal_deg", "normal_cosine")})
     return row
 
 
@@ -304,6 +306,10 @@ def evaluate_held_out(exp, reference: Path | None = None, samples: int | None = 
     if json_out:
         fileio.check_output_file(json_out, "--json")
     ref = load(reference) if reference is not None else None
+    if ref is not None:  # in the dataset's units: against the runs' initial meshes
+        for _, run in variant_experiments(exp):
+            if RunFiles(run.run_dir).checkpoints.is_dir():
+                check_units(ref, load(run_checkpoints(run.run_dir)[0][1]), reference)
     result = HeldOutReport(exp.file)
     runs = variant_experiments(exp)
     dataset_frames(exp.optimize.target_dataset, "test")  # no held-out views: one line before anything is written
@@ -392,14 +398,15 @@ def held_out_table(rows: list) -> str:
     """A markdown table of held-out scores (:func:`evaluate_held_out`)."""
     fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
     lines = ["| mesh | iteration | views | poses | PSNR | PSNR in mask | SSIM | SSIM in mask | mask IoU | "
-             "PSNR, poses as given | Chamfer-L1 |",
-             "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "PSNR, poses as given | Chamfer-L1 | depth error | normal angle (°) |",
+             "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         given = r.get("as_given", r)
         lines.append(f"| {Path(r['mesh']).name} | {r['iteration']} | {r['views']} | {r.get('poses', 'as given')} | "
                      f"{fmt(r['psnr'], '.2f')} | {fmt(r['psnr_mask'], '.2f')} | {fmt(r['ssim'], '.4f')} | "
                      f"{fmt(r['ssim_mask'], '.4f')} | {fmt(r['iou'], '.4f')} | {fmt(given['psnr'], '.2f')} | "
-                     f"{fmt(r.get('chamfer_l1'), '.5f')} |")
+                     f"{fmt(r.get('chamfer_l1'), '.5f')} | {fmt(r.get('depth_error'), '.2e')} | "
+                     f"{fmt(r.get('normal_deg'), '.2f')} |")
     notes = ("", "Rows with poses 'aligned': each held-out camera was fitted to its photograph with the recovered "
              "scene fixed before scoring (the run refined its training cameras); the column 'poses as given' "
              "scores the cameras as the dataset gives them.")

@@ -36,6 +36,7 @@ from .errors import PsdrError
 from .material_params import material_key, material_texture_experiment, texture_experiment, texture_lookup
 from .estimators.coverage import hit_share, object_id
 from .held_out_alignment import align_views
+from .held_out_geometry import held_out_geometry
 from .parameters import Parameter
 from .render import render_view
 from .scene import build_scene
@@ -58,6 +59,11 @@ class HeldOutResult:
     strips: list = field(default_factory=list)
     aligned: list = field(default_factory=list)  # of ViewScore, from the aligned cameras (align)
     alignment: list = field(default_factory=list)  # (degrees, camera distances) each camera was moved
+    geometry: list = field(default_factory=list)   # of held_out_geometry.ViewGeometry (with a reference)
+
+    def geometry_mean(self, key: str) -> float | None:
+        values = [getattr(v, key) for v in self.geometry if getattr(v, key) is not None]
+        return float(np.mean(values)) if values else None
 
     def mean(self, key: str, aligned: bool = False) -> float | None:
         views = self.aligned if aligned else self.views
@@ -176,16 +182,17 @@ def environment_texels(path: Path, exp):
 
 
 def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values: dict | None = None,
-               align: bool = False) -> HeldOutResult:
+               align: bool = False, reference=None) -> HeldOutResult:
     """Render ``mesh`` (in the dataset's coordinates) with the recovered ``values``
     (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
     the photographs; strips go to ``out`` when given; with ``align``, scored again from the
-    aligned cameras (module docstring)."""
+    aligned cameras (module docstring); with a ``reference`` (V, F), depth and normals against it
+    (:mod:`psdr_cli.held_out_geometry`, from the aligned cameras when aligned)."""
     test = dataset_scene(exp, split="test")
     views = dataset_views(test)
     V, F, uv = meshes.read_mesh_file_uv(mesh)
     values = values or {}
-    test = textured_experiment(test, values, uv)
+    plain, test = test, textured_experiment(test, values, uv)
     shape = (to_normalised(V, test.optimize.target_dataset.frame), F) + ((uv,) if uv is not None else ())
     scene = build_scene(test, objects={test.optimize.object: shape})
     apply_values(scene, test, values)
@@ -200,6 +207,8 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
         cams = align_views(scene, test, targets)
         result.aligned = score_views(scene, test, views, targets, spp)
         result.alignment = list(zip(*cams.errors()))
+    if reference is not None:
+        result.geometry = held_out_geometry(scene, plain, views, reference)
     if out is not None:
         for v, target in enumerate(targets):
             render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)

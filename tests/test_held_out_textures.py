@@ -198,3 +198,30 @@ def test_bad_relight_inputs_are_one_line(tmp_path, textured_run, relight_capture
         errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
         assert r.returncode == 2 and len(errors) == 1 and message in errors[0], (args, r.stderr)
         assert "Traceback" not in r.stderr + r.stdout
+
+
+def test_held_out_geometry_against_a_reference(tmp_path, textured_run, run_psdr):
+    """With ``--reference``: the scale-invariant depth error and the normal angle inside the masks,
+    small for the recovered ball against the true one, larger for a squashed ball (and 0 for the
+    true ball against itself); a reference in other units (centimetres) is one line."""
+    exp = textured_run
+    V, F, _ = two_coloured_ball()
+    truth = tmp_path / "ball.ply"
+    meshes.write_ply(truth, V, F)
+    squashed = tmp_path / "squashed.ply"
+    meshes.write_ply(squashed, V * [1.0, 1.0, 0.7], F)
+    ref = (V, F)
+    own = score_mesh(exp, exp.run_dir / "final.ply", reference=ref)
+    same = score_mesh(exp, truth, reference=ref)
+    flat = score_mesh(exp, squashed, reference=ref)
+    assert same.geometry_mean("depth_error") < 1e-9 and same.geometry_mean("normal_deg") < 0.1
+    assert own.geometry_mean("depth_error") < 2e-3, own.geometry  # (facets: two tessellations of a ball differ by ~10°)
+    assert flat.geometry_mean("normal_deg") > own.geometry_mean("normal_deg") + 2
+    assert flat.geometry_mean("depth_error") > own.geometry_mean("depth_error")
+    report = api.evaluate([str(exp.file)], reference=truth)
+    assert report.rows[-1]["normal_deg"] == pytest.approx(own.geometry_mean("normal_deg"), rel=1e-6)
+    centimetres = tmp_path / "cm.ply"
+    meshes.write_ply(centimetres, V * 100, F)
+    r = run_psdr("evaluate", exp.file, "--reference", centimetres)
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert r.returncode == 2 and len(errors) == 1 and "in other units" in errors[0] and "cm.ply" in errors[0], r.stderr
