@@ -165,10 +165,20 @@ def dataset_scene(exp: Experiment, split: str = "train") -> Experiment:
     scene = replace(exp.scene, width=width, height=height, cameras=cameras, hide_background=hidden)
     if dataset.frame is None:
         up = world_up(frames, dataset.up)
-        scene = replace(scene, emitters=[normalised_emitter(e, frame, up) for e in exp.scene.emitters],
+        emitters = list(exp.scene.emitters) + unknown_environment(exp)
+        scene = replace(scene, emitters=[normalised_emitter(e, frame, up) for e in emitters],
                         objects=[normalised_object(o, frame, exp.optimize.object) for o in exp.scene.objects])
     opt = replace(exp.optimize, target_dataset=replace(dataset, frame=frame, split=split))
     return replace(exp, scene=scene, optimize=opt)
+
+
+def unknown_environment(exp: Experiment) -> list:
+    """[the environment emitter a capture without a light probe gets] when ``optimize.envmap`` is
+    an unknown and the experiment gives no ``envmap`` emitter (its map is all unknown; its start
+    comes from the photographs: :mod:`psdr_cli.photo_light`), else []."""
+    if exp.optimize.envmap is None or any(e.type == "envmap" for e in exp.scene.emitters):
+        return []
+    return [EmitterConfig(type="envmap", key="optimize.envmap")]
 
 
 def hides_background(exp: Experiment, dataset: DatasetConfig, frames) -> bool:

@@ -43,6 +43,7 @@ from .frozen_batch import FrozenBatch
 from .iteration import GuideCache, Loop, iterate
 from .losses.registry import PLOT_LABEL
 from .outlier_clip import clip_factor
+from .photo_light import with_photograph_light
 from .problem import Problem, SceneSource, remeshed_problem
 from .render import render_view
 from .run_folder.cameras import input_format, refined_poses, write_cameras
@@ -112,6 +113,7 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) ->
     cfg, requested = exp.optimize, total
     start = run_start(exp, files, total, resume, warn)
     exp = with_camera_mode(exp, len(start.targets))  # optimize.cameras: auto decided
+    exp = with_photograph_light(exp, start.targets, start.inputs.masks)  # optimize.envmap without a probe
     it, seconds = start.state.iteration, start.state.seconds
     result = OptimizeResult(files.root, resumed_from=it)
     now, loop = start_loop(exp, start, total, warn)

@@ -170,6 +170,10 @@ def emitter_dict(em: EmitterConfig, file: str) -> dict:
         return {"type": "rectangle", "to_world": mi.ScalarTransform4f(rectangle_frame(em.center, em.normal, em.size)),
                 "emitter": {"type": "area", "radiance": _rgb(em.radiance)},
                 "bsdf": {"type": "diffuse", "reflectance": _rgb((0.0, 0.0, 0.0))}}
+    if em.type == "envmap" and em.file is None:  # the unknown map of a capture without a probe
+        texels = np.broadcast_to(np.asarray(em.radiance, np.float32), (8, 16, 3))
+        return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texels)), "scale": em.scale,
+                "to_world": environment_to_world(em.rotate_deg, em.up)}
     if em.type == "envmap":
         if not em.file.exists():
             raise ConfigError(file, em.key + ".file", f"environment map not found: {em.file}")

@@ -5,6 +5,7 @@ differences, a stopped and resumed run reproduces the uninterrupted one, ``psdr 
 them, ``psdr evaluate``'s held-out scenes apply a recovered map, and bad keys are one line each."""
 import copy
 import json
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -13,17 +14,21 @@ import pytest
 import yaml
 
 from conftest import bit_reproducible, write_raw_exr
-from psdr_cli import backend, cli, fileio, load_experiment
+from psdr_cli import api, backend, cli, fileio, load_experiment, photo_light
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
 from psdr_cli.estimate import Settings, ad_image
 from psdr_cli.held_out import apply_values
-from psdr_cli.problem import Problem, Shape
+from psdr_cli.problem import Problem, Shape, solid_angle_weights
 from psdr_cli.render import render_view
 from psdr_cli.run_folder.log import read_log
 from psdr_cli.run_folder.state import State
 from psdr_cli.scene import build_scene
+from psdr_cli.target_sources.camera_dataset import dataset_views
+from psdr_cli.target_sources.source import TargetMasks
+
+ROOT = Path(__file__).resolve().parents[1]
 
 H, W = 8, 16
 THETA = (np.arange(H)[:, None] + 0.5) / H * np.pi
@@ -269,3 +274,51 @@ def test_held_out_scenes_apply_the_recovered_materials(tmp_path):
     a, b = render_view(scene, 0, 16, seed=3), render_view(direct, 0, 16, seed=3)
     assert np.abs(a - render_view(build_scene(recovered), 0, 16, seed=3)).max() > 0.05
     assert np.allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# A capture without a light probe (psdr_cli/photo_light.py)
+# --------------------------------------------------------------------------------------------
+def test_photograph_brightness_is_the_straight_mean_inside_the_masks():
+    """B = Σ T / Σ α over premultiplied targets: a half-covered view of colour c gives c."""
+    alpha = np.zeros((4, 4))
+    alpha[:, :2] = 1.0
+    alpha[0, 2] = 0.5
+    colour = np.array([0.2, 0.4, 0.8])
+    target = alpha[..., None] * colour
+    got = photo_light.photograph_brightness([target, target], TargetMasks([alpha, alpha]))
+    np.testing.assert_allclose(got, colour, rtol=1e-12)
+    np.testing.assert_allclose(photo_light.photograph_brightness([np.ones((2, 2, 3))], None), 1.0)
+
+
+def test_a_capture_without_a_light_probe_starts_from_its_photographs(tmp_path):
+    """The example capture with no emitter at all and the environment unknown: the run gets an
+    environment whose start L_0 = B / a reproduces the photographs' mean brightness with the
+    starting albedo a = 0.5, held at that mean (mean: auto with the albedo unknown); the same
+    experiment outside a camera dataset is refused in one line."""
+    data = yaml.safe_load((ROOT / "configs" / "photos" / "bunny_blender.yaml").read_text())
+    data.update(output=str(tmp_path / "runs"), name="noprobe")
+    data["scene"]["emitters"] = []
+    data["optimize"]["target"]["dataset"] = {"path": str(ROOT / "data" / "photo_bunny" / "blender")}
+    data["optimize"].update(iterations=3, batch_size=2, checkpoint_every=3, preview_views=[0], cameras="off",
+                            remesh={"method": "none"}, envmap={"resolution": [16, 8]}, albedo={"init": 0.5})
+    path = tmp_path / "noprobe.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    exp = load_experiment(path)
+    assert [e.type for e in exp.scene.emitters] == ["envmap"] and exp.scene.emitters[0].file is None
+    result = api.optimize(exp, warn=lambda m: None)
+    assert result.iterations == 3
+    views = dataset_views(exp)
+    premultiplied = [v.image * v.mask[..., None] for v in views]
+    expected = photo_light.photograph_brightness(premultiplied, TargetMasks([v.mask for v in views])) / 0.5
+    texels = np.asarray(fileio.read_rgb_exr(exp.run_dir / "envmap.exr"), np.float64)
+    w = solid_angle_weights(*texels.shape[:2])[..., None]
+    mean = (texels * w).sum((0, 1)) / w.sum()
+    np.testing.assert_allclose(mean.mean(), expected.mean(), rtol=1e-3)  # the map's mean is held at L_0
+    assert 0.5 < expected.mean() < 3  # a studio map × 0.8 on a 0.6-albedo bunny: B ≈ 0.5, L_0 ≈ 1
+    data["optimize"]["target"] = {"mesh": {"shape": "sphere"}}
+    data["scene"]["cameras"] = [{"origin": [0, -3, 1], "target": [0, 0, 0]}]
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(PsdrError) as err:
+        load_experiment(path)
+    assert "needs none" in str(err.value) and "\n" not in str(err.value), err.value

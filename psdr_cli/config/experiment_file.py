@@ -125,6 +125,10 @@ def check_experiment(exp: Experiment):
     ``optimize`` runs them again on the experiment it is given, which may have been changed in
     code after loading (another remesh schedule, another film: :func:`check_stages`)."""
     where = Where(str(exp.file), "")
+    if not exp.scene.emitters and exp.scene.mitsuba is None:
+        raise where.child("scene").child("emitters").fail(
+            "expected at least 1 entry (a light; a camera dataset with optimize.envmap needs none: its unknown "
+            "environment then starts from the photographs)")
     if exp.parameter and exp.parameter.object:
         names = [o.name for o in exp.scene.objects]
         if exp.parameter.object not in names:
@@ -165,7 +169,8 @@ def check_unknowns(exp: Experiment, where: Where):
         if exp.scene.mitsuba is not None:
             raise w.fail("not available for a Mitsuba XML scene (give the scene's emitters in YAML)")
         if sum(e.type == "envmap" for e in exp.scene.emitters) != 1:
-            raise w.fail("needs one emitter of type 'envmap' in scene.emitters (its map is replaced by the unknown)")
+            raise w.fail("needs one emitter of type 'envmap' in scene.emitters (its map is replaced by the unknown; "
+                         "a camera dataset needs none: its light then starts from the photographs)")
         if o.envmap_rotation:
             raise w.fail("excludes optimize.envmap_rotation (a free map holds its rotation)")
     if o.material and exp.scene.mitsuba is None:

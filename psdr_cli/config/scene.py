@@ -105,7 +105,7 @@ def parse_scene(base: Path) -> Parser:
             width=width, height=height,
             max_depth=sec.get("max_depth", integer(1, MAX_DEPTH), 2),
             cameras=sec.get("cameras", parse_cameras, None),  # None: from optimize.target.dataset
-            emitters=sec.get("emitters", list_of(parse_emitter(base), min_len=1)),
+            emitters=sec.get("emitters", list_of(parse_emitter(base)), []),
             objects=sec.get("objects", list_of(parse_object(base)), []),
         )
         sec.done()
