@@ -69,14 +69,23 @@ def mitsuba_sensor(cam_to_world: np.ndarray, fov_deg: float, size: int, spp: int
 
 
 def render_views(V, F, poses, fov_deg: float, size: int, spp: int, envmap: Path, reflectance,
-                 max_depth: int = 4) -> list:
-    """(H, W, 4) premultiplied RGBA renders of every pose by Mitsuba's ``path`` integrator."""
+                 max_depth: int = 4, bsdf: dict | None = None, vertex_colors=None) -> list:
+    """(H, W, 4) premultiplied RGBA renders of every pose by Mitsuba's ``path`` integrator.
+
+    By default the object is diffuse with the constant ``reflectance``. ``bsdf`` (a Mitsuba BSDF
+    dictionary) replaces that material; ``vertex_colors`` ((n, 3) linear RGB, one per vertex of
+    ``V``) are attached to the mesh as the attribute ``vertex_color``, which such a BSDF can read
+    with ``{"type": "mesh_attribute", "name": "vertex_color"}`` (a texture without UVs)."""
     mesh = mi.Mesh("object", len(V), len(F))
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(np.ravel(V).astype(np.float32))
     params["faces"] = mi.UInt32(np.ravel(F).astype(np.uint32))
     params.update()
-    mesh.set_bsdf(mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}}))
+    if vertex_colors is not None:
+        mesh.add_attribute("vertex_color", 3, mi.Float(np.ravel(vertex_colors).astype(np.float32)))
+    if bsdf is None:
+        bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}}
+    mesh.set_bsdf(mi.load_dict(bsdf))
     images = []
     for i, pose in enumerate(poses):
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": max_depth,

@@ -202,26 +202,27 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
     targets = [target_image(view, test.scene.hide_background) for view in views]
     if not views:
         raise PsdrError(f"{exp.file}: optimize.target.dataset: no held-out views to score")
-    result.views = score_views(scene, test, views, targets, spp)
+    result.views, renders = score_views(scene, test, views, targets, spp)
     if align:
         cams = align_views(scene, test, targets)
-        result.aligned = score_views(scene, test, views, targets, spp)
+        result.aligned, renders = score_views(scene, test, views, targets, spp)
         result.alignment = list(zip(*cams.errors()))
     if reference is not None:
         result.geometry = held_out_geometry(scene, plain, views, reference)
     if out is not None:
-        for v, target in enumerate(targets):
-            render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
+        for v, (target, render) in enumerate(zip(targets, renders)):
             path = out / f"{Path(mesh).stem}_view_{v:03d}.png"
             fileio.write_png(path, error_strip(target, render))
             result.strips.append(path)
     return result
 
 
-def score_views(scene, test, views, targets: list, spp: int) -> list:
-    """:class:`ViewScore` of each held-out view rendered from the scene's cameras as they are."""
-    scores = []
+def score_views(scene, test, views, targets: list, spp: int) -> tuple:
+    """(:class:`ViewScore` of each held-out view rendered from the scene's cameras as they are,
+    the renders)."""
+    scores, renders = [], []
     for v, (view, target) in enumerate(zip(views, targets)):
         render = np.asarray(render_view(scene, v, spp, seed=test.seed), np.float64)
         scores.append(score_view(view.name, render, target, view.mask, coverage(scene, test.optimize.object, v)))
-    return scores
+        renders.append(render)
+    return scores, renders

@@ -38,10 +38,12 @@ RATE = 2e-3
 SPP = 32
 
 
-def align_views(scene, exp, targets: list, iterations: int = ITERATIONS, warn=None) -> CameraCorrections:
+def align_views(scene, exp, targets: list, iterations: int | None = None, warn=None) -> CameraCorrections:
     """Fit every view of ``scene`` (the held-out cameras of ``exp``) to its target image
-    (flat-able (H, W, 3) linear arrays, as the loop fits them); the scene is left with the aligned
-    cameras written (no AD). Returns the corrections found."""
+    (flat-able (H, W, 3) linear arrays, as the loop fits them) for ``iterations`` steps (default
+    :data:`ITERATIONS`); the scene is left with the aligned cameras written (no AD). Returns the
+    corrections found."""
+    iterations = ITERATIONS if iterations is None else iterations
     with_all_edges(scene)
     settings = Settings.from_experiment(exp, spp=max(exp.estimator.spp, SPP))
     params = mi.traverse(scene.mi_scene)
