@@ -156,6 +156,11 @@ class CameraCorrections:
     def views(self) -> int:
         return len(self.keys)
 
+    @property
+    def moved(self) -> bool:
+        """Whether any correction is non-zero (the cameras are no longer the dataset's)."""
+        return bool(np.any(self.array() != 0))
+
     def start(self, total: int) -> int:
         """The first iteration refined: ``start``, or a fifth of a ``total``-iteration run."""
         return self.cfg.start if self.cfg.start is not None else total // 5
@@ -178,28 +183,33 @@ class CameraCorrections:
         fall = 0.0 if iteration <= top or total - 1 <= top else (iteration - top) / (total - 1 - top)
         return ramp * (lr + (final - lr) * min(fall, 1.0))
 
-    def part(self, name: str):
-        """The corrections ``name`` as a Vector3f over the views (zeros when not refined)."""
+    def part(self, name: str, values: dict | None = None):
+        """The corrections ``name`` as a Vector3f over the views (zeros when not refined), from
+        ``values`` (saved, :meth:`values`) when given."""
+        if values is not None and f"camera_{name}" in values:
+            return dr.unravel(mi.Vector3f, jit_array(mi.Float, np.ravel(values[f"camera_{name}"])))
         if name in self.parts:
             x = self.opt[name] if self.attached else dr.detach(self.opt[name])
             return dr.unravel(mi.Vector3f, x)
         return dr.zeros(mi.Vector3f, self.views)
 
-    def transforms(self) -> dict:
-        """{sensor ``to_world`` key: M_v(r_v, τ_v)} (AD-attached while :attr:`attached`)."""
+    def transforms(self, values: dict | None = None) -> dict:
+        """{sensor ``to_world`` key: M_v(r_v, τ_v)} (AD-attached while :attr:`attached`), of the
+        saved corrections ``values`` when given (no AD)."""
         Q = mi.Matrix3f(*(jit_array(mi.Float, self.axes[:, i, j]) for i in range(3) for j in range(3)))
-        R = rotation_matrices(Q @ self.part("rotation"))
+        R = rotation_matrices(Q @ self.part("rotation", values))
         o = mi.Vector3f(*(jit_array(mi.Float, self.origins[:, i]) for i in range(3)))
         d = jit_array(mi.Float, self.distances)
-        p = o - R @ o + d * (Q @ self.part("translation"))
+        p = o - R @ o + d * (Q @ self.part("translation", values))
         A = mi.Matrix4f(R[0, 0], R[0, 1], R[0, 2], p.x, R[1, 0], R[1, 1], R[1, 2], p.y,
                         R[2, 0], R[2, 1], R[2, 2], p.z, 0.0, 0.0, 0.0, 1.0)
         return {key: mi.AffineTransform4f(dr.gather(mi.Matrix4f, A, v) @ self.M0[v])
                 for v, key in enumerate(self.keys)}
 
-    def write(self, params):
-        """Write every view's transform into ``params`` (no ``params.update()``)."""
-        for key, value in self.transforms().items():
+    def write(self, params, values: dict | None = None):
+        """Write every view's transform into ``params`` (of the saved ``values`` when given; no
+        ``params.update()``)."""
+        for key, value in self.transforms(values).items():
             params[key] = value
 
     def detach(self, params):

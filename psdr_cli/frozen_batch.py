@@ -153,8 +153,8 @@ def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
         return "pixel weights or masks"
     if list(problem.opt.keys()) != ["u"]:
         return "unknowns besides the shape (albedo, lighting, materials)"
-    if problem.cameras is not None and problem.cameras.attached:
-        return "camera poses being refined (the recorded batch holds each camera as constants)"
+    if problem.cameras is not None and (problem.cameras.attached or problem.cameras.moved):
+        return "camera poses refined (the recorded batch holds the starting cameras as constants)"
     if not all(is_perspective(s) for s in problem.scene.sensors):
         return "a camera other than Mitsuba's perspective camera"
     width, height = problem.scene.resolution

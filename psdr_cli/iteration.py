@@ -270,6 +270,8 @@ def rebuild_guides(problem, settings, V, values: dict, n_views: int, terms):
         if problem.albedo_key and "albedo" in values:
             problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])
         problem.write_values(values)
+        if problem.cameras:  # the poses the guides were built from
+            problem.cameras.write(problem.params, values)
         if problem.envmap and "envmap_angle" in values:
             problem.envmap.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
         else:

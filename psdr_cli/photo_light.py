@@ -5,10 +5,10 @@ The map starts constant, at the radiance under which the object's starting albed
 the photographs' mean brightness: a convex diffuse surface under a constant environment L has
 radiance a·L, so
 
-    L_0 = B / a,   B = Σ_v Σ_p T_v(p) / Σ_v Σ_p α_v(p)   (per channel),
+    L_0 = B / a,   B = Σ_v Σ_p α_v(p) C_v(p) / Σ_v Σ_p α_v(p)   (per channel),
 
-B the photographs' mean straight colour inside their masks (T the fitted targets, premultiplied by
-the coverage α when the background is hidden; without masks, the mean over the whole images), a
+B the photographs' mean straight colour C inside their masks α (the fitted targets are α·C when
+the background is hidden, C when it is visible; without masks, the mean over the whole images), a
 the mean of ``optimize.albedo.init``, else of the object's constant reflectance or base colour,
 else 0.5. The scale of light × albedo is then settled by ``optimize.envmap.mean``: ``auto`` holds
 the map's mean at L_0 while the albedo is an unknown too, so the albedo takes the rest.
@@ -30,13 +30,15 @@ def without_probe(exp) -> bool:
         any(e.type == "envmap" and e.file is None for e in exp.scene.emitters)
 
 
-def photograph_brightness(targets, masks) -> np.ndarray:
-    """B (3,): the photographs' mean straight colour inside their masks (module docstring)."""
-    total = sum(np.asarray(t, np.float64).reshape(-1, 3).sum(0) for t in targets)
+def photograph_brightness(targets, masks, premultiplied: bool = True) -> np.ndarray:
+    """B (3,): the photographs' mean straight colour inside their masks (module docstring);
+    ``premultiplied``: the targets are α·C (the background hidden), else C."""
+    flat = [np.asarray(t, np.float64).reshape(-1, 3) for t in targets]
     if masks is None:
-        return total / sum(np.asarray(t).reshape(-1, 3).shape[0] for t in targets)
-    covered = sum(float(np.asarray(m, np.float64).sum()) for m in masks.masks)
-    return total / max(covered, 1e-12)
+        return sum(t.sum(0) for t in flat) / sum(len(t) for t in flat)
+    alpha = [np.asarray(m, np.float64).reshape(-1, 1) for m in masks.masks]
+    total = sum(t.sum(0) if premultiplied else (a * t).sum(0) for t, a in zip(flat, alpha))
+    return total / max(sum(float(a.sum()) for a in alpha), 1e-12)
 
 
 def starting_albedo(exp) -> float:
@@ -56,7 +58,8 @@ def with_photograph_light(exp, targets, masks):
     """``exp`` with ``optimize.envmap.init`` = L_0 when :func:`without_probe` (else as it is)."""
     if not without_probe(exp):
         return exp
-    start = photograph_brightness(targets, masks) / max(starting_albedo(exp), 1e-3)
+    brightness = photograph_brightness(targets, masks, premultiplied=exp.scene.hide_background)
+    start = brightness / max(starting_albedo(exp), 1e-3)
     start = np.maximum(start, 1e-4)
     envmap = replace(exp.optimize.envmap, init=tuple(float(x) for x in start))
     return replace(exp, optimize=replace(exp.optimize, envmap=envmap))

@@ -108,7 +108,11 @@ class Problem:
         without an edge list in view is refused (:mod:`psdr_cli.camera_motion`)."""
         with_all_edges(self.scene)
         for view in range(len(self.scene.sensors)):
-            check_camera_motion(self.scene, view)
+            try:
+                check_camera_motion(self.scene, view)
+            except PsdrError as exc:
+                raise PsdrError(f"{self.file}: optimize.cameras: {str(exc).split(': ', 1)[-1]}; set "
+                                f"optimize.cameras: off") from None
         return CameraCorrections(self.cfg.cameras, self.params, len(self.scene.sensors), values)
 
     def refine_cameras(self, moving: bool):
@@ -496,8 +500,12 @@ def remeshed_problem(problem: Problem, cameras, it: int, warn) -> Problem:
     values, uv2 = problem.values(), None
     if problem.uv is not None:
         V2, F2, uv2, values = retextured(problem, V2, F2, say)
+    moments = {k: adam_export(problem.cameras.opt, k) for k in problem.cameras.opt.keys()} if problem.cameras else {}
     problem.release()
-    return Problem(problem.source, Shape(V2, F2, uv2), cameras, values, stage=stage_at(cfg, it))
+    remeshed = Problem(problem.source, Shape(V2, F2, uv2), cameras, values, stage=stage_at(cfg, it))
+    for k, saved in moments.items():  # the poses' moments go on: their unknowns are the same
+        adam_import(remeshed.cameras.opt, k, saved)
+    return remeshed
 
 
 def retextured(problem: Problem, V, F, warn):

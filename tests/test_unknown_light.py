@@ -289,6 +289,11 @@ def test_photograph_brightness_is_the_straight_mean_inside_the_masks():
     got = photo_light.photograph_brightness([target, target], TargetMasks([alpha, alpha]))
     np.testing.assert_allclose(got, colour, rtol=1e-12)
     np.testing.assert_allclose(photo_light.photograph_brightness([np.ones((2, 2, 3))], None), 1.0)
+    photo = np.broadcast_to(colour, (4, 4, 3)) * 1.0  # the background visible: C everywhere, masks apart
+    photo[:, 2:] = [0.9, 0.9, 0.9]
+    photo[0, 2] = colour
+    got = photo_light.photograph_brightness([photo], TargetMasks([alpha]), premultiplied=False)
+    np.testing.assert_allclose(got, colour, rtol=1e-12)
 
 
 def test_a_capture_without_a_light_probe_starts_from_its_photographs(tmp_path):

@@ -7,7 +7,9 @@
 - ``refined_cameras/``: the same poses in the input's own format, with the images named as the
   input names them (relative paths from this folder, or the original image folder for COLMAP):
   ``transforms_train.json`` (Blender / NeRF-synthetic), ``transforms.json`` (instant-ngp,
-  nerfstudio) or a COLMAP text model ``sparse/0/{cameras,images,points3D}.txt``.
+  nerfstudio; with each frame's ``mask_path`` when it had one) or a COLMAP text model
+  ``sparse/0/{cameras,images,points3D}.txt``. The poses are in the world the dataset's cameras
+  were read in: a nerfstudio ``applied_transform`` has been undone, and none is written.
 
 A refined pose is the dataset's pose with the correction carried into its frame: with S the
 similarity x ↦ s(x − c) of the normalised frame and ΔM = M · M⁰⁻¹ the correction of the
@@ -111,6 +113,8 @@ def transforms_document(folder: Path, frames, poses) -> dict:
         entry = {"file_path": relative_image(folder, fr.image), "transform_matrix": opengl_pose(P),
                  "fl_x": fr.fx, "fl_y": fr.fy, "cx": fr.cx, "cy": fr.cy, "w": fr.width, "h": fr.height}
         entry.update(dict(zip(("k1", "k2", "p1", "p2", "k3"), fr.distortion[:5])))
+        if fr.mask is not None:
+            entry["mask_path"] = relative_image(folder, fr.mask)
         entries.append(entry)
     return {"frames": entries}
 
