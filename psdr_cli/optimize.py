@@ -24,6 +24,7 @@ runs (estimator overrides) live in ``<output>/<name>/<label>/``
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +38,7 @@ from .dataset_scene import dataset_frames
 from .datasets.frames import Frame
 from .estimators.camera import Projection
 from .engines import Engine
-from .errors import PsdrError
+from .errors import PsdrError, PsdrWarning
 from .estimate import Settings, guiding_line
 from .frozen_batch import FrozenBatch
 from .iteration import GuideCache, Loop, iterate
@@ -246,7 +247,9 @@ def save_cameras(exp, files: RunFiles, problem, iteration: int):
     cams = problem.cameras
     dataset = exp.optimize.target_dataset
     if dataset is not None:
-        frames = dataset_frames(dataset, "train")[1]
+        with warnings.catch_warnings():  # the dataset's warnings were given when the run read it
+            warnings.simplefilter("ignore", PsdrWarning)
+            frames = dataset_frames(dataset, "train")[1]
         poses = refined_poses([f.cam_to_world for f in frames], cams.initial, cams.matrices(), dataset.frame)
         kind, fmt = "dataset", input_format(frames)
     else:
