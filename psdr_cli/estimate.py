@@ -270,17 +270,14 @@ def ad_images(scene, edges, views, terms, settings: Settings, pass_index: int = 
     several views as one wavefront (``Term.estimate_views``, unguided) does so when their lanes fit
     in one AD pass (views · W · H · spp ≤ ``AD_LANES``), seeded by :func:`views_seed`; the other
     terms run view by view with the seeds of :func:`ad_image`. The terms are added in the order
-    of ``terms`` for every view, as :func:`ad_image` adds them. ``one_by_one``: the cameras carry
-    derivatives: a term whose wavefront holds constant cameras runs view by view
-    (``Term.views_follow_cameras``)."""
+    of ``terms`` for every view, as :func:`ad_image` adds them. ``one_by_one``: every term view
+    by view (the cameras carry derivatives, which a wavefront's constant cameras would drop)."""
     width, height = scene.resolution
     images = [dr.zeros(mi.Float, width * height * 3) for _ in views]
     for term in terms:
         spp = term_passes(term, settings, width * height)[0]
         batched = registry.term(term).estimate_views
-        if one_by_one and not registry.term(term).views_follow_cameras:
-            batched = None
-        if batched and len(views) > 1 and len(views) * width * height * spp <= AD_LANES and \
+        if batched and not one_by_one and len(views) > 1 and len(views) * width * height * spp <= AD_LANES and \
                 not has_guide(guides, term):
             seed = views_seed(settings.seed, views, pass_index, registry.term(term).stream)
             parts = batched(scene, edges, views, spp, seed, settings.estimator, settings.max_depth)

@@ -34,7 +34,6 @@ from psdr_cli.config.unknowns import CamerasUnknown
 from psdr_cli.estimate import Settings, forward_gradient, prepare, term_image, term_passes, term_seed
 from psdr_cli.datasets.views import read_frames
 from psdr_cli.errors import PsdrError
-from psdr_cli.estimators import interior, registry
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.experiment import load_experiment
 from psdr_cli.held_out import score_mesh
@@ -162,35 +161,6 @@ def test_the_second_views_pan_matches_finite_differences(tmp_path):
     resolution = fd_resolution(render_view(scene, 0, 64, seed=exp.seed), 0.003, 16384, 8)
     stats = agreement([(e.passes, e.weights) for e in est.values()], fd, resolution=resolution)
     assert agrees(stats), describe(stats)
-
-
-def test_the_interior_wavefront_follows_moving_cameras(setup):
-    """The interior term's wavefront of two views (each lane's camera ray from its own view's
-    sensor) gives camera 0's rotation and translation the derivative of the term traced view by view,
-    in expectation (24 passes of 32 spp each side; a wavefront that held the cameras as constants
-    would give ~0 against ~36 and −29). The boundary terms' wavefronts hold constant cameras and say so."""
-    exp, scene, edges, settings = setup
-    for kind, axis in (("rotate", (0.0, 0.0, 1.0)), ("translate", (1.0, 0.0, 0.0))):
-        parameter = Parameter(scene, ParameterConfig(kind=kind, axis=axis, camera=0))
-
-        def derivative(batched: bool, seed: int) -> float:
-            theta = mi.Float(0.0)
-            dr.enable_grad(theta)
-            parameter.apply(theta)
-            image = interior.estimate_views(scene, edges, [0, 1], 32, seed, exp.estimator, 2)[0] if batched else \
-                term_image(scene, edges, 0, "interior", 32, seed, settings)
-            dr.forward(theta)
-            value = float(dr.sum(dr.grad(image))[0])
-            parameter.reset()
-            return value
-
-        wave = [derivative(True, 1000 + k) for k in range(24)]
-        alone = [derivative(False, 5000 + k) for k in range(24)]
-        se = math.hypot(np.std(wave, ddof=1), np.std(alone, ddof=1)) / math.sqrt(24)
-        assert abs(np.mean(wave) - np.mean(alone)) < 4 * se, (kind, np.mean(wave), np.mean(alone), se)
-        assert abs(np.mean(alone)) > 10 * se  # the derivative is there to be dropped
-    assert registry.term("interior").views_follow_cameras
-    assert not any(registry.term(t).views_follow_cameras for t in ("primary", "direct", "indirect"))
 
 
 def test_rotation_matrices_are_rodrigues_with_the_exact_derivative_at_zero():

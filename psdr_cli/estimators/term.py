@@ -72,9 +72,6 @@ class Term:
     guide: GuideTarget | None = None   # how a boundary guide serves it (None: no guide can)
     #: one pass for several views traced as one wavefront (None: one view at a time), see above
     estimate_views: Callable[..., list] | None = None
-    #: whether ``estimate_views`` differentiates each view's camera (its rays come from the views'
-    #: own sensors); else it holds the cameras as constants and a moving camera needs one view at a time
-    views_follow_cameras: bool = False
 
     @property
     def guided(self) -> bool:
