@@ -50,12 +50,12 @@ def align_views(scene, exp, targets: list, iterations: int | None = None, warn=N
     cfg = CamerasUnknown(mode="on", learning_rate=RATE, learning_rate_final=RATE / 10, start=0, warmup=5)
     cams = CameraCorrections(cfg, params, len(scene.sensors), {}, gauge=False)
     goal = [jit_array(mi.Float, np.ravel(t)) for t in targets]
+    with dr.suspend_grad():  # the mesh is fixed: one edge table for every step
+        edges = edge_list(scene, exp.estimator, settings.edge_sort)
     for it in range(iterations):
         cams.attached = True
         cams.write(params)
         params.update()
-        with dr.suspend_grad():
-            edges = edge_list(scene, exp.estimator, settings.edge_sort)
         loss = mi.Float(0.0)
         for v, target in enumerate(goal):
             image = ad_image(scene, edges, v, exp.estimator.terms, settings, pass_index=it)
