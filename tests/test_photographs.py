@@ -4,6 +4,7 @@ agreeing, the visual hull's topology, held-out scores and one-line errors."""
 import copy
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import drjit as dr
@@ -18,7 +19,7 @@ from skimage.metrics import structural_similarity
 from psdr_cli import api, backend
 from psdr_cli.dataset_scene import look_at_point, to_dataset, to_normalised
 from psdr_cli.datasets.views import View
-from psdr_cli.errors import PsdrError
+from psdr_cli.errors import PsdrError, PsdrWarning
 from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.held_out import psnr, score_view, ssim
 from psdr_cli.visual_hull import visual_hull
@@ -211,6 +212,47 @@ def test_the_visual_hull_projects_inside_every_views_mask_and_covers_it():
         hull, mask = silhouette(V, F, view), view.mask >= 0.5
         assert not (hull & ~binary_dilation(mask)).any(), view.name
         assert not (binary_erosion(mask) & ~hull).any(), view.name
+
+
+def turned_views(views, pixels: float, seed: int = 3):
+    """``views`` with each camera turned about its own centre by ``pixels`` (at its focal
+    length) about a random axis: poses as slightly wrong as a capture's, masks kept."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for view in views:
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = pixels / view.fx
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        M = view.cam_to_world.copy()
+        M[:3, :3] = (np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K) @ M[:3, :3]
+        out.append(copy.copy(view))
+        out[-1].cam_to_world = M
+    return out
+
+
+def test_the_visual_hull_of_slightly_wrong_cameras_keeps_the_object():
+    """Cameras turned by 2 px make the masks disagree: carved exactly, the torus's tube is cut
+    (its silhouette through the true cameras leaves 500-odd pixels of the eroded masks uncovered,
+    measured); the hull carved with the margin found from the masks (with one warning) leaves
+    under a tenth of that (20, measured), and consistent masks get no margin (the same hull as
+    before, no warning)."""
+    truth = torus_views()
+    wrong = turned_views(truth, 2.0)
+
+    def lost(V, F):
+        return sum(int((binary_erosion(t.mask >= 0.5) & ~silhouette(V, F, t)).sum()) for t in truth)
+
+    exact = lost(*visual_hull(wrong, margin=0))
+    assert exact > 100
+    with pytest.warns(PsdrWarning, match="masks disagree by about"):
+        V, F = visual_hull(wrong)
+    assert lost(V, F) < exact / 10
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        V0, F0 = visual_hull(truth)
+    V1, F1 = visual_hull(truth, margin=0)
+    assert np.array_equal(V0, V1) and np.array_equal(F0, F1)
 
 
 def test_held_out_scores():
