@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .loss import Loss, ViewImages
+from .loss import Loss, RecordedLoss, ViewImages
 
 
 def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None,
@@ -32,4 +32,23 @@ def view_l1(view: ViewImages, optimize) -> mi.Float:
     return l1_loss(view.image, view.target, view.adjoint, view.weight)
 
 
-LOSS = Loss("l1", "image L1", view_l1)
+def recorded_l1(P: mi.Float, T: mi.Float, primal: bool) -> tuple:
+    """(ℓ, δ) = (Σ |P − T| / N, sign(P − T) / N) over the N values of the batch (N = 3·W·H·B:
+    the mean over the views of :func:`l1_loss`), with δ = 0 where P = T when P is the AD render's
+    own ``primal`` (the derivative of |I − T| that Dr.Jit takes there)."""
+    residual = P - T
+    scale = 1.0 / dr.width(P)
+    loss = dr.sum(dr.abs(residual)) * scale
+    delta = dr.sign(residual) * scale
+    if primal:
+        delta = dr.select(residual == 0, 0.0, delta)
+    return loss, delta
+
+
+def unweighted(stage, optimize) -> str | None:
+    """Why :func:`recorded_l1` cannot stand for :func:`view_l1` on ``stage``: it weighs every pixel
+    alike, so not with the stage's pixel weights (None without them)."""
+    return "pixel weights (its recorded form weighs every pixel alike)" if stage.weights else None
+
+
+LOSS = Loss("l1", "image L1", view_l1, recorded=RecordedLoss(recorded_l1, unweighted))

@@ -7,6 +7,9 @@ coverage C (the share of a pixel's camera rays that hit the scene:
 C's primal value is a Monte Carlo mean, exact only in the limit, so the sign is taken from that
 primal (as :func:`.l1.l1_loss` does without an adjoint render); its derivative ∂C comes only from
 the silhouettes (C is piecewise constant in the scene's parameters elsewhere).
+
+The loss has no recorded form (:class:`.loss.RecordedLoss`): C is a render of its own, which the
+recorded iteration does not make, so a run on masked views is traced.
 """
 from __future__ import annotations
 
@@ -30,4 +33,9 @@ def view_silhouette(view: ViewImages, optimize) -> mi.Float | None:
     return weight * silhouette_loss(view.coverage(), view.mask)
 
 
-LOSS = Loss("silhouette", "silhouette", view_silhouette)
+def has_masks(stage, optimize) -> bool:
+    """Whether the stage has masks: the loss may apply (with w = 0 its value is None)."""
+    return stage.masks is not None
+
+
+LOSS = Loss("silhouette", "silhouette", view_silhouette, applies=has_masks)
