@@ -1,15 +1,18 @@
 """The part of an optimisation iteration that Dr.Jit records once and replays (``dr.freeze``,
 issue 38): for the mini-batch of views v₁…v_B, the adjoint render P (``optimize.adjoint_spp``
-samples per pixel; without one, the interior render's own primal), the L1 loss and its adjoint
+samples per pixel; without one, the interior render's own primal), the loss ℓ and its adjoint
+δ = ∂ℓ/∂I, summed over the losses of :mod:`.losses.registry` that apply to the run, each in its
+recorded form (:class:`.losses.loss.RecordedLoss`; the L1 loss's
 
     ℓ = Σ |P − T| / (3·W·H·B),    δ = sign(P − T) / (3·W·H·B)   (0 where P = T without an adjoint render),
 
-and the interior term's reverse pass, the backward of Σ δ·I_interior into the scene's leaf
-buffers (:meth:`psdr_cli.problem.Problem.apply_leaves`). This is the derivative the traced loop
-takes of ``losses.l1.l1_loss`` (mean over the views of mean sign(P − T)·∂I; Dr.Jit's derivative
-of |x| is 0 at x = 0), split by term. Once the iteration's edge table is there, two boundary terms'
-backward passes are recorded and replayed too: the direct term's Σ δ·I_direct (unguided; the
-edges enter as arrays padded to a power of two, :func:`padded_edges`, and are drawn ∝ length by
+the derivative the traced loop takes of ``losses.l1.l1_loss``: Dr.Jit's derivative of |x| is 0
+at x = 0), and the interior term's reverse pass, the backward of Σ δ·I_interior into the scene's
+leaf buffers (:meth:`psdr_cli.problem.Problem.apply_leaves`): the traced loop's derivative of its
+loss, split by term (a run with a loss that has no recorded form is traced: :func:`refusal`).
+Once the iteration's edge table is there, two boundary terms' backward passes are recorded and
+replayed too: the direct term's Σ δ·I_direct (unguided; the edges enter as arrays padded to a
+power of two, :func:`padded_edges`, and are drawn ∝ length by
 :class:`.estimators.boundary_sampling.LengthDistribution`, whose kernels do not depend on their
 number) and the primary term's Σ δ·I_primary (each view's curves selected on the host in numpy,
 :func:`.estimators.primary.primary_edge_ids`, and handed over end to end as arrays padded to a
@@ -23,9 +26,9 @@ into the run's cameras (:class:`.estimators.camera.CameraTable`), the seeds as a
 of all views as one array, the edges and curves as padded arrays with their counts. A recording
 is replayed only while the structure it was recorded on holds (:class:`BatchShape`,
 :class:`DirectShape`, :class:`PrimaryShape`: the scene object, the film, the batch size, the
-sample counts and passes, the slots); when it changes (a remesh builds a new scene, a stage a new
-film) the next call is traced and recorded again. Guided passes, which read their guides' numpy
-between kernels, stay traced.
+sample counts and passes, the losses, the slots); when it changes (a remesh builds a new scene, a
+stage a new film) the next call is traced and recorded again. Guided passes, which read their
+guides' numpy between kernels, stay traced.
 
 Parameters (experiment keys)
 ----------------------------
@@ -55,6 +58,7 @@ from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from .estimators.registry import term as registry_term
 from .jitarray import jit_array
+from .losses.registry import recorded_names, recorded_sum, recording_refusal
 
 #: The term whose reverse pass is recorded with the adjoint render (before the edge table is there).
 FROZEN_TERM = "interior"
@@ -72,7 +76,8 @@ MIN_EDGE_SLOTS = 256
 class BatchShape:
     """What a recording is valid for: the scene object (a remesh builds a new one), the film
     W × H, the batch size B, the interior term's samples per pixel, the adjoint render's passes,
-    the path depth and whether camera rays that leave the scene see the background."""
+    the path depth, whether camera rays that leave the scene see the background, and the names of
+    the losses that apply to the run, whose recorded forms it sums."""
     scene_id: int
     width: int
     height: int
@@ -81,6 +86,7 @@ class BatchShape:
     adjoint_passes: tuple
     max_depth: int
     hide_background: bool
+    losses: tuple
 
 
 @dataclass(frozen=True)
@@ -140,17 +146,19 @@ def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
 
 def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
     """Why the frozen part cannot serve this run (None: it can). It needs psdr's interior term
-    with a batch of ``batch`` views in one AD pass, the L1 loss alone (no pixel
-    weights or masks), the shape as the only unknown (its vertex buffer written by the large-steps
-    solve: the case the tests replay; a buffer written from a host array before each call replayed
-    wrong results on Dr.Jit 1.5, ``benchmarks/freeze_direct_probe.py``) and Mitsuba's perspective
-    cameras, fixed."""
+    with a batch of ``batch`` views in one AD pass, for every loss that applies to the run a
+    recorded form that stands for it on ``stage`` (:func:`.losses.registry.recording_refusal`: the
+    L1 loss's takes no pixel weights, the silhouette loss of masked views has none), the shape as
+    the only unknown (its vertex buffer written by the large-steps solve: the case the tests
+    replay; a buffer written from a host array before each call replayed wrong results on Dr.Jit
+    1.5, ``benchmarks/freeze_direct_probe.py``) and Mitsuba's perspective cameras, fixed."""
     if not cfg.freeze:
         return "optimize.freeze is false"
     if engine.name != "psdr" or FROZEN_TERM not in engine.terms:
         return "the interior term is not psdr's"
-    if stage.weights or stage.masks is not None:
-        return "pixel weights or masks"
+    losses = recording_refusal(stage, cfg)
+    if losses is not None:
+        return losses
     if list(problem.opt.keys()) != ["u"]:
         return "unknowns besides the shape (albedo, lighting, materials)"
     if problem.cameras is not None and (problem.cameras.attached or problem.cameras.moved):
@@ -168,8 +176,8 @@ def batch_loss(shape: BatchShape, mi_scene, table: CameraTable, targets: mi.Floa
     """(ℓ, δ) of the module docstring, the interior term's backward pass run here. ``targets``
     holds every view's target (flat W·H·3 each, view-major), ``views`` the batch's indices into it
     and into ``table``; ``adjoint_seeds`` one seed per pass of ``shape.adjoint_passes``. Without
-    adjoint passes P is the interior render's own primal, and δ is 0 where P = T (the derivative
-    of |I − T| that the traced loss takes there)."""
+    adjoint passes P is the interior render's own primal (the losses' derivatives are then those
+    the traced loss takes of I itself, :class:`.losses.loss.RecordedLoss`)."""
     n = 3 * shape.width * shape.height
     image = pass_sums(shape, mi_scene, table, views, shape.spp, interior_seed, ad=True) / shape.spp
     with dr.suspend_grad():
@@ -184,12 +192,7 @@ def batch_loss(shape: BatchShape, mi_scene, table: CameraTable, targets: mi.Floa
         lane = dr.arange(mi.UInt32, n * shape.views)
         k = lane // n  # (literals here and below: recorded per structure; an opaque scalar is a memset per replay)
         T = dr.gather(mi.Float, targets, dr.gather(mi.UInt32, views, k) * n + (lane - k * n))
-        residual = P - T
-        scale = 1.0 / (n * shape.views)
-        loss = dr.sum(dr.abs(residual)) * scale
-        delta = dr.sign(residual) * scale
-        if not shape.adjoint_passes:
-            delta = dr.select(residual == 0, 0.0, delta)
+        loss, delta = recorded_sum(shape.losses, P, T, primal=not shape.adjoint_passes)
     dr.backward(dr.sum(delta * image))
     return loss, delta
 
@@ -381,7 +384,8 @@ class FrozenBatch:
         spp = term_passes(FROZEN_TERM, settings, width * height)[0]  # one pass per iteration, as ad_images
         adjoint = tuple(passes_for(cfg.adjoint_spp, width * height * len(views))) if cfg.adjoint_spp else ()
         return BatchShape(id(problem.scene.mi_scene), width, height, len(views), spp, adjoint,
-                          settings.max_depth, bool(problem.scene.config.hide_background))
+                          settings.max_depth, bool(problem.scene.config.hide_background),
+                          recorded_names(stage, cfg))
 
     def prepare(self, problem, stage):
         """The cameras and the targets of a new scene or stage as arrays."""

@@ -214,8 +214,9 @@ def traced_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, 
 
 
 def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, ahead, edges) -> mi.Float:
-    """The iteration's L1 loss with the recorded parts (:mod:`psdr_cli.frozen_batch`): the adjoint
-    render (if any) and the interior term's backward pass replayed, then (unguided) the direct term's and
+    """The iteration's loss with the recorded parts (:mod:`psdr_cli.frozen_batch`: the recorded
+    forms of the losses that apply): the adjoint render (if any), the loss and its adjoint δ and
+    the interior term's backward pass replayed, then (unguided) the direct term's and
     (without intersection curves) the primary term's (their gradient already in the scene's
     leaves), the other terms traced as Σ_v Σ δ_v·I_v,term,
     whose primal value is 0, and the priors.
