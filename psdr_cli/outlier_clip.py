@@ -1,22 +1,15 @@
-"""Gradient spikes clipped against Adam's own second moment (``optimize.outlier_clip``).
+"""Owns the clipping of gradient spikes against Adam's running norm (``optimize.outlier_clip``).
+Reads the optimiser's state and the unknowns' gradients; writes those gradients.
 
-At ``scene.max_depth`` ≥ 3 the interior term's surface-to-surface segments carry the derivative
-of |n_k·ω| at the vertex they reach (``estimators/interior.py``, ``segment_ratio``). A grazing hit
-makes that factor d|n_k·ω| / |n_k·ω| large, and grazing hits are drawn with probability ∝ |n_k·ω|:
-the estimate stays unbiased (finite differences agree) but its variance diverges logarithmically,
-so a rare sample is tens of times the others. The large-steps preconditioner spreads such a
-sample over the whole shape (a coherent push, mostly translation): measured on a cup started at
-its true shape, one iteration's gradient 14 times the usual norm moved it 0.047 (its size is 3)
-within five iterations (docs/benchmarks/unknown_light.md). Before each step the gradient g of
-each unknown is scaled down to at most c times its usual norm:
+Before each step the gradient g of each unknown is scaled down to at most c times its usual norm:
 
     g ← g · min(1, c·√S / ‖g‖),   S = Σ_i v_i / (1 − β₂ᵗ)
 
 with v Adam's second-moment estimate before this step (Σ_i v_i is the running mean of ‖g‖²), t
-its step count and c the factor. Clipping starts after ``WARMUP`` steps, when S is meaningful.
-The estimators and ``psdr grad`` never clip: only the optimiser's step is made robust (a step
-whose gradient is clipped is shorter than the estimate asks, so clipping is off where no such
-tail exists)."""
+its step count and c the factor, from step ``WARMUP`` on. ``auto`` clips from path depth
+``AUTO_DEPTH``, where the interior term's surface-to-surface segments give an unbiased estimate
+with a heavy tail (docs/optimize.md, "Outlier clipping at depth ≥ 3"). The estimators and
+``psdr grad`` never clip."""
 from __future__ import annotations
 
 import drjit as dr
