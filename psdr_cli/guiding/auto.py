@@ -1,30 +1,13 @@
-"""``estimator.guiding: auto``: the guide each boundary term gets, from the size of one pass.
+"""Owns ``estimator.guiding: auto``: the guide each boundary term gets, from the size of one pass.
+Reads the guiding setting and the pass size; touches nothing.
 
-Guiding pays when its build (about a fixed share of one pass, :mod:`.targets`) and its costlier
-passes are outweighed by lower variance per sample. Both grow with the image: a pass of
-L = W · H · boundary_spp lanes spreads its samples over more of the image's edges, and the
-guide concentrates them where the integrand is non-zero. The rule, from
-``benchmarks/guiding.py`` (docs/benchmarks/guiding.md, equal wall time, build included):
+A pass of L = W · H · boundary_spp lanes guides the direct and indirect terms with ``kdtree``
+when L ≥ :data:`MIN_LANES` (2¹⁶), else with ``none``; the grid guide is never chosen. The rule
+and the equal-time measurements behind it are in docs/guiding.md, "guiding: auto". Other values
+of ``estimator.guiding`` (none, grid, kdtree) apply to every term unchanged.
 
-- direct and indirect term: ``kdtree`` when L ≥ MIN_LANES (2¹⁶), else ``none``. Measured: the
-  Kd-tree reached 0.22–0.45× the unguided MIS error at 32² × 64 spp (L = 2¹⁶, Cornell box with
-  a glass sphere, both terms guided; the indirect term alone: 0.34×), 48² × 64 spp (sun-lit
-  glossy bunny, soft shadow) and 128² × 64 spp (all three). Smaller passes are not measured and
-  stay unguided (a Kd-tree's first batch has at least 2¹⁷ samples, two such passes);
-- the grid guide is never chosen (it was worse than the Kd-tree in every measured case but one).
-
-Other values of ``estimator.guiding`` (none, grid, kdtree) apply to every term unchanged.
-
-In the optimisation loop ``auto`` guides no term (:func:`in_loop`). The rule above is measured
-on forward-mode gradient images; the loop steps with Adam on reverse-mode gradients, and there
-no guide paid at equal time in any reconstruction measured (docs/guiding.md, "Guiding in the
-loop"): the runs were limited by their iteration count, not by gradient noise (four times the
-boundary samples, or four times the vertices, gave the same shape per iteration), and a
-lower-variance gradient only enlarged Adam's effective step. With both estimators at their best
-step (``benchmarks/guided_loop.py``) the loop-fed Kd-tree ended 1.09× unguided's Chamfer-L1 at
-the Fig. 10 shadow experiment's scale, 1.14–1.16× at 1–2 boundary spp and 1.03× at four and at
-sixteen times the vertices: no measured scale crosses 1.
-"""
+In the optimisation loop ``auto`` guides no term (:func:`in_loop`): there no guide paid at equal
+time in any reconstruction measured (docs/guiding.md, "Guiding in the loop")."""
 from __future__ import annotations
 
 from ..estimators.registry import GUIDED
