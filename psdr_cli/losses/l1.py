@@ -1,4 +1,5 @@
-"""The photometric loss: mean absolute difference of a render and its target."""
+"""Owns the photometric loss: the mean absolute difference of a render and its target, traced and
+recorded. Reads a view's images; touches nothing else."""
 from __future__ import annotations
 
 import drjit as dr
@@ -10,16 +11,10 @@ from .loss import Loss, RecordedLoss, ViewImages
 def l1_loss(image: mi.Float, target: mi.Float, adjoint: mi.Float | None = None,
             weight: mi.Float | None = None) -> mi.Float:
     """L = mean |I − T| with derivative ∂L = mean sign(I − T)·∂I (with ``weight`` w:
-    mean w·|I − T|, pixels of weight 0 left out).
-
-    With ``adjoint`` P (an independent primal render of the same view) the value is mean |P − T|
-    and the derivative mean sign(P − T)·∂I. Taking the sign from the AD image I itself (n
-    samples) gives the exact gradient of E|I_n − T|, the L1 loss of a noisy render: a different
-    objective, minimised where the median (not the mean) of the n-sample pixel estimate meets
-    the target, whose gradient also shrinks wherever the residual is small next to the noise. A
-    P of more samples, independent of those of ∂I, brings the estimate close to the gradient of
-    the noise-free image's L1 loss at the cost of a forward render (docs/optimize.md, "Gradient
-    quality per second")."""
+    mean w·|I − T|, pixels of weight 0 left out). With ``adjoint`` P, an independent primal render
+    of the same view, L = mean |P − T| and ∂L = mean sign(P − T)·∂I: close to the gradient of the
+    noise-free image's L1 loss, where the sign from I itself gives that of E|I − T|
+    (docs/optimize.md, "Gradient quality per second")."""
     w = 1.0 if weight is None else weight
     if adjoint is None:
         return dr.mean(w * dr.abs(image - target))
