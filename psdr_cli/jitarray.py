@@ -1,16 +1,13 @@
-"""numpy arrays handed to Dr.Jit without changing the kernels that read them.
+"""Owns the hand-over of numpy arrays to Dr.Jit in 64-byte aligned memory, so that the kernels
+reading them do not change. Reads numpy arrays; writes aligned copies of them.
 
 Dr.Jit (1.x, LLVM backend) does not copy a numpy array given to an array constructor such as
 ``mi.UInt32(a)``: it maps the array's memory. A kernel that loads from mapped memory declares
 the load ``align 64`` when the address is a multiple of 64 bytes and ``align 1`` otherwise, and
 that is part of the kernel's source, so of its hash. numpy aligns its allocations to 16 bytes
-only: the same traced code, fed freshly converted index arrays (edge lists, curve ids, adjoint
-images) every iteration, becomes a different kernel whenever one of them lands on another
-alignment, and is compiled again. Measured without aligned copies: 2–4 kernels per reverse pass
-(0.16–0.37 s of a 0.53–0.78 s gradient) in the first iterations on a fixed bunny shape (1642
-vertices, four views, one thread), until the on-disk kernel cache holds every variant (a
-300-iteration run of ``configs/reconstruct_bunny.yaml`` from an empty cache compiles 156 kernels
-without them and 121 with them, in the same 109 s: on a warm cache the cost is gone either way).
+only, so the same traced code fed freshly converted arrays would become a different kernel
+whenever one of them lands on another alignment (measured in docs/optimize.md, "Kernels
+compiled once").
 
 :func:`jit_array` copies the values into a 64-byte aligned numpy buffer first (the mapped array
 keeps that buffer alive), so every load is ``align 64`` and a kernel is compiled once per run.
