@@ -1,4 +1,6 @@
-"""Dr.Jit / Mitsuba start-up: libLLVM discovery, kernel cache, variant selection.
+"""Owns Dr.Jit / Mitsuba start-up: libLLVM discovery, the kernel cache, variant selection and
+Dr.Jit's CPU thread count. Reads the environment (``DRJIT_*``, ``PSDR_*``, ``XDG_CACHE_HOME``);
+writes ``DRJIT_LIBLLVM_PATH``, ``DRJIT_CACHE_DIR``, the cache folder and Mitsuba's variant.
 
 Dr.Jit's LLVM backend needs libLLVM >= 16 (LLVM 15 aborts with "Cannot select: fminimum").
 The library is chosen through the ``DRJIT_LIBLLVM_PATH`` environment variable, which must be set

@@ -1,5 +1,8 @@
-"""The part of an optimisation iteration that Dr.Jit records once and replays (``dr.freeze``,
-issue 38): for the mini-batch of views v₁…v_B, the adjoint render P (``optimize.adjoint_spp``
+"""Owns the part of an optimisation iteration that Dr.Jit records once and replays
+(``dr.freeze``). Reads the problem's scene, the cameras, the targets and the iteration's edges and
+curves; writes the gradients of the scene's leaf buffers.
+
+For the mini-batch of views v₁…v_B it records the adjoint render P (``optimize.adjoint_spp``
 samples per pixel; without one, the interior render's own primal), the loss ℓ and its adjoint
 δ = ∂ℓ/∂I, summed over the losses of :mod:`.losses.registry` that apply to the run, each in its
 recorded form (:class:`.losses.loss.RecordedLoss`; the L1 loss's
@@ -34,7 +37,7 @@ Parameters (experiment keys)
 ----------------------------
 ``optimize.freeze`` (bool, default true)
     Record and replay this part when the run allows it (:func:`refusal` says when it does not);
-    false: every iteration is traced as before (the same estimator; the cameras from Mitsuba's
+    false: every iteration is traced (the same estimator; the cameras from Mitsuba's
     sensor objects instead of the table, equal up to rounding).
 """
 from __future__ import annotations
@@ -149,9 +152,9 @@ def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
     with a batch of ``batch`` views in one AD pass, for every loss that applies to the run a
     recorded form that stands for it on ``stage`` (:func:`.losses.registry.recording_refusal`: the
     L1 loss's takes no pixel weights, the silhouette loss of masked views has none), the shape as
-    the only unknown (its vertex buffer written by the large-steps solve: the case the tests
-    replay; a buffer written from a host array before each call replayed wrong results on Dr.Jit
-    1.5, ``benchmarks/freeze_direct_probe.py``) and Mitsuba's perspective cameras, fixed."""
+    the only unknown (its vertex buffer written by the large-steps solve: Dr.Jit 1.5 replays a
+    buffer written from the host wrongly, docs/benchmarks/iteration_time.md, "The recorded part of
+    an iteration") and Mitsuba's perspective cameras, fixed."""
     if not cfg.freeze:
         return "optimize.freeze is false"
     if engine.name != "psdr" or FROZEN_TERM not in engine.terms:
