@@ -427,9 +427,9 @@ def read_shapes(mi_scene, xml: Path, emitters: list, warnings: list) -> tuple:
 
 def refuse_instances_on_cuda(group: str, variant: str, xml: Path):
     """Shapegroups (and so their instances) are refused on CUDA variants: psdr rebuilds a scene
-    from the loaded XML's objects, and on the first GPU run (Mitsuba 3.9.1, ``cuda_ad_rgb``,
-    H200) ``mi.load_dict`` of a rebuilt scene holding a shapegroup instance ended the process with
-    a segmentation fault; the LLVM variants render it."""
+    from the loaded XML's objects, and ``mi.load_dict`` of a rebuilt scene holding a shapegroup
+    instance crashes Mitsuba's CUDA variant (docs/benchmarks/gpu_first_run.md); the LLVM variants
+    render it."""
     if variant.startswith("cuda"):
         raise ConfigError(xml, f"shapegroup '{group}'", f"instances of a shapegroup crash Mitsuba's {variant} "
                           "when psdr rebuilds the scene; use variant llvm_ad_rgb or replace the instances by meshes")

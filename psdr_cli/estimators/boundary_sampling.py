@@ -53,8 +53,8 @@ def camera_origins(mi_scene: mi.Scene) -> np.ndarray:
 def sensor_origins(sensors) -> np.ndarray:
     """(n, 3) positions of ``sensors`` (float64). Remembered for the Dr.Jit variables that hold
     them (a moved sensor holds new ones; the entry keeps them alive, so their indices are not
-    reused meanwhile): read again, each sensor's translation was a kernel of its own, every
-    iteration of an optimisation."""
+    reused meanwhile), so that an optimisation's iterations do not read each sensor's translation
+    with a kernel of its own."""
     translations = [s.world_transform().translation() for s in sensors]
     key = tuple(t[c].index for t in translations for c in range(3))
     if 0 in key or key not in _ORIGINS:  # index 0: not a Dr.Jit variable, not remembered

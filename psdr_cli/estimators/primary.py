@@ -56,10 +56,9 @@ from .term import Term, boundary_pass
 
 #: Offset of the two radiance samples from the edge, as a fraction of the image's larger side
 #: (6.4e-5 px at 32 px, 1e-3 px at 512 px: ≥ 16 float32 ulps of the pixel coordinate). The
-#: difference of the two samples is the jump plus 2·offset·∂L/∂n, and next to a silhouette ∂L/∂n
-#: is steep (grazing faces): an offset of 10⁻³ px at 32 px inflated the image-edge sum of a lit
-#: smooth blob by 0.6 % and its inner-edge sum several times over (docs/gradients.md). Intersection
-#: curves move their side samples out of the ray-spawn band around the curve (crossing_offsets).
+#: difference of the two samples is the jump plus 2·offset·∂L/∂n, and ∂L/∂n is steep next to a
+#: silhouette (grazing faces), so the offset is small (docs/gradients.md). Intersection curves
+#: move their side samples out of the ray-spawn band around the curve (crossing_offsets).
 SIDE_EPS = 2e-6
 #: Relative depth within which a foreign hit counts as "at the edge" (a neighbour face sharing an
 #: end point of the edge, hit by a side ray near that end point).
@@ -396,9 +395,8 @@ def crossing_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height:
     ``spawn_ray``, n the facet normal on the ray's side). Next to an intersection curve the other
     surface's plane passes within m of p, and where the two normals point apart (a sharp crease)
     that start point lies behind it: inside the other solid, where every ray from it is blocked.
-    A side sample at the default offset then reads a radiance of 0 (or a partly blocked one):
-    the band is 2·10⁻⁴…6·10⁻⁴ px wide at 32 px on the smooth head with its eye, against
-    6.4·10⁻⁵ px. So each side moves out until its plane point lies CROSSING_MARGIN·m·max(0,
+    A side sample at the default offset can fall in that band and read a radiance of 0 (or a
+    partly blocked one; the band's measured width is in docs/gradients.md). So each side moves out until its plane point lies CROSSING_MARGIN·m·max(0,
     −n_o·n_p) from the other plane (n_p the seen face's normal towards the camera, n_o the other
     face's towards p), found from the two planes through the curve (``x`` a point of it,
     ``n0``/``n1`` their normals) without tracing, and at most CROSSING_MAX_EPS·size. Only where
@@ -440,9 +438,9 @@ def fold_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int
     ``spawn_ray``, the sign that of n_a·ω). Within m·(−n_a·n_b) of the edge that start lies beyond
     the plane of the other face b, so rays that face b blocks escape it (or rays it does not block
     start behind it). For a flat face only directions below its own plane leak, and those carry no
-    reflectance; a smooth face's shading normal reflects part of them, so the side read at the
-    default offset (6·10⁻⁵ px at 32 px; the band is ≈ 10⁻⁴ px wide at a 92° fold and 10⁻² px at a
-    170° fold at 40 px) was the wrong radiance. A side that lands on one of the edge's faces at the
+    reflectance; a smooth face's shading normal reflects part of them, so a side read at the
+    default offset inside that band is the wrong radiance (the band's measured width is in
+    docs/gradients.md). A side that lands on one of the edge's faces at the
     default offset moves out until its point on that face's plane lies FOLD_MARGIN·m·(−n_a·n_b)
     from the other face's plane, at most FOLD_MAX_EPS of the image size; a side that lands
     elsewhere (beyond a silhouette) keeps its offset."""
@@ -544,9 +542,8 @@ def stratified(u: mi.Float, n_samples: int, view=None) -> mi.Float:
     (j = i − view·N for lane i) takes (j + u_j) / N, uniform in [j/N, (j + 1)/N). Inverting the
     cumulative mass at stratified points is unbiased like independent draws (each stratum is
     drawn once with probability 1/N) and leaves less variance; consecutive lanes then draw
-    neighbouring points of the curve list, so their rays stay coherent (measured on the demo's
-    scene: 0.64-0.82 × the variance, 0.85 × the kernel time of a pass;
-    ``benchmarks/primary_stratified.py``)."""
+    neighbouring points of the curve list, so their rays stay coherent (docs/theory.md §4;
+    measured in docs/benchmarks/iteration_time.md, stop 46)."""
     lane = dr.arange(mi.UInt32, dr.width(u))
     if view is not None:
         lane -= view * dr.opaque(mi.UInt32, n_samples)
