@@ -1,7 +1,8 @@
 """psdr: path-space differentiable rendering with guided boundary sampling (Yan et al. 2022).
 
-Importing the package first prepares Dr.Jit (libLLVM, kernel cache), before any module loads
-``drjit``; then the API of :mod:`psdr_cli.api` is available at the top level::
+Importing the package first prepares Dr.Jit (libLLVM, kernel cache, LLVM target: it writes
+``DRJIT_*`` environment variables, :mod:`psdr_cli.backend`), before any module loads ``drjit``;
+then the API of :mod:`psdr_cli.api` is available at the top level::
 
     import psdr_cli
     exp = psdr_cli.load_experiment("configs/demo.yaml")

@@ -1,4 +1,5 @@
-"""Equal-time and equal-sample comparisons of boundary estimators (``psdr compare``).
+"""Equal-time and equal-sample comparisons of boundary estimators (``psdr compare``). Reads the
+experiment; writes the comparison's EXRs, grid, compare.md and compare.json.
 
 A comparison renders the forward-mode gradient image of one view and the given terms (usually
 ``direct``/``indirect``) with several *variants* (guiding × sampling × edge sorting) and measures

@@ -1,4 +1,5 @@
 """Shape error (``psdr evaluate``): symmetric Chamfer and Hausdorff distances to a reference.
+Reads meshes and run folders; writes the evaluation's report, JSON, plots and mesh copies.
 
 Both meshes are normalised with the *reference's* bounding box (centre at the origin, longest
 side 1), N points are drawn on each surface by area with a fixed seed, and with

@@ -1,5 +1,6 @@
 """``psdr export RUN_OR_MESH [--out DIR] [--texture IMAGE]``: a reconstruction as assets other tools
-open: Wavefront OBJ + MTL + PNG and binary glTF 2.0 (.glb).
+open: Wavefront OBJ + MTL + PNG and binary glTF 2.0 (.glb). Reads a run folder or a mesh file;
+writes the export folder.
 
 From a ``psdr optimize`` run folder: ``final.ply`` (already in the user's coordinates) with the
 texture coordinates and the recovered albedo of the run's ``state.npz`` (``optimize.albedo``: a

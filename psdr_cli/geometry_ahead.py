@@ -1,5 +1,6 @@
 """An iteration's edge table and intersection search, computed on a worker thread while the
-iteration's first kernels run.
+iteration's first kernels run. Reads the meshes' buffers and the cameras on the main thread; the
+worker touches only numpy copies of them.
 
 Both are numpy work on the current vertices (:func:`psdr_cli.estimators.boundary_sampling.edge_rows`,
 :func:`psdr_cli.intersections.intersection_segments`), rebuilt every iteration; the optimisation

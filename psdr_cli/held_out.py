@@ -1,6 +1,7 @@
 """A reconstruction scored without a ground-truth mesh: its renders from a dataset's held-out
 cameras against the photographs (``psdr evaluate`` on an experiment with
-``optimize.target.dataset``).
+``optimize.target.dataset``). Reads the run's mesh and values and the dataset; writes one PNG
+error strip per view when given a folder.
 
 Per held-out view, with the render R and the target T (the premultiplied composite α·C when the
 background is hidden, :mod:`psdr_cli.target_sources.camera_dataset`), both linear and clipped to [0, 1]:

@@ -1,4 +1,5 @@
 """The SIMD target of Dr.Jit's LLVM backend: how many float lanes its kernels process at once.
+Reads ``PSDR_LLVM_LANES``; writes the target of every kernel the process compiles.
 
 Dr.Jit compiles its CPU kernels for the host: 16 lanes with AVX-512, 8 with AVX2. The rounding of
 a few operations depends on that choice (with AVX-512 the reciprocal square root starts from

@@ -1,5 +1,6 @@
 """Triangle meshes: procedural shapes, files (PLY/OBJ), validation and object transforms, and
 the world-space mesh of each scene object (an XML scene's meshes as Mitsuba loaded them).
+Reads mesh files; writes only the decimated Stanford bunny, cached in psdr's cache folder.
 
 Everything here is numpy: a mesh is ``(V, F)`` with ``V`` float64 (n, 3) and ``F`` int64 (m, 3).
 """

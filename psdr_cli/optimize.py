@@ -1,4 +1,5 @@
-"""Inverse rendering (``psdr optimize``): reconstruct an object's shape from images.
+"""Inverse rendering (``psdr optimize``): reconstruct an object's shape from images. Owns the
+loop over iterations; reads the experiment and the targets; writes the run folder.
 
 Each iteration renders a mini-batch of views with the psdr estimator in reverse mode (or with
 Mitsuba's projective integrators: ``estimator.engine``, :mod:`psdr_cli.engines`) and takes one

@@ -3,6 +3,7 @@ MAP.exr``), as Stanford-ORB scores inverse rendering: the recovered object (its 
 material values or textures; not its recovered light) is rendered under the lat-long map MAP
 (times ``scale``) from every camera of DATASET (photographs of the object under that light, in the
 training capture's world frame, any format psdr reads) and compared with the photographs.
+Reads the run, the dataset and the map; writes one PNG error strip per view when given a folder.
 
 Light × albedo is ambiguous, so before scoring each view's render R is given the per-channel
 least-squares scale against its photograph T over the mask's pixels M (α ≥ ½):

@@ -1,4 +1,5 @@
-"""Forward rendering of camera views with the interior estimator (``psdr render``).
+"""Forward rendering of camera views with the interior estimator (``psdr render``). Reads the
+experiment; writes one EXR (and a PNG preview) per view.
 
 Pixels use a box filter: sample j of pixel (x, y) is the film point ((x, y) + ξ_j) / (W, H) with ξ_j
 uniform in [0,1)², and the pixel value is the mean of its ``spp`` radiance samples. Large sample
@@ -27,7 +28,7 @@ from .scene import build_scene
 
 def camera_header(cam: CameraConfig) -> dict:
     """The EXR header ``psdr.camera`` of a camera: origin, target, up, fov, and its principal
-    point offset only when it is not centred (headers of centred cameras are as before)."""
+    point offset only when it is not centred (a centred camera's header has no such key)."""
     d = {"origin": cam.origin, "target": cam.target, "up": cam.up, "fov": cam.fov}
     if any(cam.principal_point):
         d["principal_point"] = list(cam.principal_point)

@@ -1,4 +1,6 @@
-"""Ray sweeps (``--ray``): every run of an ablation, or every variant of a comparison, as one Ray task.
+"""Owns Ray sweeps (``--ray``): every run of an ablation, or every variant of a comparison, as one
+Ray task. Reads the experiment and its run folders; starts or joins a Ray instance; writes the run
+folders and the comparison's files (in ``copy`` mode the driver is their only writer).
 
 ``psdr optimize cfg.yaml --ray [ADDRESS]`` runs each run of :func:`psdr_cli.run_folder.variants.variant_experiments`
 (each variant × seed of ``optimize.variants``) as one Ray task calling the same

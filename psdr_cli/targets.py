@@ -1,6 +1,7 @@
 """What an optimisation fits and where it starts: the target images from their source
 (:mod:`psdr_cli.target_sources`: rendered from a ground-truth mesh and cached in the run folder,
-EXR files from ``psdr render``, or the photographs of a camera dataset) and the initial shape."""
+EXR files from ``psdr render``, or the photographs of a camera dataset) and the initial shape.
+Reads the experiment and the sources; writes the initial shape as the run's checkpoint 0."""
 from __future__ import annotations
 
 from . import atlas, meshes

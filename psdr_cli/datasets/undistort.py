@@ -1,4 +1,5 @@
-"""Removing lens distortion once, into a cache folder.
+"""Removing lens distortion once, into a cache folder. Reads a frame's image and mask; writes
+their undistorted copies there and returns the frame with its new pinhole camera.
 
 A frame with distortion coefficients is resampled (OpenCV ``initUndistortRectifyMap`` and
 ``remap``, bilinear, in linear colour) into an ideal pinhole image of the **same size**. Its new

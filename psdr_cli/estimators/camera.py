@@ -88,7 +88,7 @@ class Projection:
         self.tan_half = math.tan(math.radians(float(dr.ravel(params["x_fov"])[0])) / 2)
         self.near = float(sensor.near_clip()) if hasattr(sensor, "near_clip") else 1e-2
         self.offset = principal_point_offset(sensor, params)
-        # ½ − o as Python floats: exactly 0.5 for a centred camera (the same kernel as before)
+        # ½ − o as Python floats: exactly 0.5 for a centred camera (then its kernel has no offset in it)
         self.centre = (0.5 - self.offset[0], 0.5 - self.offset[1])
 
     def __call__(self, p):

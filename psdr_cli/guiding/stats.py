@@ -1,4 +1,5 @@
-"""``psdr guide-stats``: guide sizes and costs, edge chains, the target along u1 (paper Fig. 5)."""
+"""``psdr guide-stats``: guide sizes and costs, edge chains, the target along u1 (paper Fig. 5).
+Reads the experiment; writes guide_stats.json and its plots."""
 from __future__ import annotations
 
 import time
