@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 from iteration_time import setup  # noqa: E402
 
 from psdr_cli import backend  # noqa: E402
-from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, LengthDistribution, edge_list,  # noqa: E402
+from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, EdgeDraw, LengthDistribution, edge_list,  # noqa: E402
                                                    in_wedge, ray_origin, sample_edge_point, sample_wedge)
 from psdr_cli.estimators.camera import CameraTable, LaneCameras  # noqa: E402
 from psdr_cli.estimators.direct import direct_motion, segment_weight  # noqa: E402
@@ -69,10 +69,10 @@ def body(level, mi_scene, table, views, ids, flip, open_, count, seed):
         k = dr.arange(mi.UInt32, SIZE * SIZE * VIEWS) // dr.opaque(mi.UInt32, SIZE * SIZE)
         cams = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k))
         if level == "segment":
-            coef, _, _, _, kept, _, _, _ = segment_weight(mi_scene, cams, e, w, None, pdf, False, ray_origin(e), None)
+            coef, _, _, _, kept, _, _, _ = segment_weight(mi_scene, cams, e, w, (None, pdf), ray_origin(e), None, mis=False)
             return dr.sum(mi.Float(kept)), dr.sum(coef[0])
-    v, pixel, kept, size = direct_motion(mi_scene, cams, edges, P, LengthDistribution(lengths, count), "dir", False, u1, u2, 1.0,
-                                         None)
+    draw = EdgeDraw(edges, P, LengthDistribution(lengths, count))
+    v, pixel, kept, size = direct_motion(mi_scene, cams, draw, "dir", (u1, u2), 1.0, None, mis=False)
     if level == "motion":
         return dr.sum(mi.Float(kept)), dr.sum(dr.detach(v[0]))
     dr.backward(dr.sum(v[0] - dr.detach(v[0])))

@@ -100,7 +100,7 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
     return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report)
 
 
-def evaluate(paths, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,
+def evaluate(paths, reference: Path | None = None, *, samples: int | None = None, json_out: Path | None = None,
              report: Path | None = None, progress=None, align: str = "auto", relight=None):
     """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult
     (for an experiment with a camera dataset: held-out view scores, a HeldOutReport; ``align``:

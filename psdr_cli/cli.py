@@ -358,7 +358,8 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
         raise PsdrError(f"--envmap-scale: expected a number > 0, got {envmap_scale}")
     light = api.Relight(relight, envmap, envmap_scale) if relight is not None else None
     with Bar("evaluate") as bar:
-        res = api.evaluate(paths, reference, samples, json_out, report, progress=bar, align=align, relight=light)
+        res = api.evaluate(paths, reference, samples=samples, json_out=json_out, report=report, progress=bar,
+                           align=align, relight=light)
     if light is not None:
         print_relit(res)
         return

@@ -101,4 +101,5 @@ class Engine:
         :mod:`psdr_cli.estimators.coverage`), by psdr's estimators whatever the engine."""
         est = self.settings.estimator
         seeds = tuple(pass_seed(self.settings.seed, view, iteration, s) for s in COVERAGE_STREAMS)
-        return coverage_image(problem.scene, edges, problem.cfg.object, view, est.spp, est.primary_spp, seeds, est)
+        return coverage_image(problem.scene, edges, problem.cfg.object, view, seeds, est, spp=est.spp,
+                              primary_spp=est.primary_spp)

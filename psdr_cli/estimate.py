@@ -140,7 +140,7 @@ def make_guides(scene, edges: BoundaryEdges, views, terms, settings: Settings, p
     :mod:`psdr_cli.guiding.auto`). With the scalar ``parameter`` θ (forward mode) the direct
     term's guides follow dv/dθ, velocity included."""
     return build_guides(scene, edges, list(views), settings.guide_kinds(terms), settings.sampling,
-                        settings.max_depth, settings.estimator, settings.seed, parameter=parameter)
+                        settings.max_depth, settings.estimator, seed=settings.seed, parameter=parameter)
 
 
 def uses_guides(settings: Settings, terms) -> bool:
@@ -171,7 +171,7 @@ def term_image(scene, edges: BoundaryEdges, view: int, term: str, spp: int, seed
     of the guided terms."""
     guide = guides.get(term) if guides else None
     return registry.term(term).estimate(scene, edges, view, spp, seed, settings.estimator, settings.max_depth,
-                                        guide)
+                                        guide=guide)
 
 
 def term_seed(settings: Settings, view: int, pass_index: int, term: str) -> int:

@@ -367,7 +367,8 @@ def evaluate_relit(exp, relight: Relight, json_out: Path | None = None, progress
         progress.start(len(runs))
     for run, (iteration, mesh) in runs:
         folder = fileio.writable_folder(run.run_dir / "relight")
-        scores = relight_mesh(run, mesh, relight.dataset, relight.envmap, relight.scale, run_values(run.run_dir), folder)
+        scores = relight_mesh(run, mesh, relight.dataset, relight.envmap, scale=relight.scale,
+                              values=run_values(run.run_dir), out=folder)
         row = {"mesh": str(mesh), "iteration": iteration, "views": len(scores.views), "dataset": str(relight.dataset),
                "envmap": str(relight.envmap), "envmap_scale": relight.scale,
                **{k: scores.mean(k) for k in ("psnr_h", "psnr_l", "ssim", "iou")},

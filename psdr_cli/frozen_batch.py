@@ -52,11 +52,11 @@ import numpy as np
 from .estimate import has_guide, term_passes
 from .estimators.boundary_sampling import (SEARCH_STEPS, BoundaryEdges, length_distribution, sensor_origins,
                                            vertex_buffer)
-from .estimators.camera import CameraTable, LaneCameras, is_perspective, table_camera_rays
+from .estimators.camera import CameraTable, LaneCameras, ViewLanes, is_perspective, table_camera_rays
 from .estimators.direct import direct_samples
 from .estimators.interior import radiance
-from .estimators.primary import (CurveTable, camera_edge_ids, crossing_count, curve_pass, drawable, edge_shape_ids,
-                                 view_starts)
+from .estimators.primary import (CurveCameras, CurveTable, SideReading, camera_edge_ids, crossing_count, curve_pass,
+                                 drawable, edge_shape_ids, view_starts)
 from .estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from .estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from .estimators.registry import term as registry_term
@@ -212,20 +212,21 @@ def pass_sums(shape: BatchShape, mi_scene, table: CameraTable, views: mi.UInt32,
     return dr.ravel(mi.Color3f([dr.block_sum(L[c], spp, mode="evaluated") for c in range(3)]))
 
 
-def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32, ids: list,
-                    flip: mi.Bool, open_: mi.Bool, count: mi.UInt32, delta: mi.Float):
+def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
+                    padded: tuple, delta: mi.Float):
     """The direct term's pass over the batch (the samples of its ``estimate_views``, the cameras
     from ``table``) and the backward pass of Σ δ·I_direct into the scene's leaves. The edges
-    (``ids``: their six vertex-id columns, ``flip``, ``open_``; ``shape.slots`` entries, of which
-    ``count`` real ones, at least one, and the rest of length 0: :func:`padded_edges`) index the
-    concatenated vertex buffers of ``shape.names``."""
+    ``padded`` = (ids: their six vertex-id columns, flip, open, count; ``shape.slots`` entries, of
+    which ``count`` real ones, at least one, and the rest of length 0: :func:`padded_edges`) index
+    the concatenated vertex buffers of ``shape.names``."""
+    ids, flip, open_, count = padded
     edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
     P = edges.positions(mi.traverse(mi_scene))
     n = shape.spp * shape.width * shape.height
     sampler = make_sampler(seed, n * shape.views)
     k = dr.arange(mi.UInt32, n * shape.views) // n
-    cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k))
-    samples = direct_samples(mi_scene, cameras, k, edges, P, n, sampler, shape.sampling,
+    lanes = ViewLanes(LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k)), k, shape.views)
+    samples = direct_samples(mi_scene, lanes, edges, P, n, sampler, shape.sampling,
                              distr=length_distribution(edges, P, count))
     dr.backward(adjoint_sum(delta, samples))
     return count  # (a frozen function returns something)
@@ -249,10 +250,10 @@ def primary_backward(shape: PrimaryShape, mi_scene, table: CameraTable, views: m
     n = shape.spp * shape.width * shape.height
     sampler = make_sampler(seed, n * shape.views)
     view = dr.arange(mi.UInt32, n * shape.views) // n
-    cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, view))
-    curve_cameras = LaneCameras.from_table(table, dr.gather(mi.UInt32, views, columns["view"]))
-    samples = curve_pass(mi_scene, cameras, view, curve_cameras, curves, start, count, n, sampler, shape.width,
-                         shape.height, shape.max_depth, shape.hide_background, None)
+    cameras = CurveCameras(LaneCameras.from_table(table, dr.gather(mi.UInt32, views, view)), view,
+                           LaneCameras.from_table(table, dr.gather(mi.UInt32, views, columns["view"])))
+    reading = SideReading(shape.width, shape.height, shape.max_depth, shape.hide_background)
+    samples = curve_pass(mi_scene, cameras, curves, (start, count), n, sampler, reading)
     dr.backward(adjoint_sum(delta, [samples]))
     return count
 
@@ -437,7 +438,7 @@ class FrozenBatch:
         seed = views_seed(settings.seed, views, iteration, registry_term(DIRECT_TERM).stream)
         ids, flip, open_ = padded_edges(edges, shape.slots)
         self.direct_part(shape, problem.scene.mi_scene, self.table, mi.UInt32(views), opaque(seed),
-                         ids, flip, open_, opaque(edges.count), delta)
+                         (ids, flip, open_, opaque(edges.count)), delta)
 
     def serves_primary(self, problem, views, settings, edges) -> bool:
         """Whether the primary term's part can run on this iteration's ``edges`` (the batch in one

@@ -136,6 +136,23 @@ def window_budget(cfg, views: int) -> int:
     return per_pass_budget(cfg.guide_every * min(cfg.batch_size, views))
 
 
+@dataclass
+class Batch:
+    """An iteration's mini-batch: its ``views``, the iteration number ``it`` and its edge table:
+    ``edges`` once fetched, fetched from ``ahead`` (the worker thread that builds it; None when
+    the engine needs no edges) when first needed (:meth:`edge_table`)."""
+    views: list
+    it: int
+    ahead: GeometryAhead | None
+    edges: object = None
+
+    def edge_table(self):
+        """The edge table (waits for the worker the first time), or None without one."""
+        if self.edges is None and self.ahead is not None:
+            self.edges = self.ahead.edges()
+        return self.edges
+
+
 def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     """Iteration ``it`` of the run ``loop`` on the shape of ``problem``."""
     cfg, engine, settings, warn = loop.cfg, loop.engine, loop.settings, loop.warn
@@ -153,21 +170,20 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     problem.scene.objects[cfg.object].faces = problem.F
     ahead = GeometryAhead(problem.scene, settings.estimator, settings.edge_sort, "primary" in engine.terms) \
         if engine.needs_edges else None  # the edge table on the worker thread (geometry_ahead.py)
-    edges = None
+    batch = Batch(views, it, ahead)
     t_guide = time.perf_counter()
     anchor = max([a for a in cfg.remesh.at if a <= it] + [0])  # guides restart after a remesh
     build = stage.guided and (guides.guides is None or (it - anchor) % cfg.guide_every == 0)
     if build:
-        edges = ahead.edges() if ahead is not None else None
-        guides.refresh(problem, edges, stage, loop)
+        guides.refresh(problem, batch.edge_table(), stage, loop)
     t_render = time.perf_counter() if build else t_guide  # no guide built: no guiding time
     if frozen:
-        loss = frozen_loss(problem, loop, stage, guides, views, it, ahead, edges)
+        loss = frozen_loss(problem, loop, stage, guides, batch)
         if dr.grad_enabled(loss):
             dr.backward(loss)
         problem.backward_leaves(values, leaves)
     else:
-        loss = traced_loss(problem, loop, stage, guides, views, it, ahead, edges)
+        loss = traced_loss(problem, loop, stage, guides, batch)
         dr.backward(loss)
     problem.applied = None  # the backward pass used up the scene's AD graph: the next apply rebuilds it
     loss_value = float(loss[0])
@@ -190,16 +206,16 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
 
 
-def traced_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, ahead, edges) -> mi.Float:
+def traced_loss(problem, loop: Loop, stage, guides: GuideCache, batch: Batch) -> mi.Float:
     """The iteration's loss: every view's losses (:mod:`psdr_cli.losses`) over the batch, the
     unknowns' priors added, its AD graph reaching the optimiser's variables."""
     cfg, engine = loop.cfg, loop.engine
+    views, it = batch.views, batch.it
     loss = mi.Float(0.0)
     # the adjoint render first: its kernels run while the worker builds the edge table
     adjoints = adjoint_images(problem.scene, views, cfg.adjoint_spp, loop.settings.seed, it) if cfg.adjoint_spp \
         else [None] * len(views)
-    if edges is None and ahead is not None:
-        edges = ahead.edges()
+    edges = batch.edge_table()
     images = engine.images(problem, edges, views, it, guides.guides)
     for v, img, adjoint in zip(views, images, adjoints):
         view = ViewImages(img, stage.arrays[v], adjoint, stage.weights[v] if stage.weights else None,
@@ -213,7 +229,7 @@ def traced_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, 
     return loss
 
 
-def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, ahead, edges) -> mi.Float:
+def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, batch: Batch) -> mi.Float:
     """The iteration's loss with the recorded parts (:mod:`psdr_cli.frozen_batch`: the recorded
     forms of the losses that apply): the adjoint render (if any), the loss and its adjoint δ and
     the interior term's backward pass replayed, then (unguided) the direct term's and
@@ -222,9 +238,9 @@ def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, views, it: int, 
     whose primal value is 0, and the priors.
     Returns ℓ + that sum + the priors, for one backward pass of the traced part."""
     engine = loop.engine
+    views, it = batch.views, batch.it
     loss, delta = loop.frozen(problem, stage, views, it, loop.settings, loop.cfg)
-    if edges is None and ahead is not None:
-        edges = ahead.edges()
+    edges = batch.edge_table()
     rest = tuple(t for t in engine.terms if t != FROZEN_TERM)
     if DIRECT_TERM in rest and loop.frozen.serves_direct(problem, views, loop.settings, edges, guides.guides):
         loop.frozen.direct(problem, views, it, loop.settings, edges, delta)

@@ -239,8 +239,8 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
                              {"psdr.iteration": str(iteration)})
     if problem.cameras:
         save_cameras(exp, files, problem, iteration)
-    return write_checkpoint(files, iteration, dataset_coordinates(exp, problem.vertices()), problem.F, texture,
-                            previews, problem.factor, uv=problem.uv)
+    return write_checkpoint(files, iteration, dataset_coordinates(exp, problem.vertices()), problem.F,
+                            texture=texture, previews=previews, zoom=problem.factor, uv=problem.uv)
 
 
 def save_cameras(exp, files: RunFiles, problem, iteration: int):

@@ -121,7 +121,7 @@ def score_relit(name: str, render: np.ndarray, target: np.ndarray, mask, covered
                      tuple(float(s) for s in scale)), scaled
 
 
-def relight_mesh(exp, mesh: Path, dataset: Path, envmap: Path, scale: float = 1.0, values: dict | None = None,
+def relight_mesh(exp, mesh: Path, dataset: Path, envmap: Path, *, scale: float = 1.0, values: dict | None = None,
                  out: Path | None = None, spp: int = 256) -> RelightResult:
     """``mesh`` (the dataset's coordinates) with the recovered ``values`` relit by ``envmap`` from
     every camera of ``dataset`` and scored (module docstring); strips go to ``out``."""

@@ -54,7 +54,7 @@ def render_view(scene, view: int, spp: int, seed: int = 0, max_depth: int | None
     with dr.suspend_grad():
         for p, n in enumerate(passes_for(spp, width * height)):
             total += render_pass(scene.mi_scene, sensor, width, height, n, max_depth,
-                                 pass_seed(seed, view, p, RENDER_STREAM), scene.config.hide_background)
+                                 pass_seed(seed, view, p, RENDER_STREAM), hide_background=scene.config.hide_background)
             if progress:
                 progress(n)
     return (total / spp).astype(np.float32)
@@ -71,7 +71,8 @@ def render_views(scene, views, spp: int, seed: int = 0, max_depth: int | None = 
     with dr.suspend_grad():
         for p, n in enumerate(passes_for(spp, width * height * len(views))):
             sums = views_pass(scene.mi_scene, sensors, width, height, n, max_depth,
-                              views_seed(seed, views, p, RENDER_STREAM), scene.config.hide_background)
+                              views_seed(seed, views, p, RENDER_STREAM),
+                              hide_background=scene.config.hide_background)
             total = sums if total is None else total + sums
         return split_views(total / spp, len(views))
 

@@ -183,8 +183,9 @@ def direct_tiles(scene, edges, seed: int, batched: bool, spp: int = 16) -> np.nd
 
     def trace(P):
         if batched:
-            return views_direct_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n), "mis")
-        return [direct_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), "mis")
+            return views_direct_boundary(scene.mi_scene, scene.sensors, edges, P, n, make_sampler(seed, 3 * n),
+                                         technique="mis")
+        return [direct_boundary(scene.mi_scene, s, edges, P, n, make_sampler(seed + 7 * k, n), technique="mis")
                 for k, s in enumerate(scene.sensors)]
     return translation_tiles(scene, SHADOW_KEY, (1, 0, 0), trace)
 

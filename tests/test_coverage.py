@@ -88,7 +88,7 @@ def _pixel_gradient(scene, edges, key, V0, axis, seeds):
     params[key] = dr.ravel(V)
     params.update()
     est = type("E", (), {"primary_sampling": "length"})()
-    C = coverage_image(scene, edges, "blob", 0, 4, 64, seeds, est)
+    C = coverage_image(scene, edges, "blob", 0, seeds, est, spp=4, primary_spp=64)
     dr.forward(t)
     return dr.grad(C)
 

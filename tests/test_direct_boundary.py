@@ -51,7 +51,7 @@ class Shadow:
         dr.enable_grad(theta)
         self.set_theta(theta)
         img = direct_boundary(self.scene.mi_scene, self.scene.sensors[0], self.edges, self.params[KEY], n,
-                              make_sampler(seed, n), technique)
+                              make_sampler(seed, n), technique=technique)
         dr.set_grad(theta, 1.0)
         dr.forward_to(img)
         grad = np.array(dr.grad(img)).reshape(R, R, 3)
@@ -134,7 +134,7 @@ def test_reverse_mode_matches_forward_mode(shadow):
     dr.enable_grad(theta)
     shadow.set_theta(theta)
     img = direct_boundary(shadow.scene.mi_scene, shadow.scene.sensors[0], shadow.edges, shadow.params[KEY], n,
-                          make_sampler(seed, n), "mis")
+                          make_sampler(seed, n), technique="mis")
     loss = dr.sum(img * weights)
     dr.set_grad(theta, 1.0)
     dr.forward_to(loss)
@@ -145,7 +145,7 @@ def test_reverse_mode_matches_forward_mode(shadow):
     shadow.params[KEY] = P
     shadow.params.update()
     img = direct_boundary(shadow.scene.mi_scene, shadow.scene.sensors[0], shadow.edges, shadow.params[KEY], n,
-                          make_sampler(seed, n), "mis")
+                          make_sampler(seed, n), technique="mis")
     dr.backward(dr.sum(img * weights))
     reverse = float(np.array(dr.grad(P)).reshape(-1, 3)[:, 0].sum())
     shadow.set_theta(mi.Float(0.0))

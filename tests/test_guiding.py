@@ -13,7 +13,7 @@ from psdr_cli.experiment import parse_experiment
 from psdr_cli.estimate import forward_gradient, make_guides, prepare
 from psdr_cli.guiding import auto, build_grid, build_kdtree
 from psdr_cli.estimators.sample_log import SampleLog, thinned
-from psdr_cli.guiding.kdtree import KdTreeGuide
+from psdr_cli.guiding.kdtree import KdTreeGuide, TreeLimits
 from psdr_cli.guiding.loop_fed import fitted_guides
 from psdr_cli.guiding.targets import Guides
 from psdr_cli.guiding.guide import GuideStats, trilinear_weights
@@ -36,7 +36,8 @@ def variant():
 @pytest.mark.parametrize("kind", ["grid", "kdtree"])
 def test_guide_pdf_normalised_and_matches_samples(variant, kind):
     guide = (build_grid(peaked, (16, 8, 8), 8, 0.05, seed=1) if kind == "grid"
-             else build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=1, initial_samples=4096))
+             else build_kdtree(peaked, [0.2, 0.4, 0.7], limits=TreeLimits(32, 0.002), epsilon=0.05, seed=1,
+                               initial_samples=4096))
     rng = np.random.default_rng(2)
     # ∫ g = 1: mean of g at uniform points
     p = guide.pdf_np(rng.random((200_000, 3)))
@@ -63,7 +64,7 @@ def test_trilinear_leaf_sampling_matches_density(variant):
     corners = np.array([[0.1, 2.0, 0.5, 1.0, 3.0, 0.0, 1.5, 0.7]])
     axis, split, child, leaf = (np.array([-1]), np.zeros(1), np.array([-1]), np.array([0]))
     guide = KdTreeGuide(np.zeros((1, 3)), np.ones((1, 3)), corners, 0.0, GuideStats("kdtree"),
-                        axis, split, child, leaf)
+                        (axis, split, child, leaf))
     rng = np.random.default_rng(3)
     s, ps = guide.sample_np(400_000, rng)
     b = np.minimum((s * 8).astype(int), 7)
@@ -283,8 +284,8 @@ def test_check_detects_a_biased_guide(tmp_path):
     scene, parameter, edges, settings = prepare(exp)
     half = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]), np.array([[0.5, 1.0, 1.0], [1.0, 1.0, 1.0]])
     corners = np.array([np.zeros(8), np.ones(8)])
-    biased = KdTreeGuide(*half, corners, 0.0, GuideStats("kdtree"), np.array([0, -1, -1]),
-                         np.array([0.5, 0, 0]), np.array([1, -1, -1]), np.array([-1, 0, 1]))
+    biased = KdTreeGuide(*half, corners, 0.0, GuideStats("kdtree"), (np.array([0, -1, -1]),
+                         np.array([0.5, 0, 0]), np.array([1, -1, -1]), np.array([-1, 0, 1])))
     from psdr_cli.guiding.targets import Guides
     sums = []
     for guides in (Guides(), Guides(direct={"light": biased})):
@@ -391,9 +392,10 @@ def test_auto_guiding_rule():
 def test_kdtree_refresh_from_a_prior_guide(variant):
     """A refresh draws one batch from the previous guide: still a normalised density that
     estimates ∫F̃ without bias, built from (1 + refine_ratio) × initial_samples evaluations."""
-    first = build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=1, initial_samples=4096)
-    guide = build_kdtree(peaked, [0.2, 0.4, 0.7], 32, 0.002, epsilon=0.05, seed=2, initial_samples=4096,
-                         prior=first)
+    first = build_kdtree(peaked, [0.2, 0.4, 0.7], limits=TreeLimits(32, 0.002), epsilon=0.05, seed=1,
+                         initial_samples=4096)
+    guide = build_kdtree(peaked, [0.2, 0.4, 0.7], limits=TreeLimits(32, 0.002), epsilon=0.05, seed=2,
+                         initial_samples=4096, prior=first)
     assert guide.stats.evaluations == 3 * 4096 and guide.stats.leaves > 1
     rng = np.random.default_rng(4)
     p = guide.pdf_np(rng.random((200_000, 3)))

@@ -162,7 +162,8 @@ def test_intersection_curve_sides_clear_the_ray_spawn_offset(tmp_path):
         seen &= np.array(primary.lands_on_own_face(scene, camera_ray(sensor, q + sign * base * n_s, W, W), own, True))
     normals = [mi.Vector3f(*(mi.Float(getattr(curves, a)[:, i].astype(np.float32)) for i in range(3)))
                for a in ("normal0", "normal1")]
-    offsets = primary.crossing_offsets(scene, SensorCamera(sensor, W, W), q, n_s, curves.p0, *normals, own, W, W, True)
+    offsets = primary.crossing_offsets(scene, SensorCamera(sensor, W, W), primary.SidePoints(q, n_s, curves.p0, own),
+                                       normals, W, True)
     n = 256
 
     def side_radiance(offset):
@@ -381,8 +382,8 @@ def test_folded_edge_sides_clear_the_ray_spawn_offset(tmp_path):
     normals = [mi.Vector3f(*(mi.Float(getattr(curves, a)[folded, i].astype(np.float32)) for i in range(3)))
                for a in ("fold0", "fold1")]
     base = primary.SIDE_EPS * W
-    offsets = primary.fold_offsets(scene, SensorCamera(sensor, W, W), q, n_s, x, *normals, own, W, W, [mi.Float(-base), mi.Float(base)],
-                                   True)
+    offsets = primary.fold_offsets(scene, SensorCamera(sensor, W, W), primary.SidePoints(q, n_s, x, own), normals, W,
+                                   [mi.Float(-base), mi.Float(base)], True)
     n = 256
 
     def side_radiance(offset):

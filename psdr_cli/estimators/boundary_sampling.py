@@ -273,6 +273,21 @@ def edge_distribution(edges: BoundaryEdges, P) -> LengthDistribution:
     return edges.remembered("distribution", [P], lambda: length_distribution(edges, P))
 
 
+@dataclass
+class EdgeDraw:
+    """The boundary edges of a pass as its samples draw them: the ``edges``, the vertex buffer
+    ``P`` their end points index (AD when the vertices move) and the distribution ``distr`` an
+    edge is drawn from (:func:`edge_distribution`, or one built for a recorded pass)."""
+    edges: BoundaryEdges
+    P: object
+    distr: object
+
+
+def edge_draw(edges: BoundaryEdges, P) -> EdgeDraw:
+    """The edges at positions ``P``, drawn ∝ their length (:func:`edge_distribution`)."""
+    return EdgeDraw(edges, P, edge_distribution(edges, P))
+
+
 def sample_edge_point(edges: BoundaryEdges, P, distr: LengthDistribution, u1: mi.Float) -> EdgeSample:
     """x^B = p0 + s (p1 − p0) for the edge k chosen by u1 (s reuses the remainder of u1, or is
     1 − remainder on flipped edges)."""

@@ -151,6 +151,16 @@ class SensorCamera:
         return importance, ds.d, ds.uv, ds.pdf > 0, ds.dist
 
 
+@dataclass
+class ViewLanes:
+    """The cameras a pass's lanes connect to: ``camera`` (:class:`SensorCamera`, or
+    :class:`LaneCameras`: each lane's own), ``view`` each lane's view (None: one view) and
+    ``count`` the views, whose images are joined view-major."""
+    camera: object
+    view: object
+    count: int
+
+
 class LaneCameras:
     """Several perspective sensors of one film size W × H for lanes that belong to different
     views, with :class:`SensorCamera`'s two methods: lane i uses camera ``view[i]`` of

@@ -45,10 +45,11 @@ def hit_share(scene, view: int, spp: int, seed: int, sid: int) -> mi.Float:
         return dr.block_sum(hit, spp, mode="evaluated") / spp
 
 
-def coverage_image(scene, edges, name: str, view: int, spp: int, primary_spp: int, seeds: tuple,
-                   estimator) -> mi.Float:
-    """C of the object ``name`` in ``view`` (flat W·H, AD): its hit share plus the silhouettes'
-    boundary term (primal 0), from the random streams ``seeds`` = (hits, silhouettes)."""
+def coverage_image(scene, edges, name: str, view: int, seeds: tuple, estimator, *, spp: int,
+                   primary_spp: int) -> mi.Float:
+    """C of the object ``name`` in ``view`` (flat W·H, AD): its hit share (``spp`` rays per pixel)
+    plus the silhouettes' boundary term (``primary_spp`` samples per pixel, primal 0), from the
+    random streams ``seeds`` = (hits, silhouettes)."""
     width, height = scene.resolution
     sid = object_id(scene, name)
     image = hit_share(scene, view, spp, seeds[0], sid)
@@ -56,5 +57,5 @@ def coverage_image(scene, edges, name: str, view: int, spp: int, primary_spp: in
         return image
     n, sampler, P = boundary_pass(scene, edges, primary_spp, seeds[1])
     boundary = primary_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, 1,
-                                estimator.primary_sampling, coverage=sid)
+                                sampling=estimator.primary_sampling, coverage=sid)
     return image + dr.gather(mi.Float, boundary, dr.arange(mi.UInt32, width * height) * 3)

@@ -42,9 +42,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .boundary_sampling import (BoundaryEdges, EdgeSample, edge_distribution, in_wedge, normalize,
-                                pdf_wedge, primary_sample, ray_origin, sample_edge_point, sample_wedge)
-from .camera import SensorCamera, connect_camera, lane_views
+from .boundary_sampling import (BoundaryEdges, EdgeDraw, EdgeSample, edge_draw, in_wedge, normalize, pdf_wedge,
+                                primary_sample, ray_origin, sample_edge_point, sample_wedge)
+from .camera import SensorCamera, ViewLanes, connect_camera, lane_views
 from .interior import environment_motion, split_views, turn
 from .sample_log import SampleLog
 from .term import GuideTarget, Term, boundary_pass
@@ -59,15 +59,17 @@ def emitter_pdf(scene: mi.Scene, xB, siS, active):
     return scene.pdf_emitter_direction(it, ds, active)
 
 
-def segment_weight(scene, camera, edge: EdgeSample, w, p_light, p_dir, mis: bool, origin, light_point):
+def segment_weight(scene, camera, edge: EdgeSample, w, densities, origin, light_point, *, mis: bool):
     """Everything detached for one technique's samples: returns (coef, m̂, uv, pixel, mask, x^D,
     env, λ) with ``env`` the lanes whose source is the environment and λ = t_S/(t_S + t_D) the
     lever of the detector end's motion (1 for the environment; see :func:`direct_motion`).
 
     The sample is divided by p(x^B)·p(ω) with p(ω) = p_light + p_dir for MIS, else the density of
-    the technique that drew it. ``light_point`` is the sampled emitter point (``None`` for the wedge
-    technique, whose p_light is then evaluated from the traced source ray when MIS needs it).
+    the technique that drew it (``densities`` = (p_light, p_dir)). ``light_point`` is the sampled
+    emitter point (``None`` for the wedge technique, whose p_light is then evaluated from the
+    traced source ray when MIS needs it).
     """
+    p_light, p_dir = densities
     xB = dr.detach(edge.xB)
     ok = in_wedge(edge, w)
     # Source end: +ω reaches emission (for light sampling: exactly the sampled point)
@@ -120,14 +122,16 @@ def sample_light(scene: mi.Scene, xB, u):
     return ds.d, ds.pdf, point
 
 
-def direct_segments(scene: mi.Scene, camera, edges: BoundaryEdges, P, distr, technique: str, mis: bool, u1, u2):
-    """Detached boundary segments of one technique from primary samples (u1, u2).
+def direct_segments(scene: mi.Scene, camera, draw: EdgeDraw, technique: str, u, *, mis: bool):
+    """Detached boundary segments of one technique from primary samples ``u`` = (u1, u2) on the
+    edges ``draw``.
 
     Returns (edge, ω, coef, m̂, film uv, pixel, mask, x^D, env, λ): ``coef`` is the u-space
     integrand without the velocity, G·t_D·sinφ·σ (see :func:`segment_weight`); ``edge.xB`` keeps
-    its AD dependence on ``P``; ``camera`` is a :class:`.camera.SensorCamera` or
+    its AD dependence on ``draw.P``; ``camera`` is a :class:`.camera.SensorCamera` or
     :class:`.camera.LaneCameras`."""
-    edge = sample_edge_point(edges, P, distr, u1)
+    u1, u2 = u
+    edge = sample_edge_point(draw.edges, draw.P, draw.distr, u1)
     with dr.suspend_grad():
         xB = dr.detach(edge.xB)
         origin = ray_origin(edge)
@@ -136,35 +140,33 @@ def direct_segments(scene: mi.Scene, camera, edges: BoundaryEdges, P, distr, tec
             p_dir = pdf_wedge(edge)
         else:
             (w, p_dir), p_light, point = sample_wedge(edge, u2), None, None
-        coef, mhat, uv, pixel, ok, xD, env, lever = segment_weight(scene, camera, edge, w, p_light, p_dir,
-                                                                   mis, origin, point)
+        coef, mhat, uv, pixel, ok, xD, env, lever = segment_weight(scene, camera, edge, w, (p_light, p_dir),
+                                                                   origin, point, mis=mis)
     return edge, w, coef, mhat, uv, pixel, ok, xD, env, lever
 
 
-def direct_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
+def direct_target(scene: mi.Scene, sensors, draw: EdgeDraw, technique: str, u, *, mis: bool):
     """Guide target F̃(u) = Σ_views max_RGB |coef| for primary samples u (mi.Point3f)."""
     with dr.suspend_grad():
-        distr = edge_distribution(edges, P)
         total = mi.Float(0.0)
         for sensor in sensors:
-            coef = direct_segments(scene, SensorCamera(sensor, *sensor.film().size()), edges, P, distr,
-                                   technique, mis, u.x, mi.Point2f(u.y, u.z))[2]
+            coef = direct_segments(scene, SensorCamera(sensor, *sensor.film().size()), draw, technique,
+                                   (u.x, mi.Point2f(u.y, u.z)), mis=mis)[2]
             total += dr.max(dr.abs(coef))
         return total
 
 
-def direct_motion(scene: mi.Scene, camera, edges: BoundaryEdges, P, distr, technique: str, mis: bool, u1, u2,
-                  weight, env_motion):
-    """(v, pixel, mask, F̃) of samples (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through ``P``
-    and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ. F̃ = max_RGB |coef|
-    (detached, 0 where masked) is the guide target at the samples (:func:`direct_target`).
+def direct_motion(scene: mi.Scene, camera, draw: EdgeDraw, technique: str, u, weight, env_motion, *, mis: bool):
+    """(v, pixel, mask, F̃) of samples ``u`` = (u1, u2): v = weight · coef · (m̂ · ω(θ)) (AD through
+    ``draw.P`` and x^D(θ)); its derivative dv/dθ is the sample's contribution to dI/dθ.
+    F̃ = max_RGB |coef| (detached, 0 where masked) is the guide target at the samples
+    (:func:`direct_target`).
 
     ω(θ) = normalize(x^B(θ) − x^D_λ(θ)) with x^D_λ = x^D + λ (x^D(θ) − x^D), λ = t_S/(t_S + t_D):
     the source point x^S is fixed, so a moving x^D turns the segment x^D → x^S about x^S and
     moves it at the edge by only λ ẋ^D (m̂·ω̇ = m̂·(ẋ^B − λ ẋ^D)/t_D, the static-source case of
     the indirect term's m̂·(u̇2 − ẋ^S)); λ = 1 for the environment."""
-    edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, camera, edges, P, distr,
-                                                                         technique, mis, u1, u2)
+    edge, w, coef, mhat, uv, pixel, ok, xD, env, lever = direct_segments(scene, camera, draw, technique, u, mis=mis)
     with dr.suspend_grad():
         size = dr.select(ok, dr.max(dr.abs(coef)), 0.0)
         coef *= weight
@@ -179,58 +181,60 @@ def direct_motion(scene: mi.Scene, camera, edges: BoundaryEdges, P, distr, techn
     return coef * dr.dot(mhat, rel), pixel, ok, size
 
 
-def direct_motion_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u):
+def direct_motion_target(scene: mi.Scene, sensors, draw: EdgeDraw, technique: str, u, *, mis: bool):
     """[v per view] of :func:`direct_motion` at primary samples u (mi.Point3f), weight 1: with θ's
     gradient propagated, Σ_views max_RGB |dv/dθ| is the guide target including the velocity."""
-    distr = edge_distribution(edges, P)
     env_motion = environment_motion(scene)
-    return [direct_motion(scene, SensorCamera(sensor, *sensor.film().size()), edges, P, distr, technique, mis, u.x,
-                          mi.Point2f(u.y, u.z), 1.0, env_motion)[0] for sensor in sensors]
+    return [direct_motion(scene, SensorCamera(sensor, *sensor.film().size()), draw, technique,
+                          (u.x, mi.Point2f(u.y, u.z)), 1.0, env_motion, mis=mis)[0] for sensor in sensors]
 
 
 def direct_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                    sampler: mi.Sampler, technique: str = "mis", guides=None):
+                    sampler: mi.Sampler, *, technique: str = "mis", guides=None):
     """Direct boundary contribution (flat W·H·3 image whose primal value is 0) from ``n_samples``
     samples (pairs for MIS); ``P`` is the AD vertex buffer of the edge objects. ``guides`` maps a
     technique (``light``/``dir``) to a guide over its primary samples (None: uniform); a
     :class:`~.sample_log.SampleLog` also keeps the samples for the next guide."""
     width, height = sensor.film().size()
-    return direct_image(scene, SensorCamera(sensor, width, height), None, 1, edges, P, n_samples, sampler,
-                        technique, guides)
+    lanes = ViewLanes(SensorCamera(sensor, width, height), None, 1)
+    return direct_image(scene, lanes, edges, P, n_samples, sampler, technique, guides=guides)
 
 
 def views_direct_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
-                          technique: str = "mis") -> list:
+                          *, technique: str = "mis") -> list:
     """:func:`direct_boundary` of several views (one film size, unguided) traced as one wavefront:
     lane i (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view
     i // n_samples of ``sensors`` and connects to that view's camera (:class:`.camera.LaneCameras`);
     one image per view."""
     view, cameras = lane_views(sensors, n_samples)
-    img = direct_image(scene, cameras, view, len(sensors), edges, P, n_samples, sampler, technique)
+    img = direct_image(scene, ViewLanes(cameras, view, len(sensors)), edges, P, n_samples, sampler, technique)
     return split_views(img, len(sensors))
 
 
-def direct_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges, P, n_samples: int,
-                 sampler: mi.Sampler, technique: str, guides=None, distr=None) -> mi.Float:
-    """The direct boundary contributions of ``count`` views as one flat image, view-major (count·W·H·3),
-    each lane's sample added to its view's part (:func:`direct_samples`)."""
-    img = dr.zeros(mi.Float, camera.width * camera.height * 3 * count)
-    for v, pixel, ok in direct_samples(scene, camera, view, edges, P, n_samples, sampler, technique, guides, distr):
+def direct_image(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
+                 technique: str, *, guides=None, distr=None) -> mi.Float:
+    """The direct boundary contributions of ``lanes.count`` views as one flat image, view-major
+    (count·W·H·3), each lane's sample added to its view's part (:func:`direct_samples`)."""
+    camera = lanes.camera
+    img = dr.zeros(mi.Float, camera.width * camera.height * 3 * lanes.count)
+    for v, pixel, ok in direct_samples(scene, lanes, edges, P, n_samples, sampler, technique, guides=guides,
+                                       distr=distr):
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
     return img
 
 
-def direct_samples(scene: mi.Scene, camera, view, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
-                   technique: str, guides=None, distr=None) -> list:
+def direct_samples(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
+                   technique: str, *, guides=None, distr=None) -> list:
     """Each technique's (v − detach(v), pixel, mask) per lane, v from :func:`direct_motion` with
-    weight W·H / N and the pixel in its view's part of the views' joined image (``view``: each
-    lane's view, None for one view); none without edges. ``distr``: the edges' length
+    weight W·H / N and the pixel in its view's part of the views' joined image (``lanes.view``:
+    each lane's view, None for one view); none without edges. ``distr``: the edges' length
     distribution (default: :func:`.boundary_sampling.edge_distribution`)."""
+    camera, view = lanes.camera, lanes.view
     width, height = camera.width, camera.height
     if edges.count == 0:
         return []
-    distr = edge_distribution(edges, P) if distr is None else distr
+    draw = edge_draw(edges, P) if distr is None else EdgeDraw(edges, P, distr)
     env_motion = environment_motion(scene)
     scale = dr.opaque(mi.Float, (width * height) / n_samples)
     out = []
@@ -238,8 +242,8 @@ def direct_samples(scene: mi.Scene, camera, view, edges: BoundaryEdges, P, n_sam
         u1, u2, g = primary_sample(sampler, (guides or {}).get(t))
         if isinstance(guides, SampleLog):
             dr.eval(u1, u2, g)  # kept: read once by the kernels below and by the log
-        v, pixel, ok, size = direct_motion(scene, camera, edges, P, distr, t, technique == "mis", u1, u2,
-                                           dr.detach(scale / g), env_motion)
+        v, pixel, ok, size = direct_motion(scene, camera, draw, t, (u1, u2), dr.detach(scale / g), env_motion,
+                                           mis=technique == "mis")
         if isinstance(guides, SampleLog):
             guides.record(t, u1, u2, size, g)
         if view is not None:
@@ -248,12 +252,13 @@ def direct_samples(scene: mi.Scene, camera, view, edges: BoundaryEdges, P, n_sam
     return out
 
 
-def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
+def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int, *,
              guide=None) -> mi.Float:
     """One pass of the direct term (:class:`~.term.Term` signature) with ``estimator.sampling``;
     ``guide`` maps a technique to its guide."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed)
-    return direct_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, estimator.sampling, guide)
+    return direct_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, technique=estimator.sampling,
+                           guides=guide)
 
 
 def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
@@ -262,7 +267,7 @@ def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, esti
     image per view."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed, len(views))
     return views_direct_boundary(scene.mi_scene, [scene.sensors[v] for v in views], edges, P, n, sampler,
-                                 estimator.sampling)
+                                 technique=estimator.sampling)
 
 
 def guide_techniques(sampling: str) -> tuple:
@@ -270,10 +275,10 @@ def guide_techniques(sampling: str) -> tuple:
     return ("light", "dir") if sampling == "mis" else (sampling,)
 
 
-def guide_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u, sampler,
-                 max_depth: int) -> mi.Float:
+def guide_target(scene: mi.Scene, sensors, draw: EdgeDraw, technique: str, u, sampler, max_depth: int, *,
+                 mis: bool) -> mi.Float:
     """:func:`direct_target` as a :class:`~.term.GuideTarget` evaluates it (no sampler, any depth)."""
-    return direct_target(scene, sensors, edges, P, technique, mis, u)
+    return direct_target(scene, sensors, draw, technique, u, mis=mis)
 
 
 TERM = Term("direct", samples_key="boundary_spp", stream=3, estimate=estimate,

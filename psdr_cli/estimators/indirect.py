@@ -43,9 +43,9 @@ import mitsuba as mi
 
 from . import interior
 from .interior import environment_motion, split_views, turn
-from .boundary_sampling import (BoundaryEdges, edge_distribution, in_wedge, normalize, primary_sample,
+from .boundary_sampling import (BoundaryEdges, EdgeDraw, edge_draw, in_wedge, normalize, primary_sample,
                                 ray_origin, sample_edge_point, sample_wedge)
-from .camera import SensorCamera, connect_camera, lane_views
+from .camera import SensorCamera, ViewLanes, connect_camera, lane_views
 from .term import GuideTarget, Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
@@ -75,12 +75,13 @@ def detector_walk(scene, camera, siD, w, depth: int, sampler, active):
     return out
 
 
-def boundary_motion(env_motion, xB, xD, siS_ad, source_surface, coef_geometry, mhat, w_sample):
+def boundary_motion(xB, xD, siS_ad, source_surface, coef_geometry, mhat, *, env_motion, w_sample):
     """m̂·(motion of the visibility boundary) scaled as in the module docstring (AD, primal ≠ 0).
 
     ``coef_geometry`` holds the detached factor sinφ·σ·t_D (the 1/dist factor is added here).
-    For an environment source that rotates, m̂·ω(θ) becomes m̂·(ω(θ) − ω_src(θ)) with ω_src the
-    environment's material direction (see :func:`interior.environment_motion`)."""
+    For an environment source that rotates (``env_motion``), m̂·ω(θ) becomes m̂·(ω(θ) − ω_src(θ))
+    with ω_src the environment's material direction of the sampled ``w_sample``
+    (see :func:`interior.environment_motion`)."""
     w = normalize(xB - xD)
     w_src = turn(env_motion, w_sample)  # a rotating environment moves the source end
     env = coef_geometry * dr.dot(mhat, w if env_motion is None else w - w_src)
@@ -95,13 +96,14 @@ def boundary_motion(env_motion, xB, xD, siS_ad, source_surface, coef_geometry, m
     return dr.select(source_surface, surface, env)
 
 
-def indirect_segments(scene, camera, edges: BoundaryEdges, P, distr, u1, u2, sampler, max_depth: int):
-    """Detached segments from primary samples (u1, u2) with both subpaths, the detector's walk
-    connected to ``camera`` (:func:`detector_walk`).
+def indirect_segments(scene, camera, draw: EdgeDraw, u, sampler, max_depth: int):
+    """Detached segments from primary samples ``u`` = (u1, u2) on the edges ``draw`` with both
+    subpaths, the detector's walk connected to ``camera`` (:func:`detector_walk`).
 
     Returns (edge, ω, geometry, m̂, S, walk, siS, siD, mask): ``geometry`` = sinφ·σ·t_D/(p(x^B)p(ω)),
     ``S[k]`` the source radiances, ``walk`` the detector terms (see :func:`detector_walk`)."""
-    edge = sample_edge_point(edges, P, distr, u1)
+    u1, u2 = u
+    edge = sample_edge_point(draw.edges, draw.P, draw.distr, u1)
     with dr.suspend_grad():
         xB = dr.detach(edge.xB)
         origin = ray_origin(edge)
@@ -131,15 +133,14 @@ def path_weight(S, D, ok_j, j: int, max_depth: int):
     return dr.select(ok_j, D * Ssum, 0.0)
 
 
-def indirect_target(scene, sensors, edges: BoundaryEdges, P, sampler, max_depth: int, u):
+def indirect_target(scene, sensors, draw: EdgeDraw, sampler, max_depth: int, u):
     """Guide target F̃(u) = Σ_views Σ_j max_RGB |F_j · geometry| (one random subpath pair)."""
     with dr.suspend_grad():
-        distr = edge_distribution(edges, P)
         total = mi.Float(0.0)
         for sensor in sensors:
             _, _, geometry, _, S, walk, _, _, _ = indirect_segments(
-                scene, SensorCamera(sensor, *sensor.film().size()), edges, P, distr, u.x, mi.Point2f(u.y, u.z),
-                sampler, max_depth)
+                scene, SensorCamera(sensor, *sensor.film().size()), draw, (u.x, mi.Point2f(u.y, u.z)), sampler,
+                max_depth)
             for j, (D, _, _, ok_j) in enumerate(walk, start=1):
                 if max_depth - 1 - j < 0:
                     break
@@ -148,12 +149,12 @@ def indirect_target(scene, sensors, edges: BoundaryEdges, P, sampler, max_depth:
 
 
 def indirect_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                      sampler: mi.Sampler, max_depth: int, guide=None):
+                      sampler: mi.Sampler, max_depth: int, *, guide=None):
     """Indirect boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` segments,
     with primary samples from ``guide`` when given (divided by its density)."""
     width, height = sensor.film().size()
-    return indirect_image(scene, SensorCamera(sensor, width, height), None, 1, edges, P, n_samples, sampler,
-                          max_depth, guide)
+    lanes = ViewLanes(SensorCamera(sensor, width, height), None, 1)
+    return indirect_image(scene, lanes, edges, P, n_samples, sampler, max_depth, guide=guide)
 
 
 def views_indirect_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
@@ -163,23 +164,24 @@ def views_indirect_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n
     i // n_samples of ``sensors`` and its detector walk connects to that view's camera
     (:class:`.camera.LaneCameras`); one image per view."""
     view, cameras = lane_views(sensors, n_samples)
-    img = indirect_image(scene, cameras, view, len(sensors), edges, P, n_samples, sampler, max_depth)
+    img = indirect_image(scene, ViewLanes(cameras, view, len(sensors)), edges, P, n_samples, sampler, max_depth)
     return split_views(img, len(sensors))
 
 
-def indirect_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdges, P, n_samples: int,
-                   sampler: mi.Sampler, max_depth: int, guide=None) -> mi.Float:
-    """The indirect boundary contributions of ``count`` views as one flat image, view-major
-    (count·W·H·3), each lane's segment added to its view's part (``view``: each lane's view, None
-    for one view), from ``n_samples`` segments per view."""
+def indirect_image(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n_samples: int,
+                   sampler: mi.Sampler, max_depth: int, *, guide=None) -> mi.Float:
+    """The indirect boundary contributions of ``lanes.count`` views as one flat image, view-major
+    (count·W·H·3), each lane's segment added to its view's part (``lanes.view``: each lane's view,
+    None for one view), from ``n_samples`` segments per view."""
+    camera, view = lanes.camera, lanes.view
     width, height = camera.width, camera.height
-    img = dr.zeros(mi.Float, width * height * 3 * count)
+    img = dr.zeros(mi.Float, width * height * 3 * lanes.count)
     if edges.count == 0 or max_depth < 3:
         return img  # paths with a boundary segment and ≥ 3 segments are needed
-    distr = edge_distribution(edges, P)
+    draw = edge_draw(edges, P)
     u1, u2, g = primary_sample(sampler, guide)
-    edge, w, geometry, mhat, S, walk, siS, siD, ok = indirect_segments(
-        scene, camera, edges, P, distr, u1, u2, sampler, max_depth)
+    edge, w, geometry, mhat, S, walk, siS, siD, ok = indirect_segments(scene, camera, draw, (u1, u2), sampler,
+                                                                       max_depth)
     with dr.suspend_grad():
         geometry *= dr.opaque(mi.Float, (width * height) / n_samples) / g
         dr.eval(S, walk, geometry, mhat, siS, siD)
@@ -199,7 +201,7 @@ def indirect_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdg
             xD_t = dr.select(live, scene.ray_intersect(camera(uv, live), live).p, siD.p)
         else:
             xD_t = siD_ad.p
-        v = F * boundary_motion(env_motion, edge.xB, xD_t, siS_ad, surface, geometry, mhat, w)
+        v = F * boundary_motion(edge.xB, xD_t, siS_ad, surface, geometry, mhat, env_motion=env_motion, w_sample=w)
         v = dr.select(live, v - dr.detach(v), 0.0)
         if view is not None:
             pixel = pixel + view * (width * height)
@@ -208,11 +210,11 @@ def indirect_image(scene: mi.Scene, camera, view, count: int, edges: BoundaryEdg
     return img
 
 
-def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
+def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int, *,
              guide=None) -> mi.Float:
     """One pass of the indirect term (:class:`~.term.Term` signature)."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed)
-    return indirect_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth, guide)
+    return indirect_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth, guide=guide)
 
 
 def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
@@ -229,11 +231,11 @@ def guide_techniques(sampling: str) -> tuple:
     return ("dir",)
 
 
-def guide_target(scene: mi.Scene, sensors, edges: BoundaryEdges, P, technique: str, mis: bool, u, sampler,
-                 max_depth: int) -> mi.Float:
+def guide_target(scene: mi.Scene, sensors, draw: EdgeDraw, technique: str, u, sampler, max_depth: int, *,
+                 mis: bool) -> mi.Float:
     """:func:`indirect_target` as a :class:`~.term.GuideTarget` evaluates it (one random subpath
     pair per sample; the technique and MIS do not apply)."""
-    return indirect_target(scene, sensors, edges, P, sampler, max_depth, u)
+    return indirect_target(scene, sensors, draw, sampler, max_depth, u)
 
 
 TERM = Term("indirect", samples_key="boundary_spp", stream=4, estimate=estimate,

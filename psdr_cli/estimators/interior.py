@@ -134,7 +134,7 @@ def plane_boundary(scene, sampler, si, bsdf, depth_left: int, env_motion, active
     return terminator_term(scene, si, sample, L_above, L_below, turn(env_motion, sample.w))
 
 
-def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True,
+def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int, active=True, *,
              ad: bool = False, by_depth: bool = False, hide_background: bool = False, si=None):
     """Radiance arriving along ``ray`` (Python-unrolled over ``max_depth`` path vertices).
 
@@ -220,7 +220,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
 
 
 def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
-                max_depth: int, seed: int, hide_background: bool = False) -> np.ndarray:
+                max_depth: int, seed: int, *, hide_background: bool = False) -> np.ndarray:
     """One primal pass of the renderer (:func:`psdr_cli.render.render_view`): the sum over ``spp``
     samples of every pixel, as a (H, W, 3) float64 array."""
     sampler = make_sampler(seed, width * height * spp)
@@ -232,7 +232,7 @@ def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp
     return np.stack([np.asarray(s, np.float64) for s in sums], axis=-1).reshape(height, width, 3)
 
 
-def views_pass(scene: mi.Scene, sensors, width: int, height: int, spp: int, max_depth: int, seed: int,
+def views_pass(scene: mi.Scene, sensors, width: int, height: int, spp: int, max_depth: int, seed: int, *,
                hide_background: bool = False) -> mi.Float:
     """One primal pass of several views in one wavefront (:func:`.camera.views_camera_rays`): the
     sum over ``spp`` samples of every pixel, flat (views · H · W · 3) on the device, view-major."""
@@ -250,7 +250,7 @@ def split_views(image: mi.Float, count: int) -> list:
     return [dr.gather(mi.Float, image, index + dr.opaque(mi.UInt32, k * n)) for k in range(count)]
 
 
-def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth: int, guide=None) -> mi.Float:
+def estimate(scene, edges, view: int, spp: int, seed: int, estimator, max_depth: int, *, guide=None) -> mi.Float:
     """One pass of the interior term (:class:`~.term.Term` signature): the mean of ``spp``
     material-form path samples per pixel (flat W·H·3, AD), whose primal value is the render."""
     sensor = scene.sensors[view]

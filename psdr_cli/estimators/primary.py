@@ -328,7 +328,7 @@ def edge_depth(ray, p0, p1):
     return (b * dr.dot(w, e) - c * dr.dot(ray.d, w)) / dr.select(denom > 0, denom, 1.0)
 
 
-def edge_visible(scene, rays, p0, p1, own, strict, inner, active, hits=None):
+def edge_visible(scene, rays, segment, own, strict, inner, active, *, hits=None):
     """Whether the camera sees the curve point under q: on *both* sides of it (``strict``: flat
     creases and intersection curves; otherwise — smooth silhouettes — on at least one side) the
     first hit is one of the curve's own faces, or lies behind the curve (or is a miss). On an
@@ -340,9 +340,9 @@ def edge_visible(scene, rays, p0, p1, own, strict, inner, active, hits=None):
     A point counts as hidden as soon as one side hits a foreign surface in front of it: accepting
     a point seen from one side only would let through hidden edges next to a silhouette, just
     behind a grazing front face, and over-count silhouette pixels of dense flat meshes by up to
-    2×. ``own`` = (shape0, face0, shape1, face1) as UInt32 arrays. ``hits``: the first hits of
-    ``rays`` if already traced (with the mask ``active``)."""
-    t_edge = edge_depth(rays[0], p0, p1)
+    2×. ``segment`` = (p0, p1) the curve's end points; ``own`` = (shape0, face0, shape1, face1) as
+    UInt32 arrays. ``hits``: the first hits of ``rays`` if already traced (with the mask ``active``)."""
+    t_edge = edge_depth(rays[0], *segment)
     every, some = mi.Bool(True), mi.Bool(False)
     for i, ray in enumerate(rays):
         si = scene.ray_intersect(ray, active) if hits is None else hits[i]
@@ -387,9 +387,20 @@ def lands_on_own_face(scene, ray, own, active):
     return si.is_valid() & is_own_face(si, own)
 
 
-def crossing_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int, active):
-    """Signed image offsets (−a, +b) of the two side samples of intersection-curve points q (the
-    default ±SIDE_EPS·size elsewhere: ``n0`` = 0).
+@dataclass
+class SidePoints:
+    """Curve points as their two side samples see them: the film positions q (detached, pixels),
+    the screen normals n_s (the sides lie at q ± offset·n_s), a 3D point x of each curve and its
+    two faces ``own`` = (shape0, face0, shape1, face1) as UInt32 arrays."""
+    q: mi.Point2f
+    n_s: mi.Vector2f
+    x: mi.Point3f
+    own: list
+
+
+def crossing_offsets(scene, cameras, points: SidePoints, normals, size: int, active):
+    """Signed image offsets (−a, +b) of the two side samples of intersection-curve ``points`` (the
+    default ±SIDE_EPS·``size`` elsewhere: n0 = 0; ``size`` the film's larger side, pixels).
 
     A ray leaving a surface point p starts at p + m·n, m = (1 + max|p|)·RayEpsilon (Mitsuba's
     ``spawn_ray``, n the facet normal on the ray's side). Next to an intersection curve the other
@@ -398,14 +409,16 @@ def crossing_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height:
     A side sample at the default offset can fall in that band and read a radiance of 0 (or a
     partly blocked one; the band's measured width is in docs/gradients.md). So each side moves out until its plane point lies CROSSING_MARGIN·m·max(0,
     −n_o·n_p) from the other plane (n_p the seen face's normal towards the camera, n_o the other
-    face's towards p), found from the two planes through the curve (``x`` a point of it,
-    ``n0``/``n1`` their normals) without tracing, and at most CROSSING_MAX_EPS·size. Only where
-    both sides at the default offset land on the curve's own faces (``own``): a crease hidden a
+    face's towards p), found from the two planes through the curve (x a point of it,
+    ``normals`` = (n0, n1) theirs) without tracing, and at most CROSSING_MAX_EPS·size. Only where
+    both sides at the default offset land on the curve's own faces (own): a crease hidden a
     hair behind another surface (accepted by the depth tolerance of :func:`edge_visible`) keeps
     the default, where both sides read that surface and the jump is 0. ``cameras(uv, active)``
     gives each lane's camera ray (:class:`.camera.SensorCamera`, :class:`.camera.LaneCameras`)."""
-    base = SIDE_EPS * max(width, height)
-    cap = CROSSING_MAX_EPS * max(width, height)
+    q, n_s, x, own = points.q, points.n_s, points.x, points.own
+    n0, n1 = normals
+    base = SIDE_EPS * size
+    cap = CROSSING_MAX_EPS * size
     crossing = dr.squared_norm(n0) > 0
     for sign in (-1.0, 1.0):
         crossing &= lands_on_own_face(scene, cameras(q + sign * base * n_s, active), own, active & crossing)
@@ -429,10 +442,11 @@ def crossing_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height:
     return out
 
 
-def fold_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int, offsets, active):
-    """Signed image offsets of the two side samples of mesh-edge points q whose faces fold by more
-    than 90° (``n0``, ``n1``: the faces' consistently oriented normals, :func:`fold_normals`; zero
-    elsewhere, where ``offsets`` are kept).
+def fold_offsets(scene, cameras, points: SidePoints, normals, size: int, offsets, active):
+    """Signed image offsets of the two side samples of mesh-edge ``points`` whose faces fold by
+    more than 90° (``normals`` = (n0, n1): the faces' consistently oriented normals,
+    :func:`fold_normals`; zero elsewhere, where ``offsets`` are kept; ``size`` the film's larger
+    side, pixels).
 
     A ray leaving a point p of face a starts at p ± m·n_a, m = (1 + max|p|)·RayEpsilon (Mitsuba's
     ``spawn_ray``, the sign that of n_a·ω). Within m·(−n_a·n_b) of the edge that start lies beyond
@@ -444,8 +458,10 @@ def fold_offsets(scene, cameras, q, n_s, x, n0, n1, own, width: int, height: int
     default offset moves out until its point on that face's plane lies FOLD_MARGIN·m·(−n_a·n_b)
     from the other face's plane, at most FOLD_MAX_EPS of the image size; a side that lands
     elsewhere (beyond a silhouette) keeps its offset."""
-    base = SIDE_EPS * max(width, height)
-    cap = FOLD_MAX_EPS * max(width, height)
+    q, n_s, x, own = points.q, points.n_s, points.x, points.own
+    n0, n1 = normals
+    base = SIDE_EPS * size
+    cap = FOLD_MAX_EPS * size
     fold = dr.squared_norm(n0) > 0
     c = dr.maximum(-dr.dot(n0, n1), 0.0)
     out = []
@@ -602,8 +618,32 @@ def view_ranges(counts) -> tuple:
     return jit_array(mi.UInt32, view_starts(counts)), jit_array(mi.UInt32, counts)
 
 
+@dataclass(frozen=True)
+class SideReading:
+    """What the two side samples of a curve point read, and on which film: the W × H film
+    (pixels), the radiance of paths up to ``max_depth`` (the far side of a silhouette against
+    the sky reading 0 with ``hide_background``) or, with ``coverage`` a shape's registry id
+    (:func:`shape_id`), the indicator that the camera ray's first hit is on that shape."""
+    width: int
+    height: int
+    max_depth: int
+    hide_background: bool = False
+    coverage: int | None = None
+
+
+@dataclass
+class CurveCameras:
+    """The cameras of a pass over curves: ``cameras(uv, active)`` each lane's camera ray
+    (:class:`.camera.SensorCamera` for one view, :class:`.camera.LaneCameras`), ``view`` each
+    lane's view (None: one view) and ``projector`` what projects the curves' end points
+    (:class:`.camera.Projection`, or :class:`.camera.LaneCameras` with each curve's camera)."""
+    cameras: object
+    view: mi.UInt32 | None
+    projector: object
+
+
 def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P, n_samples: int,
-                     sampler: mi.Sampler, max_depth: int, sampling: str = "length", hide_background: bool = False,
+                     sampler: mi.Sampler, max_depth: int, *, sampling: str = "length", hide_background: bool = False,
                      coverage: int | None = None):
     """Primary boundary contribution (flat W·H·3 image, primal 0) from ``n_samples`` curve points
     (mesh edges and intersection curves), edges drawn ∝ w_e·ℓ_e (``sampling``: module docstring);
@@ -611,12 +651,12 @@ def primary_boundary(scene: mi.Scene, sensor: mi.Sensor, edges: BoundaryEdges, P
     term's camera rays do (:func:`.interior.radiance`); ``coverage``: a shape's registry id
     (:func:`shape_id`): the jump of the indicator that a camera ray's first hit is on that shape,
     instead of the radiance's (:mod:`.coverage`)."""
-    return views_primary_boundary(scene, [sensor], edges, P, n_samples, sampler, max_depth, sampling,
-                                  hide_background, coverage)[0]
+    return views_primary_boundary(scene, [sensor], edges, P, n_samples, sampler, max_depth, sampling=sampling,
+                                  hide_background=hide_background, coverage=coverage)[0]
 
 
 def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_samples: int, sampler: mi.Sampler,
-                           max_depth: int, sampling: str = "length", hide_background: bool = False,
+                           max_depth: int, *, sampling: str = "length", hide_background: bool = False,
                            coverage: int | None = None) -> list:
     """:func:`primary_boundary` of several views (one film size) traced as one wavefront: lane i
     (``n_samples`` per view, ``sampler`` as wide as all of them) belongs to view i // n_samples of
@@ -640,57 +680,56 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
         return images
     curves = join_curves(live)
     if count == 1:
-        view, cameras, projector = None, SensorCamera(sensors[0], width, height), Projection(sensors[0])
+        views = CurveCameras(SensorCamera(sensors[0], width, height), None, Projection(sensors[0]))
     else:
         table = CameraTable.of(sensors, width, height)
         view = dr.arange(mi.UInt32, n_samples * count) // dr.opaque(mi.UInt32, n_samples)
-        cameras = LaneCameras.from_table(table, view)
         owner = np.repeat(np.arange(count), [len(c) if c is not None else 0 for c in parts])
-        projector = LaneCameras.from_table(table, jit_array(mi.UInt32, owner))
-    start, counts = view_ranges([len(c) if c is not None else 0 for c in parts])
-    v, pixel, ok = curve_pass(scene, cameras, view, projector, curve_table(curves), start, counts, n_samples, sampler,
-                              width, height, max_depth, hide_background, coverage)
+        views = CurveCameras(LaneCameras.from_table(table, view), view,
+                             LaneCameras.from_table(table, jit_array(mi.UInt32, owner)))
+    ranges = view_ranges([len(c) if c is not None else 0 for c in parts])
+    reading = SideReading(width, height, max_depth, hide_background, coverage)
+    v, pixel, ok = curve_pass(scene, views, curve_table(curves), ranges, n_samples, sampler, reading)
     img = dr.zeros(mi.Float, width * height * 3 * count)
     for c in range(3):
         dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, ok)
     return [img] if count == 1 else interior.split_views(img, count)
 
 
-def curve_pass(scene, cameras, view, projector, curves: CurveTable, start, count, n_samples: int, sampler,
-               width: int, height: int, max_depth: int, hide_background: bool, coverage) -> tuple:
+def curve_pass(scene, views: CurveCameras, curves: CurveTable, ranges, n_samples: int, sampler,
+               reading: SideReading) -> tuple:
     """(v, pixel, mask) per lane of one pass over ``curves`` (:func:`curve_values`): the end points
-    projected by ``projector`` (:class:`.camera.Projection` for one view, :class:`.camera.LaneCameras`
-    with each curve's camera), weighed (:func:`curve_mass`) and drawn per lane among its view's
-    (``start``, ``count``; :func:`draw_views` at :func:`stratified` uniforms: the sampler's first
-    dimension). The traced pass and the recorded one (:mod:`psdr_cli.frozen_batch`) both run this."""
-    (q0, z0), (q1, z1) = projector.project(curves.p0), projector.project(curves.p1)
-    mass = curve_mass(q0, q1, z0, z1, projector.near, curves.weight)
-    draw = draw_views(mass, start, count, view, stratified(sampler.next_1d(), n_samples, view), n_samples)
-    return curve_values(scene, cameras, view, curves, q0, q1, draw, sampler, width, height, max_depth,
-                        hide_background, coverage)
+    projected by ``views.projector``, weighed (:func:`curve_mass`) and drawn per lane among its
+    view's (``ranges`` = (start, count) per view; :func:`draw_views` at :func:`stratified`
+    uniforms: the sampler's first dimension). The traced pass and the recorded one
+    (:mod:`psdr_cli.frozen_batch`) both run this."""
+    (q0, z0), (q1, z1) = views.projector.project(curves.p0), views.projector.project(curves.p1)
+    mass = curve_mass(q0, q1, z0, z1, views.projector.near, curves.weight)
+    start, count = ranges
+    draw = draw_views(mass, start, count, views.view, stratified(sampler.next_1d(), n_samples, views.view), n_samples)
+    return curve_values(scene, views, curves, (q0, q1), draw, sampler, reading)
 
 
-def curve_values(scene, cameras, view, table: CurveTable, q0, q1, draw: Draw, sampler, width: int, height: int,
-                 max_depth: int, hide_background: bool, coverage) -> tuple:
+def curve_values(scene, views: CurveCameras, table: CurveTable, ends, draw: Draw, sampler,
+                 reading: SideReading) -> tuple:
     """(v, pixel, mask) per lane: the drawn curve point's contribution
     v = (1/N)·[(n_s·q(θ)) ΔL / p(q) − detach(·)] (AD, primal 0; :func:`curve_samples`) and its pixel
-    in its view's part of the views' joined image (lane i's view ``view[i]``; None: one view)."""
-    delta, pixel, n_s, q, ok = curve_samples(scene, cameras, table, q0, q1, draw, sampler, width, height, max_depth,
-                                             hide_background, coverage)
-    if view is not None:
-        pixel += view * (width * height)
+    in its view's part of the views' joined image (lane i's view ``views.view[i]``; None: one view)."""
+    delta, pixel, n_s, q, ok = curve_samples(scene, views.cameras, table, ends, draw, sampler, reading)
+    if views.view is not None:
+        pixel += views.view * (reading.width * reading.height)
     v = delta * dr.dot(n_s, q)
     return v - dr.detach(v), pixel, ok
 
 
-def curve_samples(scene, cameras, curves: CurveTable, q0, q1, draw: Draw, sampler, width: int, height: int,
-                  max_depth: int, hide_background: bool, coverage):
+def curve_samples(scene, cameras, curves: CurveTable, ends, draw: Draw, sampler, reading: SideReading):
     """(ΔL / p(q) per lane, its pixel, screen normal n_s, film point q (AD), mask) of the points
-    ``draw`` picks on ``curves`` (projected end points q0, q1): the two sides' radiance (or
-    coverage) difference at ±offset along n_s where the camera sees the curve point (see
-    :func:`primary_boundary`)."""
+    ``draw`` picks on ``curves`` (``ends`` = (q0, q1) their projected end points): the two sides'
+    radiance (or coverage, :class:`SideReading`) difference at ±offset along n_s where the camera
+    sees the curve point (see :func:`primary_boundary`)."""
+    width, height = reading.width, reading.height
     k = draw.k
-    qa, qb = gather_curve_points(q0, k), gather_curve_points(q1, k)
+    qa, qb = gather_curve_points(ends[0], k), gather_curve_points(ends[1], k)
     q = qa + draw.s * (qb - qa)
     with dr.suspend_grad():
         qd = dr.detach(q)
@@ -700,28 +739,29 @@ def curve_samples(scene, cameras, curves: CurveTable, q0, q1, draw: Draw, sample
         eps = SIDE_EPS * max(width, height)
         own = [dr.gather(mi.UInt32, getattr(curves, a), k) for a in ("shape0", "face0", "shape1", "face1")]
         x0 = dr.gather(mi.Point3f, dr.detach(curves.p0), k)
+        points = SidePoints(qd, n_s, x0, own)
         offsets = [mi.Float(-eps), mi.Float(eps)]
         if curves.crossings:  # intersection curves: clear the ray-spawn offset (see crossing_offsets)
             normals = [dr.gather(mi.Vector3f, getattr(curves, a), k) for a in ("normal0", "normal1")]
-            offsets = crossing_offsets(scene, cameras, qd, n_s, x0, *normals, own, width, height, ok)
+            offsets = crossing_offsets(scene, cameras, points, normals, max(width, height), ok)
         if curves.folds:  # mesh edges that fold back: clear the ray-spawn offset (see fold_offsets)
             normals = [dr.gather(mi.Vector3f, getattr(curves, a), k) for a in ("fold0", "fold1")]
-            offsets = fold_offsets(scene, cameras, qd, n_s, x0, *normals, own, width, height, offsets, ok)
+            offsets = fold_offsets(scene, cameras, points, normals, max(width, height), offsets, ok)
         rays = [cameras(qd + o * n_s, ok) for o in offsets]
         strict = dr.gather(mi.Bool, curves.strict, k)
         inner = dr.gather(mi.Bool, curves.inner, k)
         # each side's first hit, traced once: for the visibility test and as the radiance's first vertex
         hits = [scene.ray_intersect(ray, ok) for ray in rays]
-        ok &= edge_visible(scene, rays, x0, dr.gather(mi.Point3f, dr.detach(curves.p1), k), own, strict, inner, ok,
-                           hits)
+        ok &= edge_visible(scene, rays, (x0, dr.gather(mi.Point3f, dr.detach(curves.p1), k)), own, strict, inner, ok,
+                           hits=hits)
         # common random numbers: both sides trace the same samples, so their difference keeps
         # the jump and loses most of the noise (each side alone stays unbiased)
         twin = sampler.clone()
-        if coverage is not None:  # the indicator of a first hit on the object: 1 on its side, 0 beyond it
-            sides = [mi.Color3f(dr.select(ok & hits_shape(si, coverage), 1.0, 0.0)) for si in hits]
+        if reading.coverage is not None:  # the indicator of a first hit on the object: 1 on its side, 0 beyond it
+            sides = [mi.Color3f(dr.select(ok & hits_shape(si, reading.coverage), 1.0, 0.0)) for si in hits]
         else:
-            sides = [interior.radiance(scene, smp, ray, max_depth, ok, hide_background=hide_background, si=si)
-                     for smp, ray, si in zip((sampler, twin), rays, hits)]
+            sides = [interior.radiance(scene, smp, ray, reading.max_depth, ok, hide_background=reading.hide_background,
+                                       si=si) for smp, ray, si in zip((sampler, twin), rays, hits)]
         # 1/(N·p(q)) = Σw·ℓ / (N·w_e)
         inv_pdf = draw.scale / dr.gather(mi.Float, curves.weight, k)
         delta = dr.select(ok, (sides[0] - sides[1]) * inv_pdf, 0.0)
@@ -730,13 +770,13 @@ def curve_samples(scene, cameras, curves: CurveTable, q0, q1, draw: Draw, sample
     return delta, pixel, n_s, q, ok
 
 
-def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int,
+def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int, *,
              guide=None) -> mi.Float:
     """One pass of the primary term (:class:`~.term.Term` signature), edges drawn by
     ``estimator.primary_sampling``."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed)
     return primary_boundary(scene.mi_scene, scene.sensors[view], edges, P, n, sampler, max_depth,
-                            estimator.primary_sampling, hide_background=scene.config.hide_background)
+                            sampling=estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
 def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, estimator, max_depth: int) -> list:
@@ -744,7 +784,7 @@ def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, esti
     :func:`estimate`, drawn from one sampler seeded with ``seed``): a flat W·H·3 AD image per view."""
     n, sampler, P = boundary_pass(scene, edges, spp, seed, len(views))
     return views_primary_boundary(scene.mi_scene, [scene.sensors[v] for v in views], edges, P, n, sampler, max_depth,
-                                  estimator.primary_sampling, hide_background=scene.config.hide_background)
+                                  sampling=estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
 TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate, estimate_views=estimate_views)

@@ -4,7 +4,7 @@ A term is a :class:`Term`: its name (the word in ``estimator.terms``), the estim
 its samples per pixel, its random-number stream, whether a guide can serve it, and ``estimate``,
 which computes one pass:
 
-    estimate(scene, edges, view, spp, seed, estimator, max_depth, guide) -> mi.Float
+    estimate(scene, edges, view, spp, seed, estimator, max_depth, *, guide=None) -> mi.Float
 
 ``scene`` is a :class:`psdr_cli.scene.Scene` or anything with its ``mi_scene``, ``sensors`` and
 ``resolution`` (W, H); its AD state (θ or vertex gradients) is set before the call. ``edges`` are
@@ -42,11 +42,13 @@ class GuideTarget:
     ``psdr guide-stats``):
 
         techniques(sampling) -> the techniques that get a guide each, in the order of their seeds
-        evaluate(scene, sensors, edges, P, technique, mis, u, sampler, max_depth) -> F̃(u)
-        motion(scene, sensors, edges, P, technique, mis, u) -> [v per view]   (optional)
+        evaluate(scene, sensors, draw, technique, u, sampler, max_depth, *, mis) -> F̃(u)
+        motion(scene, sensors, draw, technique, u, *, mis) -> [v per view]   (optional)
 
     ``evaluate`` is the guide's target at primary samples u (mi.Point3f) summed over the views'
-    ``sensors`` (``sampler``: a fresh one per batch when ``random``, else None); ``motion``, when
+    ``sensors`` (``draw``: the edges, their positions and distribution,
+    :class:`.boundary_sampling.EdgeDraw`; ``sampler``: a fresh one per batch when ``random``, else
+    None; ``mis``: whether the techniques are combined by MIS); ``motion``, when
     given, is the integrand with θ's velocity (forward mode: the target becomes Σ max |dv/dθ|).
     The guide of technique i is built with seed + ``seed_offset`` + i; scenes whose ``max_depth``
     is below ``min_depth`` have no such paths (unguided). The term reads {technique: guide} when

@@ -45,6 +45,7 @@ Used when ``estimator.guiding`` is ``kdtree``, or ``auto`` picks it (:mod:`.auto
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -62,8 +63,13 @@ EXPLORE = 0.25
 class KdTreeGuide(Guide):
     kind = "kdtree"
 
-    def __init__(self, lo, hi, corners, epsilon, stats, axis, split, child, leaf):
+    def __init__(self, lo, hi, corners, epsilon, stats, nodes):
+        """A guide over the leaves' boxes (``lo``, ``hi``) with trilinear ``corners`` values, a
+        uniform share ``epsilon``, and the tree's node arrays ``nodes`` = (axis, split, child,
+        leaf): an inner node's axis (−1 at a leaf), its split coordinate, its first child (the
+        second follows it) and a leaf node's leaf index."""
         super().__init__(lo, hi, corners, epsilon, stats)
+        axis, split, child, leaf = nodes
         self.axis, self.split, self.child, self.node_leaf = axis, split, child, leaf
         self._axis = jit_array(mi.Int32, axis)
         self._split = jit_array(mi.Float, split)
@@ -178,7 +184,7 @@ def share_profiles(guides: dict, breaks, share: float) -> dict:
     out = dict(guides)
     for t, g in trees.items():
         corners = (1.0 - share) * g.corners + share * g.total * mean[profiles[t][1]][:, None]
-        out[t] = KdTreeGuide(g.lo, g.hi, corners, g.epsilon, g.stats, g.axis, g.split, g.child, g.node_leaf)
+        out[t] = KdTreeGuide(g.lo, g.hi, corners, g.epsilon, g.stats, tree_nodes(g))
     return out
 
 
@@ -273,10 +279,29 @@ def regroup(group, keep_nodes, child_side=None):
     return sel, new[sel]
 
 
-def grow(top, breaks, u, f, w, n, samples_per_node, threshold, max_depth, max_leaves):
+@dataclass(frozen=True)
+class TreeLimits:
+    """When a node stops splitting: it holds fewer than ``samples_per_node`` samples, its fit's
+    error is at most ``threshold`` × the total, it is ``max_depth`` deep, or the tree has
+    ``max_leaves`` leaves."""
+    samples_per_node: int = 32
+    threshold: float = 0.002
+    max_depth: int = 24
+    max_leaves: int = 65536
+
+
+def tree_nodes(guide: "KdTreeGuide") -> tuple:
+    """(axis, split, child, leaf): the node arrays of ``guide``."""
+    return guide.axis, guide.split, guide.child, guide.node_leaf
+
+
+def grow(top, breaks, samples, limits: TreeLimits):
     """Grow the tree below the u1 intervals (``top``: :func:`interval_tree`) from fixed weighted
-    samples, each standing for n samples (step 3 of the module docstring). Returns the
-    :class:`Growth`."""
+    ``samples`` = (u, f, w, n), each standing for n samples (step 3 of the module docstring), up
+    to ``limits``. Returns the :class:`Growth`."""
+    u, f, w, n = samples
+    samples_per_node, threshold, max_depth, max_leaves = (limits.samples_per_node, limits.threshold,
+                                                          limits.max_depth, limits.max_leaves)
     nodes, ids, lo, hi = top
     tree = Growth(nodes)
     sg = np.clip(np.searchsorted(breaks, u[:, 0], side="right") - 1, 0, len(ids) - 1)
@@ -341,21 +366,22 @@ def split_axes(q, x, group, want, sums):
     return best
 
 
-def make_tree(top, breaks, u, f, w, epsilon, interval_share, growth):
-    """KdTreeGuide grown from weighted samples (``growth``: samples_per_node, threshold,
-    max_depth, max_leaves), each standing for one sample, leaves blended with their interval's mean."""
+def make_tree(top, breaks, samples, limits: TreeLimits, *, epsilon: float, interval_share: float):
+    """KdTreeGuide grown up to ``limits`` from weighted ``samples`` = (u, f, w), each standing for
+    one sample, leaves blended with their interval's mean."""
+    u, f, w = samples
     n = np.ones(len(f))
-    t = grow(top, breaks, u, f, w * n, n, *growth)
+    t = grow(top, breaks, (u, f, w * n, n), limits)
     lo, hi = np.array(t.lo), np.array(t.hi)
     corners = blend_interval_mean(lo, hi, np.array(t.corners), breaks, interval_share)
     stats = GuideStats("kdtree", max_depth=t.deepest, intervals=len(breaks) - 1)
-    return KdTreeGuide(lo, hi, corners, epsilon, stats, t.axis, t.split, t.child, t.leaf)
+    return KdTreeGuide(lo, hi, corners, epsilon, stats, (t.axis, t.split, t.child, t.leaf))
 
 
 def explorer(guide: KdTreeGuide) -> KdTreeGuide:
     """The same tree with a uniform share of at least ``EXPLORE`` (places refinement samples)."""
     return KdTreeGuide(guide.lo, guide.hi, guide.corners, max(guide.epsilon, EXPLORE), GuideStats("kdtree"),
-                       guide.axis, guide.split, guide.child, guide.node_leaf)
+                       tree_nodes(guide))
 
 
 def leaf_breaks(breaks, max_leaves: int) -> np.ndarray:
@@ -367,16 +393,15 @@ def leaf_breaks(breaks, max_leaves: int) -> np.ndarray:
     return breaks
 
 
-def fit_kdtree(u, f, w, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
-               max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
+def fit_kdtree(u, f, w, *, breaks=(0.0, 1.0), limits: TreeLimits = TreeLimits(), epsilon: float = 0.01,
                interval_share: float = 0.1) -> KdTreeGuide:
-    """Kd-tree guide grown (step 3 of the module docstring) from given samples u (N,3) with
-    target values F̃ (N,) and weights w (N,), Σ_{u∈B} w F̃ ≈ ∫_B F̃: no target evaluation."""
+    """Kd-tree guide grown (step 3 of the module docstring) up to ``limits`` from given samples
+    u (N,3) with target values F̃ (N,) and weights w (N,), Σ_{u∈B} w F̃ ≈ ∫_B F̃: no target
+    evaluation."""
     t0 = time.perf_counter()
-    breaks = leaf_breaks(breaks, max_leaves)
-    guide = make_tree(interval_tree(breaks), breaks, np.asarray(u, np.float64), np.asarray(f, np.float64),
-                      np.asarray(w, np.float64), epsilon, interval_share,
-                      (samples_per_node, threshold, max_depth, max_leaves))
+    breaks = leaf_breaks(breaks, limits.max_leaves)
+    samples = (np.asarray(u, np.float64), np.asarray(f, np.float64), np.asarray(w, np.float64))
+    guide = make_tree(interval_tree(breaks), breaks, samples, limits, epsilon=epsilon, interval_share=interval_share)
     guide.stats.evaluations = 0
     guide.stats.memory_bytes = guide.memory_bytes()
     guide.stats.build_seconds = time.perf_counter() - t0
@@ -395,24 +420,23 @@ def tree_from_arrays(a: dict) -> KdTreeGuide:
     """The guide :func:`tree_arrays` described (the same guide for a tree that went through
     :func:`tree_arrays` before)."""
     stats = GuideStats("kdtree")
+    nodes = (np.asarray(a["axis"], np.int64), np.asarray(a["split"], np.float64),
+             np.asarray(a["child"], np.int64), np.asarray(a["leaf"], np.int64))
     guide = KdTreeGuide(np.asarray(a["lo"], np.float64), np.asarray(a["hi"], np.float64),
-                        np.asarray(a["corners"], np.float64), float(np.ravel(a["epsilon"])[0]), stats,
-                        np.asarray(a["axis"], np.int64), np.asarray(a["split"], np.float64),
-                        np.asarray(a["child"], np.int64), np.asarray(a["leaf"], np.int64))
+                        np.asarray(a["corners"], np.float64), float(np.ravel(a["epsilon"])[0]), stats, nodes)
     stats.memory_bytes = guide.memory_bytes()
     return guide
 
 
-def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshold: float = 0.002,
-                 max_depth: int = 24, max_leaves: int = 65536, epsilon: float = 0.01,
+def build_kdtree(target, breaks=(0.0, 1.0), *, limits: TreeLimits = TreeLimits(), epsilon: float = 0.01,
                  seed: int = 0, initial_samples: int = 32768, interval_share: float = 0.1,
                  refine_ratio: float = 2.0, min_interval_samples: int = 4, prior=None) -> KdTreeGuide:
     """Kd-tree guide of ``target`` (numpy u (N,3) → F̃ ≥ 0 (N,)), u1 pre-split at ``breaks``,
-    from two batches of F̃ (one with a ``prior`` guide; see the module docstring)."""
+    grown up to ``limits`` from two batches of F̃ (one with a ``prior`` guide; see the module
+    docstring)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
-    breaks = leaf_breaks(breaks, max_leaves)
-    growth = (samples_per_node, threshold, max_depth, max_leaves)
+    breaks = leaf_breaks(breaks, limits.max_leaves)
     top = interval_tree(breaks)
     n1 = int(round(refine_ratio * initial_samples))
     if prior is not None:
@@ -425,12 +449,12 @@ def build_kdtree(target, breaks=(0.0, 1.0), samples_per_node: int = 32, threshol
         f = evaluate(target, u)
         w = 1.0 / d0
         if n1 > 0 and f.any():
-            first = explorer(make_tree(top, breaks, u, f, w, epsilon, interval_share, growth))
+            first = explorer(make_tree(top, breaks, (u, f, w), limits, epsilon=epsilon, interval_share=interval_share))
             u2, g2 = first.sample_np(n1, rng)
             f = np.r_[f, evaluate(target, u2)]
             w = 1.0 / np.r_[d0 + n1 * first.pdf_batch(u), uniform_density(u2, breaks, counts) + n1 * g2]
             u = np.r_[u, u2]
-    guide = make_tree(top, breaks, u, f, w, epsilon, interval_share, growth)
+    guide = make_tree(top, breaks, (u, f, w), limits, epsilon=epsilon, interval_share=interval_share)
     stats = guide.stats
     stats.evaluations = len(f)
     stats.memory_bytes = guide.memory_bytes()
@@ -454,9 +478,14 @@ def initial_samples(estimator, pixels: int) -> int:
 def build_kdtree_guide(target, breaks, estimator, seed: int, pixels: int) -> KdTreeGuide:
     """A Kd-tree guide of ``estimator.kdtree``'s settings (:class:`~.guide.GuideKind`)."""
     k = estimator.kdtree
-    return build_kdtree(target, breaks, k.samples_per_node, k.threshold, k.max_depth, k.max_leaves,
-                        estimator.guide_epsilon, seed, initial_samples(estimator, pixels), k.interval_share,
-                        k.refine_ratio)
+    return build_kdtree(target, breaks, limits=tree_limits(k), epsilon=estimator.guide_epsilon, seed=seed,
+                        initial_samples=initial_samples(estimator, pixels), interval_share=k.interval_share,
+                        refine_ratio=k.refine_ratio)
+
+
+def tree_limits(kdtree) -> TreeLimits:
+    """The :class:`TreeLimits` of an ``estimator.kdtree`` section."""
+    return TreeLimits(kdtree.samples_per_node, kdtree.threshold, kdtree.max_depth, kdtree.max_leaves)
 
 
 KIND = GuideKind("kdtree", build_kdtree_guide, loop_fed=True)

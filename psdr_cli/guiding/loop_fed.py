@@ -17,7 +17,7 @@ import numpy as np
 
 from ..estimators import registry
 from ..estimators.sample_log import PER_PASS, SampleLog
-from .kdtree import EXPLORE, fit_kdtree, share_profiles, tree_arrays, tree_from_arrays
+from .kdtree import EXPLORE, fit_kdtree, share_profiles, tree_arrays, tree_from_arrays, tree_limits
 from .kinds import LOOP_FED
 
 #: samples kept per window and technique (split over the window's passes)
@@ -49,8 +49,8 @@ def fitted_guides(log: SampleLog, breaks, estimator) -> dict:
     for t in sorted(log.kept):
         u, f, w = log.samples(t)
         if f.any():
-            guides[t] = fit_kdtree(u, f, w, breaks, k.samples_per_node, k.threshold, k.max_depth,
-                                   k.max_leaves, max(estimator.guide_epsilon, EXPLORE), k.interval_share)
+            guides[t] = fit_kdtree(u, f, w, breaks=breaks, limits=tree_limits(k),
+                                   epsilon=max(estimator.guide_epsilon, EXPLORE), interval_share=k.interval_share)
     shared = share_profiles(guides, breaks, k.technique_share)
     return {t: tree_from_arrays(tree_arrays(g)) for t, g in shared.items()}  # as saved (float32)
 

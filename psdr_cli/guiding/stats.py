@@ -29,13 +29,13 @@ def chain_stats(edges) -> dict:
             "mean_chain_length": float(edges.chains.mean_length())}
 
 
-def target_curve(scene, edges, views, term: str, technique: str, max_depth: int, n_u1: int = 2048,
+def target_curve(scene, edges, views, term: str, technique: str, max_depth: int, *, n_u1: int = 2048,
                  n_u2: int = 16, seed: int = 0):
     """(u1, x^B(u1) (N,3), mean over u2 of F̃ of ``term``'s ``technique`` (N,), breakpoints) for plots."""
     u1 = (np.arange(n_u1) + 0.5) / n_u1
     rng = np.random.default_rng(seed)
     u = np.concatenate([np.repeat(u1, n_u2)[:, None], rng.random((n_u1 * n_u2, 2))], axis=1)
-    f = target_function(scene, edges, views, term, technique, False, max_depth, seed)
+    f = target_function(scene, edges, views, term, technique, max_depth, seed, mis=False)
     mean = f(u).reshape(n_u1, n_u2).mean(1)
     P = dr.detach(edges.positions(mi.traverse(scene.mi_scene)))
     with dr.suspend_grad():
@@ -50,7 +50,7 @@ def pass_seconds(scene, edges, view: int, term: str, estimator, max_depth: int, 
     times = []
     for r in range(repeats + 1):
         t0 = time.perf_counter()
-        img = registry.term(term).estimate(scene, edges, view, estimator.boundary_spp, r, estimator, max_depth, None)
+        img = registry.term(term).estimate(scene, edges, view, estimator.boundary_spp, r, estimator, max_depth)
         dr.eval(img)
         times.append(time.perf_counter() - t0)
     return float(np.median(times[1:]))
@@ -68,7 +68,7 @@ def guided_techniques(terms, sampling: str, max_depth: int) -> list:
     return out
 
 
-def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimator, seed: int = 0):
+def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimator, *, seed: int = 0):
     """Build every (kind, technique) guide of ``techniques`` (:func:`guided_techniques`); returns
     ({label: GuideStats-dict}, {label: guide}).
 
@@ -83,7 +83,7 @@ def guide_report(scene, edges, views, kinds, techniques, max_depth: int, estimat
     stats, guides = {}, {}
     for kind in kinds:
         for i, (t, term, technique) in enumerate(techniques):
-            f = target_function(scene, edges, views, term, technique, estimator.sampling == "mis", max_depth, seed)
+            f = target_function(scene, edges, views, term, technique, max_depth, seed, mis=estimator.sampling == "mis")
             f(np.random.default_rng(0).random((1024, 3)))  # warm-up: compile the target's kernels
             g = guide_kind(kind).build(f, breaks, estimator, seed + i, pixels)
             label = f"{kind}/{t}"
@@ -138,7 +138,7 @@ def guide_stats(exp: Experiment, kinds=None, views=None, out: Path | None = None
         if edges.count == 0:
             raise PsdrError(f"{exp.file}: scene.objects: no object has boundary edges (edges: true)")
         result.chains[key] = chain_stats(edges)
-        stats, guides = guide_report(scene, edges, views, kinds, techniques, max_depth, exp.estimator, exp.seed)
+        stats, guides = guide_report(scene, edges, views, kinds, techniques, max_depth, exp.estimator, seed=exp.seed)
         result.guides[key] = stats
         if progress:
             progress.advance(len(kinds) * len(techniques))

@@ -14,6 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..estimators import registry
+from ..estimators.boundary_sampling import edge_draw
 from ..estimators.passes import make_sampler
 from ..jitarray import jit_array
 from .kdtree import share_profiles
@@ -23,12 +24,12 @@ from .kinds import guide_kind
 CHUNK = 1 << 19
 
 
-def motion_target(scene, sensors, edges, theta, motion, technique: str, mis: bool, u) -> mi.Float:
+def motion_target(scene, sensors, edges, theta, motion, technique: str, u, *, mis: bool) -> mi.Float:
     """F̃(u) = Σ_views max_RGB |dv/dθ| of a term's samples (its ``motion``: forward mode from
     ``theta``, already applied to the scene with AD): the integrand itself, velocity included. The
     AD graph from θ is kept, so one application of θ serves every target of a build."""
     P = edges.positions(mi.traverse(scene.mi_scene))
-    vs = motion(scene.mi_scene, sensors, edges, P, technique, mis, u)
+    vs = motion(scene.mi_scene, sensors, edge_draw(edges, P), technique, u, mis=mis)
     dr.forward(theta, dr.ADFlag.ClearInput | dr.ADFlag.ClearInterior)
     total = mi.Float(0.0)
     for v in vs:
@@ -37,10 +38,11 @@ def motion_target(scene, sensors, edges, theta, motion, technique: str, mis: boo
     return total
 
 
-def target_function(scene, edges, views: list, term: str, technique: str, mis: bool,
-                    max_depth: int, seed: int, theta=None):
+def target_function(scene, edges, views: list, term: str, technique: str, max_depth: int, seed: int, *,
+                    mis: bool, theta=None):
     """numpy u (N,3) → F̃ (N,) for the guided ``term`` and ``technique`` (its
-    :class:`~psdr_cli.estimators.term.GuideTarget`). With ``theta`` (the scalar parameter, applied
+    :class:`~psdr_cli.estimators.term.GuideTarget`; ``mis``: whether the techniques are combined
+    by MIS). With ``theta`` (the scalar parameter, applied
     with AD: forward mode) a term with a ``motion`` includes the velocity, F̃ = max_RGB |dv/dθ|
     (:func:`motion_target`); without it (optimisation: many parameters) F̃ = max_RGB |F| without
     the velocity factor. A term whose target is ``random`` gets a fresh sampler per batch."""
@@ -56,13 +58,14 @@ def target_function(scene, edges, views: list, term: str, technique: str, mis: b
             chunk = u[a:a + CHUNK].astype(np.float32)
             pt = mi.Point3f(*(jit_array(mi.Float, chunk[:, i]) for i in range(3)))
             if theta is not None and target.motion is not None:
-                val = motion_target(scene, sensors, edges, theta, target.motion, technique, mis, pt)
+                val = motion_target(scene, sensors, edges, theta, target.motion, technique, pt, mis=mis)
             else:
                 sampler = None
                 if target.random:
                     calls[0] += 1
                     sampler = make_sampler(seed * 7919 + calls[0], len(chunk))
-                val = target.evaluate(mi_scene, sensors, edges, P, technique, mis, pt, sampler, max_depth)
+                val = target.evaluate(mi_scene, sensors, edge_draw(edges, P), technique, pt, sampler, max_depth,
+                                      mis=mis)
             out[a:a + len(chunk)] = np.asarray(val, np.float64)
         return np.where(np.isfinite(out), out, 0.0)
 
@@ -95,7 +98,7 @@ def applied_theta(parameter):
     return theta
 
 
-def build_guides(scene, edges, views: list, kinds: dict, sampling: str, max_depth: int, estimator,
+def build_guides(scene, edges, views: list, kinds: dict, sampling: str, max_depth: int, estimator, *,
                  seed: int = 0, parameter=None) -> Guides:
     """Guides for the terms of ``kinds`` ({term: guide kind}, as :func:`.auto.decide` decided
     them; ``none``: unguided), with the build parameters of ``estimator``; ``parameter`` (the
@@ -114,7 +117,7 @@ def build_guides(scene, edges, views: list, kinds: dict, sampling: str, max_dept
         try:
             built = {}
             for i, t in enumerate(target.techniques(sampling)):
-                f = target_function(scene, edges, views, term, t, sampling == "mis", max_depth, seed, theta)
+                f = target_function(scene, edges, views, term, t, max_depth, seed, mis=sampling == "mis", theta=theta)
                 built[t] = guide_kind(kind).build(f, breaks, estimator, seed + target.seed_offset + i, pixels)
         finally:
             if theta is not None:

@@ -36,7 +36,7 @@ def run_checkpoints(folder: Path):
     return found
 
 
-def write_checkpoint(files: RunFiles, iteration: int, V, F, texture=None, previews: dict | None = None,
+def write_checkpoint(files: RunFiles, iteration: int, V, F, *, texture=None, previews: dict | None = None,
                      zoom: int = 1, uv=None) -> Path:
     """checkpoints/iter_NNNN.ply (with the texture coordinates ``uv`` of a textured run); with
     ``texture`` (the recovered albedo texture, linear RGB)

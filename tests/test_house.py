@@ -1,0 +1,29 @@
+"""Rules of the package's shape that a reader relies on, checked on its source."""
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "psdr_cli"
+
+#: The most positional parameters a function takes (``self``/``cls`` not counted); more travel
+#: as a record or as keyword-only arguments.
+MAX_POSITIONAL = 7
+
+
+def functions(path: Path):
+    """(name, line, positional parameter names) of every function defined in ``path``."""
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            names = [a.arg for a in node.args.posonlyargs + node.args.args]
+            if names and names[0] in ("self", "cls"):
+                names = names[1:]
+            yield node.name, node.lineno, names
+
+
+def test_no_function_takes_more_than_seven_positional_parameters():
+    """Long positional lists are where arguments get swapped; the typer commands of ``cli.py``
+    (one parameter per command-line option) are exempt."""
+    long = [f"{path.relative_to(PACKAGE.parent)}:{line} {name} ({len(names)})"
+            for path in sorted(PACKAGE.rglob("*.py")) if path.name != "cli.py"
+            for name, line, names in functions(path) if len(names) > MAX_POSITIONAL]
+    assert not long, "more than 7 positional parameters:\n" + "\n".join(long)
