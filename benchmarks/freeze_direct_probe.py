@@ -6,7 +6,7 @@ large-steps solve writes.)
 The demo's scene (``configs/reconstruct_bunny.yaml``, 64², a noisy sphere), four views' lanes
 (4·64² samples of the ``dir`` technique, no MIS), the cameras as data
 (:class:`~psdr_cli.estimators.camera.CameraTable`). The frozen function takes the edge table as
-arrays padded to a fixed length (``frozen_batch.padded_edges``) and the number of real edges as
+arrays padded to a fixed length (``estimators.recorded_direct.padded_edges``) and the number of real edges as
 an opaque array; it draws an edge ∝ length (``boundary_sampling.LengthDistribution``: no kernel
 depends on the count), samples the wedge, and returns (lanes kept, Σ coef) of
 :func:`~psdr_cli.estimators.direct.segment_weight` (``--level segment``) or only of the edge
@@ -48,7 +48,7 @@ from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, EdgeDraw, Leng
 from psdr_cli.estimators.camera import CameraTable, LaneCameras  # noqa: E402
 from psdr_cli.estimators.direct import direct_motion, segment_weight  # noqa: E402
 from psdr_cli.estimators.passes import make_sampler  # noqa: E402
-from psdr_cli.frozen_batch import padded_edges  # noqa: E402
+from psdr_cli.estimators.recorded_direct import padded_edges  # noqa: E402
 
 SLOTS, SIZE, VIEWS = 512, 64, 4
 

@@ -100,8 +100,9 @@ def iteration_operations() -> dict:
                     parts.setdefault(name, []).extend(operations(dr.kernel_history()))
                     return out
                 return run
-            loop.frozen.__class__ = type("Timed", (FrozenBatch,), {
-                n: part(f"frozen {n.strip('_')}", getattr(FrozenBatch, n)) for n in ("__call__", "direct", "primary")})
+            loop.frozen.__class__ = type("Timed", (FrozenBatch,), {"__call__": part("frozen call", FrozenBatch.__call__)})
+            for name, recorded in loop.frozen.parts.items():
+                recorded.run = part(f"frozen {name}", recorded.run)
             problem.backward_leaves = part("backward through large steps", problem.backward_leaves)
             problem.opt.step = part("Adam step", problem.opt.step)
             dr.kernel_history()

@@ -140,8 +140,8 @@ def instrument(phases: Phases):
     loss_registry.LOSSES = tuple(replace(x, value=phases.wrap("loss", x.value)) for x in loss_registry.LOSSES)
     iteration.dr = DrProxy(phases)
     FrozenBatch.__call__ = phases.wrap("frozen", FrozenBatch.__call__)
-    FrozenBatch.direct = phases.wrap("frozen direct", FrozenBatch.direct)
-    FrozenBatch.primary = phases.wrap("frozen primary", FrozenBatch.primary)
+    for name, part in registry.RECORDED_PARTS.items():  # each boundary term's recorded part
+        part.run = phases.wrap(f"frozen {name}", part.run)
 
 
 def timed_geometry(phases: Phases, cls):

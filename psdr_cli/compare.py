@@ -57,7 +57,7 @@ class Row:
 class Comparison:
     """One scene and view: the experiment, its Mitsuba scene and edge lists (unsorted, sorted)."""
 
-    def __init__(self, exp, terms=("direct",), view: int = 0):
+    def __init__(self, exp, terms, view: int = 0):
         self.exp, self.terms, self.view = exp, tuple(terms), view
         self.scene, self.parameter, _, _ = prepare(exp)
         self.edges = {s: edge_list(self.scene, exp.estimator, s) for s in (False, True)}

@@ -233,7 +233,7 @@ def forward_gradient(scene, edges, parameter, view: int, term: str, settings: Se
     weights = [c / total for c in counts]
     mean = sum(w * g for w, g in zip(weights, images))
     return TermEstimate(term, mean, images, weights, time.perf_counter() - t0,
-                        primal if term == "interior" else None)
+                        primal if registry.term(term).renders else None)
 
 
 def pass_groups(counts, pixels: int, batched: bool) -> list:

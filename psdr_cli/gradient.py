@@ -16,6 +16,7 @@ from .config.experiment_file import Experiment
 from .config.options import option_number, option_spp, parse_terms, parse_views
 from .errors import PsdrError
 from .estimate import Settings, forward_gradient, guiding_line, make_guides, prepare
+from .estimators import registry
 from .parameters import Parameter
 from .reference import agreement, fd_resolution, finite_difference
 from .render import render_view
@@ -190,8 +191,8 @@ def view_gradient(exp: Experiment, setup, plan: GradPlan, v: int, progress) -> V
     min_passes = FD_BATCHES if plan.fd else 1
     estimates = {t: forward_gradient(scene, edges, parameter, v, t, settings, min_passes, progress=advance,
                                      guides=guides) for t in plan.terms}
-    image = estimates["interior"].primal if "interior" in estimates else \
-        render_view(scene, v, settings.spp, seed=exp.seed)
+    rendered = [e.primal for t, e in estimates.items() if registry.term(t).renders]
+    image = rendered[0] if rendered else render_view(scene, v, settings.spp, seed=exp.seed)
     total = sum(e.gradient for e in estimates.values())
     view = ViewGradient(v, image, estimates, total, guide_seconds, bool(guides.all()))
     if plan.fd:

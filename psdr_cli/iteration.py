@@ -15,11 +15,12 @@ import numpy as np
 
 from .estimators.boundary_sampling import edge_list
 from .estimators.passes import pass_seed, views_seed
+from .estimators import registry
 from .estimators.registry import ADJOINT_STREAM
 from .estimators.sample_log import SampleLog
 from .estimate import make_guides
 from .estimators.interior import split_views
-from .frozen_batch import DIRECT_TERM, FROZEN_TERM, PRIMARY_TERM, FrozenBatch, refusal
+from .frozen_batch import FrozenBatch, refusal
 from .geometry_ahead import GeometryAhead
 from .guiding.loop_fed import fed_term, fitted_guides, guide_arrays, log_from_arrays, per_pass_budget
 from .guiding.targets import Guides
@@ -168,7 +169,8 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
         problem.apply()
     problem.scene.objects[cfg.object].vertices = problem.vertices()
     problem.scene.objects[cfg.object].faces = problem.F
-    ahead = GeometryAhead(problem.scene, settings.estimator, settings.edge_sort, "primary" in engine.terms) \
+    intersections = any(registry.term(t).reads_intersections for t in engine.terms)
+    ahead = GeometryAhead(problem.scene, settings.estimator, settings.edge_sort, intersections) \
         if engine.needs_edges else None  # the edge table on the worker thread (geometry_ahead.py)
     batch = Batch(views, it, ahead)
     t_guide = time.perf_counter()
@@ -232,22 +234,17 @@ def traced_loss(problem, loop: Loop, stage, guides: GuideCache, batch: Batch) ->
 def frozen_loss(problem, loop: Loop, stage, guides: GuideCache, batch: Batch) -> mi.Float:
     """The iteration's loss with the recorded parts (:mod:`psdr_cli.frozen_batch`: the recorded
     forms of the losses that apply): the adjoint render (if any), the loss and its adjoint δ and
-    the interior term's backward pass replayed, then (unguided) the direct term's and
-    (without intersection curves) the primary term's (their gradient already in the scene's
-    leaves), the other terms traced as Σ_v Σ δ_v·I_v,term,
-    whose primal value is 0, and the priors.
+    the rendering term's backward pass replayed, then the boundary terms whose recorded part
+    serves the iteration (their gradient already in the scene's leaves), the other terms traced
+    as Σ_v Σ δ_v·I_v,term, whose primal value is 0, and the priors.
     Returns ℓ + that sum + the priors, for one backward pass of the traced part."""
     engine = loop.engine
     views, it = batch.views, batch.it
     loss, delta = loop.frozen(problem, stage, views, it, loop.settings, loop.cfg)
     edges = batch.edge_table()
-    rest = tuple(t for t in engine.terms if t != FROZEN_TERM)
-    if DIRECT_TERM in rest and loop.frozen.serves_direct(problem, views, loop.settings, edges, guides.guides):
-        loop.frozen.direct(problem, views, it, loop.settings, edges, delta)
-        rest = tuple(t for t in rest if t != DIRECT_TERM)
-    if PRIMARY_TERM in rest and loop.frozen.serves_primary(problem, views, loop.settings, edges):
-        loop.frozen.primary(problem, views, it, loop.settings, edges, delta)
-        rest = tuple(t for t in rest if t != PRIMARY_TERM)
+    rest = tuple(t for t in engine.terms if t != registry.RENDERING)
+    rest = loop.frozen.boundary(problem, views, it, loop.settings, edges=edges, guides=guides.guides, delta=delta,
+                                terms=rest)
     if rest:
         images = engine.images(problem, edges, views, it, guides.guides, terms=rest)
         for d, img in zip(split_views(delta, len(views)), images):

@@ -21,7 +21,8 @@ from psdr_cli import api, backend, iteration, meshes
 from psdr_cli.engines import Engine
 from psdr_cli.estimate import Settings
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.frozen_batch import FrozenBatch, Recording, refusal
+from psdr_cli.estimators.recording import Recording
+from psdr_cli.frozen_batch import FrozenBatch, refusal
 from psdr_cli.jitarray import jit_array
 from psdr_cli.problem import Problem, Shape, adam_export
 from psdr_cli.run_folder.log import read_log
@@ -111,7 +112,7 @@ def test_replays_give_the_traced_result_and_a_new_structure_records_again():
 
 class Interrupter:
     """Raises KeyboardInterrupt at the ``moment``-th Python line run inside a recorded part's call
-    (:class:`psdr_cli.frozen_batch.Recording`: a SIGINT's KeyboardInterrupt arrives at the next line
+    (:class:`psdr_cli.estimators.recording.Recording`: a SIGINT's KeyboardInterrupt arrives at the next line
     the interpreter runs); ``lines`` counts them (``moment`` None: count only)."""
 
     def __init__(self, monkeypatch, moment: int | None = None):
@@ -144,7 +145,7 @@ def first_iteration(frozen: bool = True):
         with backend.optimization_threads():
             step = iteration.iterate(problem, loop, stage, iteration.GuideCache(), 0)
         if frozen:
-            assert loop.frozen.primary_part.n_recordings == 1 and loop.frozen.direct_part.n_recordings == 1
+            assert loop.frozen.parts["primary"].n_recordings == 1 and loop.frozen.parts["direct"].n_recordings == 1
         return step.loss, adam_export(problem.opt, "u")[1]
     except BaseException as error:  # noqa: BLE001 - what reaches the loop is the result
         return error
@@ -260,8 +261,8 @@ def iteration_gradient(frozen: bool, it: int, adjoint_spp: int | None = None):
     with backend.optimization_threads():
         step = iteration.iterate(problem, loop, stage, iteration.GuideCache(), it)
     if frozen:  # the three parts ran: the interior term's, the direct term's and the primary term's
-        assert loop.frozen.interior.n_recordings == 1 and loop.frozen.direct_part.n_recordings == 1
-        assert loop.frozen.primary_part.n_recordings == 1
+        assert loop.frozen.interior.n_recordings == 1 and loop.frozen.parts["direct"].n_recordings == 1
+        assert loop.frozen.parts["primary"].n_recordings == 1
     moved = np.asarray(problem.opt["u"]) - u0
     m = adam_export(problem.opt, "u")[1]  # Adam's first moment after its first step: (1 − β₁)·g
     problem.release()
@@ -419,12 +420,12 @@ def test_the_direct_part_replays_right_for_any_number_of_edges():
         grads = []
         for fb in (frozen, traced):
             leaf = vertex_leaf_written(problem, V)
-            assert fb.serves_direct(problem, views, engine.settings, edges, None)
-            fb.direct(problem, views, trial, engine.settings, edges, delta)
+            assert fb.serves("direct", problem, views, engine.settings, edges, None)
+            fb.record("direct", problem, views, trial, engine.settings, edges=edges, delta=delta)
             grads.append(np.asarray(dr.grad(leaf), np.float64))
         assert_replayed(grads)
     assert len(set(counts)) > 1, counts
-    assert frozen.direct_part.n_recordings <= 2
+    assert frozen.parts["direct"].n_recordings <= 2
 
 
 #: Per trial of the primary part's test: the settings' changes (sampling, depth) and the dimple
@@ -456,18 +457,18 @@ def test_the_primary_part_replays_right_for_any_number_of_curves():
                 images = Engine(settings).images(problem, edges, views, trial, terms=("primary",))
                 dr.backward(dr.sum(delta * dr.concat(images)))
             else:
-                assert fb.serves_primary(problem, views, settings, edges)
-                counts.append(fb.primary(problem, views, trial, settings, edges, delta))
+                assert fb.serves("primary", problem, views, settings, edges, None)
+                counts.append(fb.record("primary", problem, views, trial, settings, edges=edges, delta=delta))
             grads.append(np.asarray(dr.grad(leaf), np.float64))
         assert_replayed(grads[:2])
         # the same arithmetic: rounding only (measured ≤ 6·10⁻⁸; half the term would give 0.5)
         error = np.abs(grads[1] - grads[2]).sum() / np.abs(grads[2]).sum()
         assert error <= 1e-5, (trial, error)
-        folds.append(any(shape.folds for shape in frozen.primary_part.fns))
+        folds.append(any(shape.folds for shape in frozen.parts["primary"].recording.fns))
     assert len(set(counts)) > 1, counts
     assert folds == [False, False, False, True], folds  # the dimple's folds were recorded
     # one recording per structure: plain, depth 1 (max_depth is recorded) and folds; not per count
-    assert frozen.primary_part.n_recordings <= 4
+    assert frozen.parts["primary"].n_recordings <= 4
 
 
 def test_the_primary_part_leaves_intersection_curves_to_the_traced_term():
@@ -476,7 +477,7 @@ def test_the_primary_part_leaves_intersection_curves_to_the_traced_term():
     pierced = perturbed_shapes(4, 1, lambda trial, V: moved_vertex(V, -1.3))
     for problem, engine, frozen, _, _, V, edges, views, _ in pierced:
         vertex_leaf_written(problem, V)
-        assert not frozen.serves_primary(problem, views, engine.settings, edges)
+        assert not frozen.serves("primary", problem, views, engine.settings, edges, None)
 
 
 @dataclass(frozen=True)
@@ -509,7 +510,7 @@ def test_ctrl_c_while_recording_is_an_interrupt_and_the_next_call_records_afresh
 def test_only_an_interrupt_that_caused_the_error_is_an_interrupt():
     """interrupt_in follows what an error was raised from, and what it was raised during unless
     that was suppressed: an error of its own raised while a Ctrl-C was being handled is not one."""
-    from psdr_cli.frozen_batch import interrupt_in
+    from psdr_cli.estimators.recording import interrupt_in
 
     def raised(during_interrupt: bool, suppress: bool):
         try:

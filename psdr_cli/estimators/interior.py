@@ -277,4 +277,4 @@ def estimate_views(scene, edges, views, spp: int, seed: int, estimator, max_dept
     return split_views(image, len(views))
 
 
-TERM = Term("interior", samples_key="spp", stream=1, estimate=estimate, estimate_views=estimate_views)
+TERM = Term("interior", samples_key="spp", stream=1, estimate=estimate, estimate_views=estimate_views, renders=True)

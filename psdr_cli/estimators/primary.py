@@ -787,4 +787,5 @@ def estimate_views(scene, edges: BoundaryEdges, views, spp: int, seed: int, esti
                                   sampling=estimator.primary_sampling, hide_background=scene.config.hide_background)
 
 
-TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate, estimate_views=estimate_views)
+TERM = Term("primary", samples_key="primary_spp", stream=2, estimate=estimate, estimate_views=estimate_views,
+            reads_intersections=True)

@@ -2,7 +2,10 @@
 
 A term is registered by its name in :data:`psdr_cli.config.TERMS` (the vocabulary experiment
 files are checked against, in order); the module of this package with that name declares its
-:class:`~.term.Term` as ``TERM``. Adding a term is its module plus its name in that tuple.
+:class:`~.term.Term` as ``TERM``. Adding a term is its module plus its name in that tuple. A term
+whose pass over a batch can be recorded (``dr.freeze``) has a module ``recorded_<name>.py``
+declaring its part as ``PART`` (:class:`~.recording.RecordedPart`), and its name in
+:data:`RECORDED`.
 
 Streams (the last argument of :func:`~.passes.pass_seed`) keep images from sharing random
 numbers: renders 0, each term its own (interior 1, primary 2, direct 3, indirect 4), Mitsuba's
@@ -29,6 +32,12 @@ COVERAGE_STREAMS = (11, 12)
 TERMS: tuple[Term, ...] = tuple(import_module(f"{__package__}.{name}").TERM for name in NAMES)
 #: Names of the terms a guide can serve.
 GUIDED = tuple(t.name for t in TERMS if t.guided)
+#: The term whose primal value is the rendered image (the recorded iteration's batch renders it).
+RENDERING = next(t.name for t in TERMS if t.renders)
+#: The terms with a recorded part, in the order their backward passes run.
+RECORDED = ("direct", "primary")
+#: {term name: the class of its recorded part} (module ``recorded_<name>.py``), in :data:`RECORDED` order.
+RECORDED_PARTS = {name: import_module(f"{__package__}.recorded_{name}").PART for name in RECORDED}
 
 _BY_NAME = {t.name: t for t in TERMS}
 

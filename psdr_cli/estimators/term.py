@@ -74,6 +74,10 @@ class Term:
     guide: GuideTarget | None = None   # how a boundary guide serves it (None: no guide can)
     #: one pass for several views traced as one wavefront (None: one view at a time), see above
     estimate_views: Callable[..., list] | None = None
+    #: whether its primal value is the rendered image (the others' is 0)
+    renders: bool = False
+    #: whether its passes read the intersection curves among the meshes (searched ahead of them)
+    reads_intersections: bool = False
 
     @property
     def guided(self) -> bool:

@@ -1,0 +1,110 @@
+"""Owns the direct term's recorded part (:class:`DirectPart`, the interface of
+:class:`.recording.RecordedPart`): its pass over a batch (the samples of its ``estimate_views``,
+the cameras from the run's table) and the backward pass of Σ δ·I_direct into the scene's leaves,
+recorded per :class:`DirectShape` and replayed. The edges enter as arrays padded to a power of
+two (:func:`padded_edges`) and are drawn ∝ length by
+:class:`.boundary_sampling.LengthDistribution`, whose kernels do not depend on their number.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
+from .camera import CameraTable, LaneCameras, ViewLanes
+from .direct import direct_samples
+from .passes import AD_LANES, make_sampler
+from .recording import PassInputs, RecordedScene, Recording, adjoint_sum, edge_slots, opaque
+
+#: Most edges the part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
+MAX_EDGES = 1 << SEARCH_STEPS
+
+
+@dataclass(frozen=True)
+class DirectShape:
+    """What a recording of the direct term's part is valid for: the scene object, the film, the
+    batch size, the term's samples per pixel, its sampling technique and the objects whose edges
+    are drawn (their vertex buffers, in order)."""
+    scene_id: int
+    width: int
+    height: int
+    views: int
+    spp: int
+    sampling: str
+    names: tuple
+    slots: int
+
+
+def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
+    """(ids, flip, open) of ``edges`` padded to ``slots`` entries with edges of length 0 (both
+    ends vertex 0: never drawn, :class:`.boundary_sampling.LengthDistribution`)."""
+    index = dr.arange(mi.UInt32, slots)
+    count = opaque(edges.count)  # (a constant would compile this kernel anew for every count)
+    real = index < count
+    at = dr.minimum(index, count - 1)
+    ids = [dr.select(real, dr.gather(mi.UInt32, a, at), 0) for a in edges.ids]
+    flip = real & dr.gather(mi.Bool, edges.flip, at)
+    open_ = real & dr.gather(mi.Bool, edges.open, at)
+    dr.eval(ids, flip, open_)
+    return ids, flip, open_
+
+
+def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
+                    padded: tuple, delta: mi.Float):
+    """The direct term's pass over the batch (the samples of its ``estimate_views``, the cameras
+    from ``table``) and the backward pass of Σ δ·I_direct into the scene's leaves. The edges
+    ``padded`` = (ids: their six vertex-id columns, flip, open, count; ``shape.slots`` entries, of
+    which ``count`` real ones, at least one, and the rest of length 0: :func:`padded_edges`) index
+    the concatenated vertex buffers of ``shape.names``."""
+    ids, flip, open_, count = padded
+    edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
+    P = edges.positions(mi.traverse(mi_scene))
+    n = shape.spp * shape.width * shape.height
+    sampler = make_sampler(seed, n * shape.views)
+    k = dr.arange(mi.UInt32, n * shape.views) // n
+    lanes = ViewLanes(LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k)), k, shape.views)
+    samples = direct_samples(mi_scene, lanes, edges, P, n, sampler, shape.sampling,
+                             distr=length_distribution(edges, P, count))
+    dr.backward(adjoint_sum(delta, samples))
+    return count  # (a frozen function returns something)
+
+
+class DirectPart:
+    """The direct term's recorded part (:class:`.recording.RecordedPart`); ``enabled`` false runs
+    the same function traced every call."""
+
+    def __init__(self, enabled: bool = True):
+        self.recording = Recording(direct_backward, enabled)
+        self.slots = 0  # the edge slots: the most this scene needed
+
+    def reset(self):
+        self.recording.reset()
+        self.slots = 0
+
+    @property
+    def n_recordings(self) -> int:
+        return self.recording.n_recordings
+
+    def serves(self, scene, views, spp: int, edges) -> bool:
+        """Whether the part can run on ``edges`` (the batch in one AD pass, 1 to
+        :data:`MAX_EDGES` edges)."""
+        width, height = scene.resolution
+        return edges is not None and 0 < edges.count < MAX_EDGES and len(views) * width * height * spp <= AD_LANES
+
+    def run(self, recorded: RecordedScene, inputs: PassInputs, scene, *, edges, delta: mi.Float) -> int:
+        """The backward pass of Σ δ·I_direct over the batch (into the scene's leaves), replayed;
+        returns the number of edges."""
+        width, height = scene.resolution
+        self.slots = max(self.slots, edge_slots(edges.count))  # never fewer: a count going back and
+        # forth across a power of two would record again each time
+        shape = DirectShape(recorded.scene_id, width, height, len(inputs.views), inputs.spp,
+                            inputs.estimator.sampling, tuple(edges.names), self.slots)
+        ids, flip, open_ = padded_edges(edges, shape.slots)
+        self.recording(shape, scene.mi_scene, recorded.table, mi.UInt32(inputs.views), opaque(inputs.seed),
+                       (ids, flip, open_, opaque(edges.count)), delta)
+        return edges.count
+
+
+PART = DirectPart
