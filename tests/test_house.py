@@ -27,3 +27,24 @@ def test_no_function_takes_more_than_seven_positional_parameters():
             for path in sorted(PACKAGE.rglob("*.py")) if path.name != "cli.py"
             for name, line, names in functions(path) if len(names) > MAX_POSITIONAL]
     assert not long, "more than 7 positional parameters:\n" + "\n".join(long)
+
+
+def term_names_in_code(path: Path, names) -> list:
+    """Lines of ``path`` whose code (docstrings aside) holds one of ``names`` as a string literal."""
+    tree = ast.parse(path.read_text())
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                  and node.body and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+    return [node.lineno for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and node.value in names and id(node) not in docstrings]
+
+
+def test_only_the_estimators_and_the_config_name_a_term():
+    """A term is found through its interface (the registry, its ``Term``'s fields): a module
+    outside ``estimators/`` and ``config/`` that names one by its string would miss a term added
+    the README's way."""
+    from psdr_cli.config.vocabularies import TERMS
+    named = [f"{path.relative_to(PACKAGE.parent)}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+             if path.parent.name not in ("estimators", "config")
+             for line in term_names_in_code(path, set(TERMS))]
+    assert not named, "term names outside estimators/ and config/:\n" + "\n".join(named)
