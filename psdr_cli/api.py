@@ -8,6 +8,7 @@
     evaluate     → :func:`psdr_cli.evaluate.evaluate_meshes` (inputs: :func:`psdr_cli.evaluate.evaluate_inputs`)
     table2       → :func:`psdr_cli.evaluate.table2`
     export       → :func:`psdr_cli.export.export`
+    view         → :func:`psdr_cli.viewer.serve` (``live_viewer``: the observer of ``optimize --view``)
 
 ``optimize_variants`` and ``compare`` with ``ray=sweep.RayOptions(...)`` run each run / variant as a
 Ray task (:mod:`psdr_cli.sweep`; needs the optional extra ``psdr[ray]``).
@@ -25,9 +26,11 @@ from . import estimate, gradient
 from . import optimize as optimization
 from . import render as rendering
 from . import sweep
+from . import viewer
 from .config.experiment_file import Experiment
 from .config.limits import MAX_ITERATIONS
 from .config.options import option_count
+from .errors import PsdrError
 from .guiding import stats
 from .mitsuba_scene import warn_stderr
 
@@ -82,22 +85,29 @@ def compare(exp: Experiment, out: Path | None = None, progress=None, ray: "sweep
     return comparison.run_comparison(exp, out, progress)
 
 
-def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print):
-    """``psdr optimize`` of one run (an experiment without variants, or one variant's run)."""
+def optimize(exp: Experiment, iterations: int | None = None, resume: bool = False, progress=None, warn=print,
+             observer=None):
+    """``psdr optimize`` of one run (an experiment without variants, or one variant's run);
+    ``observer``: e.g. a :func:`live_viewer`."""
     option_count("--iterations", iterations, 1, MAX_ITERATIONS)
-    return optimization.optimize(exp, iterations=iterations, resume=resume, progress=progress, warn=warn)
+    return optimization.optimize(exp, iterations=iterations, resume=resume, progress=progress, warn=warn,
+                                 observer=observer)
 
 
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False, *,
-                      progress=None, warn=print, ray: "sweep.RayOptions | None" = None, report=None):
+                      progress=None, warn=print, ray: "sweep.RayOptions | None" = None, report=None,
+                      observer=None):
     """``psdr optimize`` of every run of an experiment; yields (label, OptimizeResult). With
     ``ray``: one Ray task per run, results in the order the runs end, ``progress(label)`` giving
     one progress object (``start``, ``advance``) per run. ``report``: one line per run before it
-    starts, what guides its boundary terms in the loop."""
+    starts, what guides its boundary terms in the loop. ``observer``: e.g. a :func:`live_viewer`
+    (not with ``ray``: the loop must run in this process)."""
     option_count("--iterations", iterations, 1, MAX_ITERATIONS)  # before any run starts, here or on Ray
+    if ray is not None and observer is not None:
+        raise PsdrError("--view and --ray: the viewer watches a loop running in this process; drop one")
     if ray is not None:
         return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress=progress, warn=warn, report=report)
-    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report)
+    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report, observer)
 
 
 def evaluate(paths, reference: Path | None = None, *, samples: int | None = None, json_out: Path | None = None,
@@ -124,3 +134,15 @@ def export(source, out: Path | None = None, texture: Path | None = None, warn=pr
     """``psdr export``: a run folder or mesh file as OBJ + MTL + PNG and binary glTF (and the
     rotated environment map of a run that recovered its rotation); an ExportResult."""
     return exporting.export(source, out, texture, warn)
+
+
+def live_viewer(host: str = "127.0.0.1", port: int = 8080, warn=print, interval: float = 1.0):
+    """The web viewer of a running optimisation (``psdr optimize --view``), serving on
+    ``host:port`` at once; pass it as ``observer``. Needs the optional extra ``psdr[view]``."""
+    return viewer.live_viewer(host, port, warn, interval)
+
+
+def view(path, host: str = "127.0.0.1", port: int = 8080, seconds: float | None = None, warn=print, ready=print):
+    """``psdr view``: a run folder (read-only, while it runs or after) or a mesh file in the web
+    viewer, until Ctrl-C or for ``seconds``; ``ready(url)`` once it serves."""
+    return viewer.serve(path, host, port, seconds, warn=warn, ready=ready)

@@ -113,6 +113,8 @@ def main(ctx: typer.Context,
 
 
 ConfigArg = typer.Argument(..., help="YAML experiment file.", show_default=False)
+PortOption = typer.Option(8080, "--port", min=0, max=65535, help="With the viewer: its port (the next free one when taken).")
+HostOption = typer.Option("127.0.0.1", "--host", help="With the viewer: the address it listens on (0.0.0.0 shares it).")
 ViewsOption = typer.Option(None, "--views", help="Views, e.g. 0,3 or 0-2 (default: all).")
 OutOption = typer.Option(None, "--out", help="Output folder (replaces the experiment's 'output').")
 RayOption = typer.Option(None, "--ray", metavar="[ADDRESS]",
@@ -310,19 +312,36 @@ def optimize(config: Path = ConfigArg,
              iterations: Optional[int] = typer.Option(None, "--iterations", help="Total iterations (default: optimize.iterations)."),
              variant: Optional[list[str]] = typer.Option(None, "--variant", help="Run only this variant of optimize.variants (repeatable; default: all)."),
              log_every: int = typer.Option(10, "--log-every", min=1, help="When the output is not a terminal: a progress line every N iterations."),
-             ray: Optional[str] = RayOption, ray_cpus: int = RayCpusOption, ray_files: str = RayFilesOption):
+             ray: Optional[str] = RayOption, ray_cpus: int = RayCpusOption, ray_files: str = RayFilesOption,
+             view: bool = typer.Option(False, "--view", help="Watch the run in a web page (needs pip install 'psdr[view]')."),
+             port: int = PortOption, host: str = HostOption):
     """Reconstruct an object's shape from images (mini-batches, L1 loss, large steps, checkpoints)."""
     exp = load_experiment(config)
     warn = lambda m: console.print(f"[yellow]warning:[/] {m}", highlight=False)  # noqa: E731
     opts = ray_options(ray, ray_cpus, ray_files)
+    if view and opts is not None:
+        raise PsdrError("--view and --ray: the viewer watches a loop running in this process; drop one")
     label_of = lambda label: f"optimize {label}" if label else "optimize"  # noqa: E731
-    if opts is None:
-        runs = api.optimize_variants(exp, variant, iterations, resume, warn=warn, report=out.print,
-                                     progress=lambda label: LossBar(label_of(label), log_every))
-    else:  # one line per run while they run side by side; the summaries once all have ended
+    if opts is not None:  # one line per run while they run side by side; the summaries once all have ended
         with RunLines(log_every) as lines:
-            runs = list(api.optimize_variants(exp, variant, iterations, resume, warn=warn, ray=opts, report=out.print,
-                                              progress=lambda label: lines.row(label_of(label))))
+            print_runs(api.optimize_variants(exp, variant, iterations, resume, warn=warn, ray=opts, report=out.print,
+                                             progress=lambda label: lines.row(label_of(label))))
+    else:
+        viewer = live_viewer(host, port, warn) if view else None
+        try:
+            print_runs(api.optimize_variants(exp, variant, iterations, resume, warn=warn, report=out.print,
+                                             progress=lambda label: LossBar(label_of(label), log_every),
+                                             observer=viewer))
+        finally:
+            if viewer:
+                viewer.close()
+    where = f"{exp.run_dir}/<variant>/" if exp.optimize.variants else f"{exp.run_dir}/"
+    out.print(f"outputs in {where} (checkpoints/, previews/, log.csv, loss.png); "
+              f"evaluate with: psdr evaluate {config}")
+
+
+def print_runs(runs):
+    """One summary line per run as it ends (and the time budget's stop); exit 130 on an interrupted run."""
     for label, res in runs:
         if res.interrupted:
             raise typer.Exit(130)
@@ -333,9 +352,6 @@ def optimize(config: Path = ConfigArg,
         if res.budget_stop:
             out.print(f"{label + ': ' if label else ''}the time budget (optimize.seconds) ended the run after "
                       f"{res.iterations} iterations ({res.seconds:.1f} s of optimisation)")
-    where = f"{exp.run_dir}/<variant>/" if exp.optimize.variants else f"{exp.run_dir}/"
-    out.print(f"outputs in {where} (checkpoints/, previews/, log.csv, loss.png); "
-              f"evaluate with: psdr evaluate {config}")
 
 
 @app.command()
@@ -439,6 +455,25 @@ def export(source: Path = typer.Argument(..., help="A `psdr optimize` run folder
     warn = lambda m: console.print(f"[yellow]note:[/] {escape(m)}", highlight=False, soft_wrap=True)  # noqa: E731
     res = api.export(source, out_dir, texture, warn=warn)
     out.print(f"exported to {res.folder}: {', '.join(p.name for p in res.files)}")
+
+
+def live_viewer(host: str, port: int, warn):
+    """The viewer of ``psdr optimize --view``, its address printed."""
+    viewer = api.live_viewer(host, port, warn)
+    if viewer.url:
+        out.print(f"viewer: {viewer.url} (the Pause box holds the run between iterations)")
+    return viewer
+
+
+@app.command()
+@guarded
+def view(path: Path = typer.Argument(..., help="A `psdr optimize` run folder (finished or running), or a .ply/.obj mesh.", show_default=False),
+         port: int = PortOption, host: str = HostOption,
+         seconds: Optional[float] = typer.Option(None, "--seconds", hidden=True, help="Stop after S seconds (tests).")):
+    """Show a run folder (checkpoints on a slider, cameras, loss, previews) or a mesh in a web
+    page, read-only, until Ctrl-C."""
+    warn = lambda m: console.print(f"[yellow]warning:[/] {escape(m)}", highlight=False, soft_wrap=True)  # noqa: E731
+    api.view(path, host, port, seconds, warn=warn, ready=lambda url: out.print(f"viewer: {url} (Ctrl-C to stop)"))
 
 
 def ray_flag(argv: list) -> list:

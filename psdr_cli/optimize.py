@@ -73,12 +73,16 @@ class OptimizeResult:
     seconds: float = 0.0             # optimisation seconds of the whole run
 
 
-def optimize(exp, iterations: int | None = None, resume: bool = False, progress=None, warn=print) -> OptimizeResult:
+def optimize(exp, iterations: int | None = None, resume: bool = False, progress=None, warn=print,
+             observer=None) -> OptimizeResult:
     """Run (or continue) the optimisation of ``exp.optimize``; see the module docstring.
 
     ``iterations``: the run's total (default ``optimize.iterations``), checked by the command
     (:func:`psdr_cli.api.optimize`); ``progress``: optional object with ``start(total)``,
-    ``advance(n, loss)``; ``warn``: one-line messages (NaN gradients, interruption)."""
+    ``advance(n, loss)``; ``warn``: one-line messages (NaN gradients, interruption); ``observer``:
+    optional object whose ``iteration(exp, now, done, total, seconds, loss)`` is called on the
+    loop's thread after each saved iteration (it may hold the loop there: a paused viewer,
+    :mod:`psdr_cli.viewer.live`)."""
     cfg = exp.optimize
     if cfg is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
@@ -87,7 +91,7 @@ def optimize(exp, iterations: int | None = None, resume: bool = False, progress=
     files = RunFiles(exp.run_dir)
     files.check_files()
     with lock_run(files), backend.optimization_threads():
-        return _optimize(exp, files, total, resume, progress, warn)
+        return _optimize(exp, files, total, resume, progress, warn, observer)
 
 
 @dataclass
@@ -110,7 +114,7 @@ class Current:
     guides: GuideCache
 
 
-def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) -> OptimizeResult:
+def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn, observer=None) -> OptimizeResult:
     """:func:`optimize` once the run folder is locked: the loop, from the saved or initial state."""
     cfg, requested = exp.optimize, total
     start = run_start(exp, files, total, resume, warn)
@@ -138,6 +142,8 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn) ->
             save_iteration(now, files, exp, it + 1, seconds, result, last=it + 1 == total)
             if progress:
                 progress.advance(1, step.loss)
+            if observer:
+                observer.iteration(exp, now, it + 1, total, seconds, step.loss)
             if it + 1 == total:
                 break
         it = total
@@ -324,20 +330,21 @@ def loop_guiding_line(label: str, run: Experiment) -> str:
 
 
 def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
-                      progress=None, warn=print, report=None):
+                      progress=None, warn=print, report=None, observer=None):
     """Run every run of ``exp`` (its ``optimize.variants``, or those in ``labels``; the experiment
     itself without variants) one after another; yields (label, OptimizeResult) as each ends.
 
     ``progress(label)``: optional context manager factory giving each run's progress object;
-    ``report``: one line per run as it starts, what guides its boundary terms in the loop."""
+    ``report``: one line per run as it starts, what guides its boundary terms in the loop;
+    ``observer``: as :func:`optimize`'s, for every run."""
     if exp.optimize is None:
         raise PsdrError(f"{exp.file}: optimize: missing (expected at least {{object: NAME}})")
     for label, run in variant_experiments(exp, labels):
         if report:
             report(loop_guiding_line(label, run))
         if progress is None:
-            yield label, optimize(run, iterations=iterations, resume=resume, warn=warn)
+            yield label, optimize(run, iterations=iterations, resume=resume, warn=warn, observer=observer)
             continue
         with progress(label) as bar:
-            result = optimize(run, iterations=iterations, resume=resume, progress=bar, warn=warn)
+            result = optimize(run, iterations=iterations, resume=resume, progress=bar, warn=warn, observer=observer)
         yield label, result
