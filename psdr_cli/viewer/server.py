@@ -47,7 +47,8 @@ class ViewerServer:
         self.strip = gui.add_image(np.zeros((8, 24, 3), np.uint8), label="target | render | error", order=21)
         self.loss = gui.add_uplot(data=(np.zeros(1), np.ones(1)), series=({"label": "iteration"},
                                   {"label": "loss", "stroke": "orange", "width": 2}),
-                                  scales={"y": {"distr": 3}}, title="loss", aspect=1.6, order=30)
+                                  scales={"x": {"time": False}, "y": {"distr": 3}}, title="loss", aspect=1.6,
+                                  order=30)
 
     @property
     def url(self) -> str:
@@ -86,8 +87,28 @@ class ViewerServer:
             self.frustums = [self.add_frustum(i, cam, scale) for i, cam in enumerate(cameras)]
             self.view.options = tuple(camera_label(i, c) for i, c in enumerate(cameras)) or ("—",)
             self.server.scene.set_up_direction(tuple(up_direction(cameras)))
+            self.overview(cameras)
             if cameras:
                 self.select(min(self.selected, len(cameras) - 1))
+
+    def overview(self, cameras: list):
+        """The viewpoint a page opens with (and that of the pages open now): between the first two
+        cameras, farther out and above, looking at where the cameras look (the object)."""
+        if not cameras:
+            return
+        up = up_direction(cameras)
+        centre = camera_focus(cameras)
+        between = np.mean([c.pose[:3, 3] for c in cameras[:2]], axis=0) - centre
+        distance = np.linalg.norm(cameras[0].pose[:3, 3] - centre)
+        side = between / max(np.linalg.norm(between), 1e-9)
+        position = centre + side * 1.5 * distance + up * 0.5 * distance
+        initial = self.server.initial_camera
+        initial.position, initial.look_at, initial.up = position, centre, up
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.up_direction = up
+                client.camera.position = position
+                client.camera.look_at = centre
 
     def add_frustum(self, i: int, cam: ViewCamera, scale: float):
         frustum = self.server.scene.add_camera_frustum(
@@ -174,6 +195,19 @@ def frustum_scale(cameras: list) -> float:
         return 0.1
     origins = np.array([c.pose[:3, 3] for c in cameras])
     return float(0.12 * np.mean(np.linalg.norm(origins - origins.mean(axis=0), axis=1))) or 0.1
+
+
+def camera_focus(cameras: list) -> np.ndarray:
+    """The point nearest to every camera's optical axis (least squares): where the cameras look."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cameras:
+        d = c.pose[:3, 2] / np.linalg.norm(c.pose[:3, 2])
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c.pose[:3, 3]
+    if len(cameras) < 2 or np.linalg.cond(A) > 1e8:
+        return cameras[0].pose[:3, 3] + cameras[0].pose[:3, 2]
+    return np.linalg.solve(A, b)
 
 
 def camera_label(i: int, cam: ViewCamera) -> str:

@@ -1,0 +1,175 @@
+"""The web viewer (psdr_cli/viewer/) in a real browser: Debian's chromium, headless, driven by
+Selenium through the system chromedriver (scripts/ensure-chromium.sh installs both; nothing is
+downloaded at run time). The screenshots are checked for the mesh's and the cameras' colours
+against one of an empty page; the Pause box is clicked in the browser and the loop must stop
+writing log rows, then go on."""
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from test_optimize import TINY, default_sigint, log_rows, write
+
+viser = pytest.importorskip("viser", reason="the viewer's extra is not installed: pip install 'psdr[view]'")
+webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed: pip install 'psdr[test]'")
+
+from psdr_cli import api  # noqa: E402
+from psdr_cli.run_folder.layout import RunFiles, lock_run  # noqa: E402
+from psdr_cli.viewer import server as viewer_server  # noqa: E402
+from psdr_cli.viewer.pictures import read_png  # noqa: E402
+from psdr_cli.viewer.run_folder_view import open_view  # noqa: E402
+
+pytestmark = pytest.mark.xdist_group("browser")  # one headless chromium at a time
+
+BROWSER = shutil.which("chromium") or shutil.which("chromium-browser")
+DRIVER = shutil.which("chromedriver")
+SHOT_SIZE = (1000, 700)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """A headless chromium (software WebGL), or a skip when it cannot be installed here."""
+    if not (BROWSER and DRIVER):
+        pytest.skip("no chromium/chromedriver: scripts/ensure-chromium.sh installs them (as root, with apt)")
+    os.environ["SE_OFFLINE"] = "true"  # Selenium Manager must not download a browser
+    from selenium.webdriver.chrome.service import Service
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = BROWSER
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={SHOT_SIZE[0]},{SHOT_SIZE[1]}",
+                "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"):
+        opts.add_argument(arg)
+    driver = webdriver.Chrome(options=opts, service=Service(DRIVER))
+    yield driver
+    driver.quit()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def screenshot(driver, url: str, path: Path, settle: float = 6.0) -> np.ndarray:
+    """The page at ``url`` once its scene has had ``settle`` seconds to draw, as 8-bit RGB."""
+    driver.get(url)
+    time.sleep(settle)
+    driver.save_screenshot(str(path))
+    return read_png(path)
+
+
+def scene_part(shot: np.ndarray) -> np.ndarray:
+    """The middle of the 3D view: right of the page's notices (orange-edged) and its axes gizmo
+    (blue and green), left of the GUI panel (its loss curve is orange)."""
+    return shot[:-80, 320: int(shot.shape[1] * 0.64)].astype(np.int32)
+
+
+def mesh_pixels(shot: np.ndarray) -> int:
+    """Pixels of the mesh's orange (viewer_server.MESH_COLOR, shaded)."""
+    r, g, b = np.moveaxis(scene_part(shot), -1, 0)
+    return int(np.sum((r > 90) & (r - b > 70) & (g - b > 20) & (r - g > 40)))
+
+
+def frustum_pixels(shot: np.ndarray) -> int:
+    """Pixels of the frustums' blue or the selected one's green."""
+    r, g, b = np.moveaxis(scene_part(shot), -1, 0)
+    return int(np.sum(((b - r > 100) & (b > 150)) | ((g - r > 100) & (g - b > 80))))
+
+
+def tiny_run(tmp_path: Path, iterations: int = 4) -> Path:
+    """A finished run of the test scene (a remesh-free sphere → bunny), its folder."""
+    data = dict(TINY, optimize=dict(TINY["optimize"], remesh={"method": "instant", "initial": 150}))
+    exp = api.load_experiment(write(tmp_path, data))
+    api.optimize(exp, iterations=iterations)
+    return exp.run_dir
+
+
+def folder_state(root: Path) -> dict:
+    return {p: p.stat().st_mtime_ns for p in sorted(root.rglob("*"))}
+
+
+def test_view_draws_the_mesh_and_cameras_of_a_locked_run_and_writes_nothing(tmp_path, browser):
+    """``psdr view RUN``: the last checkpoint's mesh and the cameras are drawn (their colours in
+    the screenshot, none in an empty page's), while another process's lock is held on the run;
+    clicking a camera's handle moves the page's viewpoint to it; nothing in the folder changes."""
+    run = tiny_run(tmp_path)
+    empty = viewer_server.ViewerServer(port=free_port())
+    try:
+        blank = screenshot(browser, empty.url, tmp_path / "empty.png", settle=3.0)
+    finally:
+        empty.close()
+    before = folder_state(run)
+    with lock_run(RunFiles(run)):  # as a running `psdr optimize` holds it
+        server, refresh = open_view(run, port=free_port())
+        try:
+            shot = screenshot(browser, server.url, tmp_path / "view.png")
+            refresh()
+            clients = list(server.server.get_clients().values())
+            assert clients, "the browser did not connect"
+            server.snap_to(clients[0], 1)
+            time.sleep(1.0)
+            assert np.allclose(clients[0].camera.position, server.cameras[1].pose[:3, 3], atol=1e-3)
+            assert server.selected == 1
+        finally:
+            server.close()
+    assert folder_state(run) == before
+    print(f"mesh pixels {mesh_pixels(shot)} (empty page {mesh_pixels(blank)}), "
+          f"frustum pixels {frustum_pixels(shot)} (empty page {frustum_pixels(blank)})")
+    assert mesh_pixels(blank) < 20 and frustum_pixels(blank) < 20
+    assert mesh_pixels(shot) > 300, "the mesh is not drawn"
+    assert frustum_pixels(shot) > 100, "the cameras are not drawn"
+
+
+def test_view_refuses_what_is_not_a_run_or_mesh(tmp_path, run_psdr):
+    (tmp_path / "notes.txt").write_text("x")
+    for path, words in ((tmp_path / "absent", "no such file"), (tmp_path, "not a `psdr optimize` run folder"),
+                        (tmp_path / "notes.txt", "expected a run folder or a .ply/.obj mesh")):
+        r = run_psdr("view", path, "--seconds", "0.1")
+        assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_optimize_view_pause_in_the_browser_holds_the_loop(tmp_path, browser):
+    """``psdr optimize --view``: the live page draws the mesh and cameras while the run goes;
+    ticking Pause in the browser stops the log between iterations, unticking it resumes; Ctrl-C
+    then ends the run as without the viewer. With PSDR_VIEWER_SCREENSHOT=1 the screenshot is
+    kept as docs/images/viewer.png."""
+    data = dict(TINY, optimize=dict(TINY["optimize"], iterations=2000, checkpoint_every=5, remesh={"method": "instant", "initial": 150}))
+    cfg = write(tmp_path, data)
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "psdr_cli", "optimize", str(cfg), "--view", "--port", str(port)],
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, preexec_fn=default_sigint)
+    run = tmp_path / "runs" / "tiny"
+    try:
+        deadline = time.time() + 120
+        while not ((run / "log.csv").exists() and len(log_rows(run)) >= 6):
+            assert proc.poll() is None, proc.communicate()[0]
+            assert time.time() < deadline, "the run did not start in time"
+            time.sleep(0.2)
+        shot = screenshot(browser, f"http://127.0.0.1:{port}/", tmp_path / "live.png", settle=8.0)
+        assert mesh_pixels(shot) > 300 and frustum_pixels(shot) > 100, (mesh_pixels(shot), frustum_pixels(shot))
+        if os.environ.get("PSDR_VIEWER_SCREENSHOT"):
+            shutil.copy(tmp_path / "live.png", REPO / "docs" / "images" / "viewer.png")
+        pause = browser.find_element("xpath", "//label[normalize-space()='Pause']")
+        pause.click()
+        time.sleep(2.0)  # the iteration in flight ends
+        held = len(log_rows(run))
+        time.sleep(3.0)
+        assert len(log_rows(run)) == held, "the loop went on while paused"
+        pause.click()
+        deadline = time.time() + 60
+        while len(log_rows(run)) <= held:
+            assert time.time() < deadline, "the loop did not resume"
+            time.sleep(0.2)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 130, out
+    assert "Traceback" not in out, out
