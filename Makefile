@@ -25,6 +25,7 @@ llvm:
 
 $(STAMP): pyproject.toml
 	@bash scripts/ensure-llvm.sh
+	@bash scripts/ensure-chromium.sh
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[test]'
