@@ -180,3 +180,27 @@ def test_optimize_view_pause_in_the_browser_holds_the_loop(tmp_path, browser):
         out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 130, out
     assert "Traceback" not in out, out
+
+
+def test_a_taken_port_and_a_failing_page_are_one_warning_each_and_the_run_goes_on(tmp_path):
+    """The viewer moves off a port in use with one warning; a page update that fails stops the
+    viewer's updates with one warning; the run ends as without a viewer."""
+    data = dict(TINY, optimize=dict(TINY["optimize"], remesh={"method": "instant", "initial": 150}))
+    exp = api.load_experiment(write(tmp_path, data))
+    warnings = []
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        viewer = api.live_viewer(port=port, warn=warnings.append, interval=0.0)
+
+        def broken(*args):
+            raise ConnectionResetError("the page went away")
+        viewer.server.show_mesh = broken
+        try:
+            result = api.optimize(exp, iterations=4, observer=viewer)
+        finally:
+            viewer.close()
+    assert result.iterations == 4 and result.final.is_file()
+    assert viewer.server.port != port
+    assert [w for w in warnings if "in use" in w] and len([w for w in warnings if "stopped updating" in w]) == 1, warnings
