@@ -107,7 +107,8 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
         raise PsdrError("--view and --ray: the viewer watches a loop running in this process; drop one")
     if ray is not None:
         return sweep.optimize_sweep(exp, labels, iterations, resume, ray, progress=progress, warn=warn, report=report)
-    return optimization.optimize_variants(exp, labels, iterations, resume, progress, warn, report, observer)
+    return optimization.optimize_variants(exp, labels, iterations, resume, progress=progress, warn=warn, report=report,
+                                          observer=observer)
 
 
 def evaluate(paths, reference: Path | None = None, *, samples: int | None = None, json_out: Path | None = None,

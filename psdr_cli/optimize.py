@@ -329,7 +329,7 @@ def loop_guiding_line(label: str, run: Experiment) -> str:
     return f"{label}: {line}" if label else line
 
 
-def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False,
+def optimize_variants(exp: Experiment, labels=None, iterations: int | None = None, resume: bool = False, *,
                       progress=None, warn=print, report=None, observer=None):
     """Run every run of ``exp`` (its ``optimize.variants``, or those in ``labels``; the experiment
     itself without variants) one after another; yields (label, OptimizeResult) as each ends.
