@@ -22,8 +22,8 @@ and scale about c (τ_v = Q_vᵀ (o_v − c) / d_v). After every step x is proje
 span G, x ← x − G (GᵀG)⁻¹ Gᵀ x, over the views still refined: the cameras keep their mean pose,
 and the object stays in the dataset's frame and scale (comparable with a ground truth as is).
 
-Schedule: nothing moves before iteration ``start`` (default: a tenth of the run, once the shape
-has left the visual hull); the step then ramps linearly over ``warmup`` iterations to ``learning_rate``. A
+Schedule: nothing moves before iteration ``start`` (default: a fifth of the run, when the shape
+has settled); the step then ramps linearly over ``warmup`` iterations to ``learning_rate``. A
 view whose gradient is not finite, or whose correction leaves ``max_rotation_deg`` or
 ``max_translation``, stops: its correction goes back to its value before that step and stays.
 """
@@ -162,8 +162,8 @@ class CameraCorrections:
         return bool(np.any(self.array() != 0))
 
     def start(self, total: int) -> int:
-        """The first iteration refined: ``start``, or a tenth of a ``total``-iteration run."""
-        return self.cfg.start if self.cfg.start is not None else total // 10
+        """The first iteration refined: ``start``, or a fifth of a ``total``-iteration run."""
+        return self.cfg.start if self.cfg.start is not None else total // 5
 
     def refining(self, iteration: int, total: int) -> bool:
         """Whether the poses move at ``iteration`` (the schedule has begun; a view is left)."""

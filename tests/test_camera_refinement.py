@@ -260,14 +260,14 @@ def test_a_runaway_or_nan_view_stops_with_one_line_naming_it():
 
 
 def test_schedule_starts_late_and_ramps():
-    """No step before ``start`` (default: a tenth of the run), then a linear ramp over ``warmup``
+    """No step before ``start`` (default: a fifth of the run), then a linear ramp over ``warmup``
     and a linear fall to ``learning_rate_final`` at the last iteration."""
     cams = CameraCorrections(CamerasUnknown(mode="on", learning_rate=1e-3, learning_rate_final=1e-4, warmup=4),
                              fake_params(camera_ring(3)), 3, {})
-    assert cams.start(100) == 10 and not cams.refining(9, 100) and cams.refining(10, 100)
-    rates = [cams.learning_rate(i, 100) for i in (9, 10, 11, 13, 14, 99)]
+    assert cams.start(100) == 20 and not cams.refining(19, 100) and cams.refining(20, 100)
+    rates = [cams.learning_rate(i, 100) for i in (19, 20, 21, 23, 24, 99)]
     np.testing.assert_allclose(rates, [0.0, 2e-4, 4e-4, 8e-4, 1e-3, 1e-4], rtol=1e-12)
-    assert math.isclose(cams.learning_rate(14 + 85 // 5, 100), 1e-3 - 0.9e-3 / 5)
+    assert math.isclose(cams.learning_rate(24 + 75 // 3, 100), 1e-3 - 0.9e-3 / 3)
 
 
 # --------------------------------------------------------------------------------------------

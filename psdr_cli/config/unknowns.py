@@ -124,7 +124,7 @@ class CamerasUnknown:
     translation: bool = True               # refine the positions
     learning_rate: float = 2e-3            # Adam step: radians, and camera distances
     learning_rate_final: float = 2e-4      # the step at the run's last iteration (a linear fall)
-    start: int | None = None               # first refined iteration (None: a tenth of the run)
+    start: int | None = None               # first refined iteration (None: a fifth of the run)
     warmup: int = 20                       # iterations over which the step ramps up from 0
     max_rotation_deg: float = 3.0          # a view whose correction goes beyond stops (runaway)
     max_translation: float = 0.05          # the same for the translation (camera distances)
