@@ -13,7 +13,7 @@ route: a constant albedo against a recovered texture, known light against an unk
    ``constant`` (one RGB value) or ``texture`` (64²), roughness unknown, and the light
    ``known`` (the studio map), ``unknown`` (``optimize.envmap`` started from the studio map's
    mean) or ``no probe`` (no emitter given: the map starts from the photographs,
-   ``psdr_cli/photo_light.py``).
+   ``psdr_cli/optimisation/photo_light.py``).
 3. **Scores.** Geometry: Chamfer-L1 (normalised by the ground truth's bounding box), and from the
    held-out cameras the scale-invariant depth error and the normal angle (``psdr evaluate
    --reference``). Novel views: PSNR and SSIM inside the held-out masks. Relighting: PSNR-H,
@@ -46,7 +46,7 @@ RELIGHT_VIEWS = 12
 
 def sun_map(path: Path) -> Path:
     """A 128 × 64 lat-long EXR: a dim sky and a warm sun 40° above the horizon."""
-    from psdr_cli import fileio
+    from psdr_cli.support import fileio
     H, W = 64, 128
     theta = (np.arange(H) + 0.5) / H * np.pi
     phi = (np.arange(W) + 0.5) / W * 2 * np.pi

@@ -5,9 +5,9 @@ generation and the rest ("Python": tracing, numpy, file output), and the operati
 Dr.Jit's kernel history, for one call of each command's library function in this process (after
 one warm-up call, so that the kernels come from the cache):
 
-- ``render``: :func:`psdr_cli.render.render_experiment` of ``--render-config`` (default the
+- ``render``: :func:`psdr_cli.rendering.render.render_experiment` of ``--render-config`` (default the
   demo's reconstruction), all views at ``--render-spp`` (default its targets' 128);
-- ``grad``: :func:`psdr_cli.estimate.gradient_images` of ``--grad-config`` (default
+- ``grad``: :func:`psdr_cli.rendering.estimate.gradient_images` of ``--grad-config`` (default
   ``configs/demo.yaml``, the first example of the README), view 0, every term at its configured
   sample counts (``--grad-spp``: the interior's, as ``psdr grad --spp``);
 - ``grad_passes``: the same in ``--grad-passes`` passes per term (default 16; ``psdr grad``
@@ -32,8 +32,8 @@ import drjit as dr  # noqa: E402
 from machine import reference_loop_seconds  # noqa: E402
 
 import psdr_cli  # noqa: E402
-from psdr_cli.estimate import gradient_images  # noqa: E402
-from psdr_cli.render import render_experiment  # noqa: E402
+from psdr_cli.rendering.estimate import gradient_images  # noqa: E402
+from psdr_cli.rendering.render import render_experiment  # noqa: E402
 
 
 def measured(fn) -> dict:

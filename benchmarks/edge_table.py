@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """The optimisation loop's per-iteration geometry work (the worker thread of
-:mod:`psdr_cli.geometry_ahead`), side by side in one process: the edge table
+:mod:`psdr_cli.optimisation.geometry_ahead`), side by side in one process: the edge table
 (:func:`psdr_cli.estimators.boundary_sampling.edge_rows`) built from scratch (the face parts of
-:mod:`psdr_cli.topology` forgotten before every build) against built with the face parts
+:mod:`psdr_cli.geometry.topology` forgotten before every build) against built with the face parts
 remembered (the loop's case between remeshes), and the intersection search for scale.
 
 On the CPU this work overlaps the iteration's kernels; on the GPU the kernels are short and the
@@ -31,10 +31,10 @@ import drjit as dr  # noqa: E402
 from iteration_time import setup  # noqa: E402
 from machine import reference_loop_seconds as reference_loop  # noqa: E402
 
-from psdr_cli import topology  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import camera_origins, edge_rows  # noqa: E402
 from psdr_cli.estimators.primary import mesh_arrays, mesh_shapes  # noqa: E402
-from psdr_cli.intersections import intersection_segments  # noqa: E402
+from psdr_cli.geometry import topology  # noqa: E402
+from psdr_cli.geometry.intersections import intersection_segments  # noqa: E402
 
 
 def timed(fn) -> float:

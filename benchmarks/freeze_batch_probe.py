@@ -41,10 +41,10 @@ import numpy as np  # noqa: E402
 from freeze_probe import Probe  # noqa: E402
 from machine import reference_loop_seconds  # noqa: E402
 
-from psdr_cli import backend  # noqa: E402
 from psdr_cli.estimators.camera import LaneCameras, views_camera_rays  # noqa: E402
 from psdr_cli.estimators.interior import radiance  # noqa: E402
-from psdr_cli.iteration import batch_views  # noqa: E402
+from psdr_cli.optimisation.iteration import batch_views  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 VIEWS, BATCH, SIZE = 12, 4, 64
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Can ``dr.freeze`` replay the direct boundary term's segments when the edge table changes?
-(issue 38, stop 52: why psdr_cli/frozen_batch.py serves only runs whose vertex buffer the
+(issue 38, stop 52: why psdr_cli/optimisation/frozen_batch.py serves only runs whose vertex buffer the
 large-steps solve writes.)
 
 The demo's scene (``configs/reconstruct_bunny.yaml``, 64², a noisy sphere), four views' lanes
@@ -25,7 +25,7 @@ levels (``motion``, ``backward``) replayed right or wrong from run to run. The i
 part replayed wrong in the same way once the vertex buffer was written from numpy (or a copy of
 it) before each call, and right, bit for bit over 8 iterations of a moving shape, when the buffer
 is written as the loop writes it, by the large-steps solve (tests/test_frozen_batch.py); so does
-the direct term's part. The cause inside Dr.Jit was not found: psdr_cli/frozen_batch.py serves
+the direct term's part. The cause inside Dr.Jit was not found: psdr_cli/optimisation/frozen_batch.py serves
 only runs whose unknown is the shape alone, written so.
 """
 from __future__ import annotations
@@ -42,7 +42,7 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 from iteration_time import setup  # noqa: E402
 
-from psdr_cli import backend  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, EdgeDraw, LengthDistribution, edge_list,  # noqa: E402
                                                    in_wedge, ray_origin, sample_edge_point, sample_wedge)
 from psdr_cli.estimators.camera import CameraTable, LaneCameras  # noqa: E402

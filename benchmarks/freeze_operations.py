@@ -29,9 +29,10 @@ import mitsuba as mi  # noqa: E402
 mi.set_variant("llvm_ad_rgb")
 
 import iteration_time  # noqa: E402
-from psdr_cli import backend, iteration  # noqa: E402
 from psdr_cli.estimators.passes import make_sampler  # noqa: E402
-from psdr_cli.frozen_batch import FrozenBatch  # noqa: E402
+from psdr_cli.optimisation import iteration  # noqa: E402
+from psdr_cli.optimisation.frozen_batch import FrozenBatch  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 
 def operations(history) -> list:

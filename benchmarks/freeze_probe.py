@@ -33,9 +33,9 @@ import numpy as np  # noqa: E402
 from iteration_time import setup  # noqa: E402
 from machine import reference_loop_seconds  # noqa: E402
 
-from psdr_cli import backend  # noqa: E402
 from psdr_cli.estimators.camera import camera_rays  # noqa: E402
 from psdr_cli.estimators.interior import radiance  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 
 def interior_image(mi_scene, sensor, seed, spp: int = 1):

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """The optimisation loop as the user runs it, with the recorded part of its iterations
-(``optimize.freeze: true``, psdr_cli/frozen_batch.py) and without: ``psdr optimize`` of the demo's
+(``optimize.freeze: true``, psdr_cli/optimisation/frozen_batch.py) and without: ``psdr optimize`` of the demo's
 experiment (``configs/reconstruct_bunny.yaml``, its initial shape, no remesh within the run) for
 ``--iterations`` iterations, frozen and traced alternated ``--rounds`` times, each run a fresh
 process (the kernel cache warm after the first). Per run: the median and mean seconds per

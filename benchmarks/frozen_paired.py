@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The recorded part of an iteration (psdr_cli/frozen_batch.py) against the traced iteration on
+"""The recorded part of an iteration (psdr_cli/optimisation/frozen_batch.py) against the traced iteration on
 the same work: the demo's experiment (``configs/reconstruct_bunny.yaml``) on its initial shape with
 Adam's step set to 0 (every iteration does the same work on the same shape), one process, the loop
 body as ``psdr optimize`` runs it (iterate, apply; no kernel history, asynchronous launches), blocks
@@ -25,8 +25,9 @@ import drjit as dr  # noqa: E402
 from iteration_time import setup  # noqa: E402
 from machine import reference_loop_seconds  # noqa: E402
 
-from psdr_cli import backend, iteration  # noqa: E402
-from psdr_cli.frozen_batch import FrozenBatch  # noqa: E402
+from psdr_cli.optimisation import iteration  # noqa: E402
+from psdr_cli.optimisation.frozen_batch import FrozenBatch  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 
 def paired(scale: int, block: int, rounds: int) -> dict:

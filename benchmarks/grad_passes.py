@@ -23,7 +23,7 @@ import drjit as dr  # noqa: E402
 from machine import reference_loop_seconds  # noqa: E402
 
 import psdr_cli  # noqa: E402
-from psdr_cli.estimate import forward_gradient, prepare  # noqa: E402
+from psdr_cli.rendering.estimate import forward_gradient, prepare  # noqa: E402
 
 
 def measured_terms(scene, parameter, edges, settings, terms, passes: int) -> dict:

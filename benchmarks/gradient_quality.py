@@ -42,21 +42,21 @@ import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is im
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import pymeshlab  # noqa: E402
-from psdr_cli import backend  # noqa: E402
-from psdr_cli.experiment import load_experiment  # noqa: E402
-from psdr_cli.engines import mitsuba_image, mitsuba_integrator  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
 from psdr_cli.estimators.passes import pass_seed  # noqa: E402
-from psdr_cli.iteration import adjoint_image  # noqa: E402
+from psdr_cli.experiment.load import load_experiment  # noqa: E402
+from psdr_cli.geometry.remesh import remesh  # noqa: E402
 from psdr_cli.losses.l1 import l1_loss  # noqa: E402
-from psdr_cli.problem import Problem, SceneSource, Shape  # noqa: E402
+from psdr_cli.optimisation.engines import mitsuba_image, mitsuba_integrator  # noqa: E402
+from psdr_cli.optimisation.iteration import adjoint_image  # noqa: E402
+from psdr_cli.optimisation.problem import Problem, SceneSource, Shape  # noqa: E402
+from psdr_cli.optimisation.start_state import initial_shape  # noqa: E402
+from psdr_cli.rendering.estimate import Settings, ad_image  # noqa: E402
+from psdr_cli.rendering.render import render_view  # noqa: E402
+from psdr_cli.scene.build import build_scene  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
+from psdr_cli.support.fileio import atomic_path  # noqa: E402
 from psdr_cli.target_sources.rendered_mesh import ground_truth  # noqa: E402
-from psdr_cli.targets import initial_shape  # noqa: E402
-from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.estimate import Settings, ad_image  # noqa: E402
-from psdr_cli.remesh import remesh  # noqa: E402
-from psdr_cli.render import render_view  # noqa: E402
-from psdr_cli.scene import build_scene  # noqa: E402
 
 VIEWS = (0, 3, 6, 9)
 TERMS = ("interior", "primary", "direct")

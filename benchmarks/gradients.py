@@ -5,9 +5,9 @@
 For every validation scene (``configs/validation/*.yaml``) the total gradient image dI/dθ of view 0
 is estimated by
 
-- **ours**: ``interior + primary + direct + indirect`` (``psdr_cli.estimate.forward_gradient``,
+- **ours**: ``interior + primary + direct + indirect`` (``psdr_cli.rendering.estimate.forward_gradient``,
   MIS boundary sampling, the same spp for every term);
-- **Mitsuba**: ``prb_projective`` with guiding off (``psdr_cli.reference.mitsuba_projective``);
+- **Mitsuba**: ``prb_projective`` with guiding off (``psdr_cli.rendering.reference.mitsuba_projective``);
 
 both in the same process. Steps per scene:
 
@@ -65,14 +65,14 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import standins  # noqa: E402
 from psdr_cli import api  # noqa: E402
-from psdr_cli.compare import rel_mse  # noqa: E402
+from psdr_cli.commands.compare import rel_mse  # noqa: E402
 from psdr_cli.config.vocabularies import TERMS  # noqa: E402
-from psdr_cli.experiment import load_experiment  # noqa: E402
-from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.estimate import forward_gradient, prepare  # noqa: E402
-from psdr_cli.reference import agreement, block_sums, fd_resolution, finite_difference, mitsuba_projective  # noqa: E402
-from psdr_cli.render import render_view  # noqa: E402
-from psdr_cli.verdict import agrees, checks  # noqa: E402
+from psdr_cli.experiment.load import load_experiment  # noqa: E402
+from psdr_cli.rendering.estimate import forward_gradient, prepare  # noqa: E402
+from psdr_cli.rendering.reference import agreement, block_sums, fd_resolution, finite_difference, mitsuba_projective  # noqa: E402
+from psdr_cli.rendering.render import render_view  # noqa: E402
+from psdr_cli.support.fileio import atomic_path  # noqa: E402
+from psdr_cli.support.verdict import agrees, checks  # noqa: E402
 
 SCENES = ("silhouette", "shadow", "bunny", "cornell")
 FD_BATCHES = 8
@@ -456,7 +456,7 @@ def markdown(report: dict) -> str:
          "- **Ours**: `interior + primary + direct + indirect` from `forward_gradient`, MIS boundary "
          "sampling, the same spp for every term.",
          "- **Mitsuba**: `prb_projective` (forward mode through `mi.render`, guiding `none`, same "
-         "`max_depth`), via `psdr_cli.reference.mitsuba_projective`.",
+         "`max_depth`), via `psdr_cli.rendering.reference.mitsuba_projective`.",
          f"- **Reference**: our estimator at {args['ref_spp']} spp per term in {args['ref_seeds']} seeds, "
          f"averaged ({args['ref_spp'] * args['ref_seeds']} spp per term). relMSE = mean((g − ref)²) / "
          "mean(ref²) over pixels and channels, averaged over the trials.",
@@ -693,7 +693,7 @@ def standin_markdown(report: dict) -> str:
          "Scenes: `tests/standins.py` (those of `tests/test_real_mesh_gradients.py`), 32×32 px, 4×4 tiles. "
          "Ours: every term at the experiment's sample counts, 8 passes. Mitsuba: `prb_projective` (guiding off) at "
          f"{STANDIN_MI_SPP} spp in 8 batches, same scene, same `max_depth`. FD: central differences with "
-         "common random numbers in 8 batches. Verdict: `psdr_cli.verdict` (sum |z| < 3, ≥ 90 % tiles within "
+         "common random numbers in 8 batches. Verdict: `psdr_cli.support.verdict` (sum |z| < 3, ≥ 90 % tiles within "
          "3 SE, mean z² < 2.5, max |z| on signal tiles < 5, correlation > 0.85).", "",
          "| scene | parameter | FD sum (h, spp) | ours spp (interior/primary/boundary × passes) | ours sum (z) "
          "| ours tiles | ours s (all passes) | prb_projective sum (z) | prb_projective tiles | other processes (cores) |",

@@ -44,19 +44,19 @@ sys.path.insert(0, str(REPO))
 import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
-from psdr_cli import backend  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
-from psdr_cli.experiment import load_experiment  # noqa: E402
-from psdr_cli.fileio import atomic_path, write_json  # noqa: E402
 from psdr_cli.estimators.sample_log import SampleLog  # noqa: E402
-from psdr_cli.estimate import Settings, ad_image, make_guides, term_image  # noqa: E402
+from psdr_cli.experiment.load import load_experiment  # noqa: E402
 from psdr_cli.guiding.loop_fed import fitted_guides, per_pass_budget  # noqa: E402
 from psdr_cli.guiding.targets import Guides  # noqa: E402
-from psdr_cli.iteration import batch_views  # noqa: E402
-from psdr_cli.meshes import read_mesh_file  # noqa: E402
-from psdr_cli.problem import Problem, SceneSource, Shape  # noqa: E402
-from psdr_cli.render import render_view  # noqa: E402
-from psdr_cli.scene import build_scene  # noqa: E402
+from psdr_cli.optimisation.iteration import batch_views  # noqa: E402
+from psdr_cli.optimisation.problem import Problem, SceneSource, Shape  # noqa: E402
+from psdr_cli.rendering.estimate import Settings, ad_image, make_guides, term_image  # noqa: E402
+from psdr_cli.rendering.render import render_view  # noqa: E402
+from psdr_cli.scene.build import build_scene  # noqa: E402
+from psdr_cli.scene.meshes import read_mesh_file  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
+from psdr_cli.support.fileio import atomic_path, write_json  # noqa: E402
 
 #: label -> (guiding, where the guides come from: built from all views / from the batch's views /
 #: fitted to the loop's own samples, edge sorting (None: the experiment's variant of that kind))

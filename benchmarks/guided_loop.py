@@ -22,7 +22,7 @@ that runs of both estimators share the machine alike. The base is a Fig. 10 expe
    and all of the time, and plotted against the scale. ``--scales "vertices ×16"`` adds 16 times
    the vertices (32 000 at the last remesh), which needs longer runs (``--seconds 300``).
 
-Errors are normalised by the ground truth's bounding box (:func:`psdr_cli.evaluate.distance`).
+Errors are normalised by the ground truth's bounding box (:func:`psdr_cli.commands.evaluate.distance`).
 Outputs: ``<out>/guided_loop_<scene>.md``, ``.json``, ``.png``. Finished runs are reused.
 
     .venv/bin/python benchmarks/guided_loop.py --scene shadow --runs runs/benchmarks/guided_loop
@@ -46,11 +46,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
-from psdr_cli import evaluate as ev  # noqa: E402
-from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.plots import pyplot, save  # noqa: E402
+from psdr_cli.commands import evaluate as ev  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
 from psdr_cli.run_folder.log import read_log  # noqa: E402
+from psdr_cli.support.fileio import atomic_path  # noqa: E402
+from psdr_cli.support.plots import pyplot, save  # noqa: E402
 
 BASES = {"shadow": REPO / "configs" / "paper" / "cpu" / "fig10_shadow.yaml",
          "glass": REPO / "configs" / "paper" / "cpu" / "fig10_glass.yaml"}

@@ -46,11 +46,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
-from psdr_cli import fileio, plots  # noqa: E402
-from psdr_cli.compare import Comparison, rel_mse  # noqa: E402
+from psdr_cli.commands.compare import Comparison, rel_mse  # noqa: E402
 from psdr_cli.config.variants import Variant  # noqa: E402
 from psdr_cli.config.vocabularies import SAMPLINGS  # noqa: E402
-from psdr_cli.experiment import load_experiment  # noqa: E402
+from psdr_cli.experiment.load import load_experiment  # noqa: E402
+from psdr_cli.support import fileio, plots  # noqa: E402
 
 SCENES = ("glossy_bunny_sky", "soft_shadow", "cornell_glass")
 CONFIGS = [("none", s, False) for s in SAMPLINGS] + [(g, s, o) for g in ("grid", "kdtree")

@@ -10,7 +10,7 @@ thread, batch 4, 1/4/1 spp with a 4-spp adjoint render), on its initial shape (t
 remeshed to 800 vertices), at the demo's 64² film and at 4× its pixels (128²); targets at 16 spp
 (their content does not change the work). Each scale runs ``--warmup`` iterations (kernels
 compiled or loaded from the cache) and then ``--iterations`` measured ones, the loop body of
-:func:`psdr_cli.optimize._optimize` (iterate, log row, apply, save the state) without
+:func:`psdr_cli.commands.optimize._optimize` (iterate, log row, apply, save the state) without
 checkpoints. A phase is the time between entering and leaving one of the loop's functions; a
 kernel belongs to the phase that launched it (Dr.Jit evaluates lazily: work traced in a term may
 run in a later phase's kernel). ``reference`` is the time of a fixed Python loop of 10⁷ steps in
@@ -37,19 +37,20 @@ import drjit as dr  # noqa: E402
 from machine import reference_loop_seconds as reference_loop  # noqa: E402
 
 import psdr_cli  # noqa: E402
-from psdr_cli import backend, iteration  # noqa: E402
-from psdr_cli.engines import Engine  # noqa: E402
+from psdr_cli.commands.optimize import log_row, save_state  # noqa: E402
 from psdr_cli.estimators import registry  # noqa: E402
-from psdr_cli.estimate import Settings  # noqa: E402
-from psdr_cli.frozen_batch import FrozenBatch  # noqa: E402
-from psdr_cli.iteration import GuideCache  # noqa: E402
 from psdr_cli.losses import registry as loss_registry  # noqa: E402
-from psdr_cli.optimize import log_row, save_state  # noqa: E402
-from psdr_cli.problem import Problem, SceneSource  # noqa: E402
+from psdr_cli.optimisation import iteration  # noqa: E402
+from psdr_cli.optimisation.engines import Engine  # noqa: E402
+from psdr_cli.optimisation.frozen_batch import FrozenBatch  # noqa: E402
+from psdr_cli.optimisation.iteration import GuideCache  # noqa: E402
+from psdr_cli.optimisation.problem import Problem, SceneSource  # noqa: E402
+from psdr_cli.optimisation.stages import stage_of  # noqa: E402
+from psdr_cli.optimisation.start_state import initial_state, load_targets, read_targets  # noqa: E402
+from psdr_cli.rendering.estimate import Settings  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
 from psdr_cli.run_folder.log import append_log  # noqa: E402
-from psdr_cli.stages import stage_of  # noqa: E402
-from psdr_cli.targets import initial_state, load_targets, read_targets  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 CONFIG = REPO / "configs" / "reconstruct_bunny.yaml"
 FIELDS = ("wall", "execution", "codegen", "backend", "python", "kernels", "jit", "memset", "compiled")
@@ -114,7 +115,7 @@ class Phases:
 
 
 class DrProxy:
-    """``drjit`` as :mod:`psdr_cli.iteration` sees it, with ``dr.backward`` timed as a phase."""
+    """``drjit`` as :mod:`psdr_cli.optimisation.iteration` sees it, with ``dr.backward`` timed as a phase."""
 
     def __init__(self, phases):
         self._backward = phases.wrap("backward", dr.backward)
@@ -242,7 +243,7 @@ def main(argv=None):
                     help="vertices of the initial shape (default: the experiment's remesh.initial, 800; the demo "
                          "remeshes to 1500 and 2500 later)")
     ap.add_argument("--freeze", choices=("off", "on", "both"), default="both",
-                    help="the recorded part of the iteration (psdr_cli/frozen_batch.py): off, on, or both in turn")
+                    help="the recorded part of the iteration (psdr_cli/optimisation/frozen_batch.py): off, on, or both in turn")
     ap.add_argument("--no-blocking", action="store_true",
                     help="asynchronous launches (the loop's mode): kernel times then overlap and include queueing")
     args = ap.parse_args(argv)

@@ -40,8 +40,8 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.plots import pyplot, save  # noqa: E402
+from psdr_cli.support.fileio import atomic_path  # noqa: E402
+from psdr_cli.support.plots import pyplot, save  # noqa: E402
 
 BASE = REPO / "configs" / "paper" / "cpu" / "fig10_shadow.yaml"
 #: name -> (learning rate, boundary spp, guiding, scale: vertices ×4 ("v4") or film ×2 ("f2") or None)

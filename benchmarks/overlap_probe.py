@@ -34,7 +34,7 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 from machine import reference_loop_seconds  # noqa: E402
 
-from psdr_cli import backend  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 
 def long_kernel():

@@ -185,7 +185,7 @@ def main(argv=None):
     ap.add_argument("--max-depth", type=int, default=4, help="the path integrator's max_depth")
     args = ap.parse_args(argv)
     mi.set_variant("llvm_ad_rgb")
-    from psdr_cli.meshes import bunny, read_mesh_file, write_ply  # the product's mesh loaders (not its renderer)
+    from psdr_cli.scene.meshes import bunny, read_mesh_file, write_ply  # the product's mesh loaders (not its renderer)
     if args.mesh is None:
         V, F = bunny(size=args.scale, faces=args.faces)
     else:

@@ -56,8 +56,8 @@ def own_route(exp, ground_truth: Path, folder: Path):
     """The dataset experiment with psdr's own targets: rendered from the ground truth (mapped into
     the normalised frame) with the same cameras, film and hidden background; a sphere to start."""
     from psdr_cli.config.objects import MeshSpec, TransformConfig
-    from psdr_cli.dataset_scene import to_normalised
-    from psdr_cli.meshes import read_mesh_file, write_ply
+    from psdr_cli.experiment.dataset_frame import to_normalised
+    from psdr_cli.scene.meshes import read_mesh_file, write_ply
     V, F = read_mesh_file(ground_truth)
     path = folder / "ground_truth_normalised.ply"
     write_ply(path, to_normalised(V, exp.optimize.target_dataset.frame), F)
@@ -82,8 +82,8 @@ def sphere_start(exp):
 def shape_errors(run_dir: Path, ground_truth: Path, frame=None) -> list:
     """[(iteration, Chamfer-L1, Hausdorff)] of a run's checkpoints against the ground truth; the
     own route's meshes are in the normalised frame and are mapped back with ``frame``."""
-    from psdr_cli import evaluate as ev
-    from psdr_cli.dataset_scene import to_dataset
+    from psdr_cli.commands import evaluate as ev
+    from psdr_cli.experiment.dataset_frame import to_dataset
     from psdr_cli.run_folder.checkpoints import run_checkpoints
     reference = ev.load(ground_truth)
     rows = []
@@ -108,8 +108,8 @@ def main(argv=None):
     args.work, args.out = args.work.resolve(), args.out.resolve()
     import photo_dataset
     from psdr_cli import api
-    from psdr_cli.evaluate import evaluate_held_out
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.commands.evaluate import evaluate_held_out
+    from psdr_cli.experiment.load import load_experiment
     args.work.mkdir(parents=True, exist_ok=True)
     data = args.work / "dataset"
     if not (data / "dataset.json").exists():

@@ -88,7 +88,7 @@ PATCHES, PATCH_WIDTH = 10, 0.12   # coloured patches of the albedo, their width 
 def load_mesh(name: str, faces: int = 5000):
     """(V, F) of a mesh shipped in an installed package, z up, placed as ``photo_dataset`` places
     the bunny (centred in x/y, on z = 0, longest side ``SCALE``), offset to ``OFFSET``."""
-    from psdr_cli.meshes import bunny, read_mesh_file
+    from psdr_cli.scene.meshes import bunny, read_mesh_file
     if name == "bunny":
         V, F = bunny(size=SCALE, faces=faces)
     elif name == "cow":
@@ -153,7 +153,7 @@ def make_dataset(folder: Path, mesh: str, args) -> dict:
     if info_file.exists() and json.loads(info_file.read_text()).get("settings") == settings:
         return json.loads(info_file.read_text())
     mi.set_variant("llvm_ad_rgb")
-    from psdr_cli.meshes import write_ply
+    from psdr_cli.scene.meshes import write_ply
     V, F = load_mesh(mesh)
     look_at = V.mean(0)
     radius = SCALE / (2 * math.tan(math.radians(FOV) / 2)) * 1.25
@@ -503,7 +503,7 @@ def run(mesh: str, level: float, mode: str, dataset: Path, truth: dict, settings
 
 def object_points(path: Path, count: int = 2000) -> np.ndarray:
     """About ``count`` of the ground truth's vertices (every k-th), for the reprojection error."""
-    from psdr_cli import evaluate as ev
+    from psdr_cli.commands import evaluate as ev
     V = np.asarray(ev.load(path)[0], np.float64)
     return V[::max(1, len(V) // count)]
 

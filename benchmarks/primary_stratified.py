@@ -26,12 +26,12 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 import psdr_cli  # noqa: E402
-from psdr_cli import backend  # noqa: E402
-from psdr_cli.estimate import Settings  # noqa: E402
 from psdr_cli.estimators import primary, registry  # noqa: E402
 from psdr_cli.estimators.boundary_sampling import edge_list  # noqa: E402
-from psdr_cli.iteration import batch_views  # noqa: E402
-from psdr_cli.scene import build_scene  # noqa: E402
+from psdr_cli.optimisation.iteration import batch_views  # noqa: E402
+from psdr_cli.rendering.estimate import Settings  # noqa: E402
+from psdr_cli.scene.build import build_scene  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
 CONFIG = REPO / "configs" / "reconstruct_bunny.yaml"
 SEEDS = 12

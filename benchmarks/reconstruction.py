@@ -12,7 +12,7 @@ in the estimator (and, with ``--lr ENGINE=RATE``, in the learning rate):
 - **psdr-kdtree**: the same, the direct term guided by Kd-trees fitted to the loop's own samples
   (:mod:`psdr_cli.guiding.loop_fed`; MIS, sorted edges);
 - **mitsuba**: Mitsuba's ``direct_projective`` (``prb_projective`` for deeper paths) as its
-  shape-optimisation tutorial sets it up (shadow term off, 16 spp; :mod:`psdr_cli.engines`), the
+  shape-optimisation tutorial sets it up (shadow term off, 16 spp; :mod:`psdr_cli.optimisation.engines`), the
   loss's sign taken from that same render as in the tutorial (``optimize.adjoint_spp`` 0,
   whatever the experiment sets);
 - **mitsuba-shadows**: the same with its shadow (indirect-visibility) term on, the only Mitsuba
@@ -27,7 +27,7 @@ alternating between rounds. Whatever else the machine runs then slows both engin
 **Shape error** of every checkpoint (every ``checkpoint_every`` iterations, and the final mesh)
 against the ground truth, both normalised with the ground truth's bounding box (longest side 1):
 Chamfer-L1 = ½(mean_P d(p, Q) + mean_Q d(q, P)) and Hausdorff = max(max_P d, max_Q d)
-(:func:`psdr_cli.evaluate.distance`), plotted against the run's optimisation seconds.
+(:func:`psdr_cli.commands.evaluate.distance`), plotted against the run's optimisation seconds.
 
 Outputs: ``<out>/reconstruction.md`` (table), ``reconstruction.png`` (Chamfer-L1 and Hausdorff
 against seconds, one panel per scene), ``reconstruction.json``.
@@ -46,7 +46,7 @@ errors settle is the stationary error of this loop (L1 on 64² targets, Adam's c
 LargeSteps) with each engine's gradients: the lowest error either engine's run can be expected to
 hold, so it bounds the psdr / Mitsuba ratio that any gradient can reach at equal time. The
 report adds each scene's metric floor: the distance of the ground truth to itself with
-independent surface samples (:func:`psdr_cli.evaluate.noise_floor`).
+independent surface samples (:func:`psdr_cli.commands.evaluate.noise_floor`).
 
     .venv/bin/python benchmarks/reconstruction.py --from-truth 2500 --seconds 60 --chunk 30 \
         --psdr-spp 1 4 1 4 --mitsuba-spp 4 --name reconstruction_floor
@@ -68,15 +68,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
-from psdr_cli import evaluate as ev  # noqa: E402
+from psdr_cli.commands import evaluate as ev  # noqa: E402
+from psdr_cli.commands.optimize import optimize  # noqa: E402
 from psdr_cli.config.optimize import RemeshConfig  # noqa: E402
 from psdr_cli.config.options import with_estimator  # noqa: E402
-from psdr_cli.experiment import load_experiment  # noqa: E402
-from psdr_cli.fileio import atomic_path  # noqa: E402
-from psdr_cli.optimize import optimize  # noqa: E402
-from psdr_cli.plots import pyplot, save  # noqa: E402
+from psdr_cli.experiment.load import load_experiment  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402
 from psdr_cli.run_folder.log import read_log  # noqa: E402
+from psdr_cli.support.fileio import atomic_path  # noqa: E402
+from psdr_cli.support.plots import pyplot, save  # noqa: E402
 
 SCENES = {"bunny": "configs/reconstruct_bunny.yaml", "ears": "configs/reconstruct_ears.yaml",
           "groove": "configs/reconstruct_groove.yaml", "shadow": "configs/paper/cpu/fig10_shadow.yaml",

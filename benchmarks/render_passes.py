@@ -26,14 +26,14 @@ import mitsuba as mi
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from psdr_cli import backend  # noqa: E402
 from psdr_cli.estimators import interior  # noqa: E402
 from psdr_cli.estimators.camera import camera_rays  # noqa: E402
 from psdr_cli.estimators.passes import make_sampler  # noqa: E402
-from psdr_cli.experiment import load_experiment  # noqa: E402
-from psdr_cli.scene import build_scene  # noqa: E402
+from psdr_cli.experiment.load import load_experiment  # noqa: E402
+from psdr_cli.scene.build import build_scene  # noqa: E402
+from psdr_cli.support import backend  # noqa: E402
 
-rendering = import_module("psdr_cli.render")  # the module (the package's `render` is the API function)
+rendering = import_module("psdr_cli.rendering.render")  # the module (the package's `render` is the API function)
 
 
 def per_channel_pass(scene, sensor, width: int, height: int, spp: int, max_depth: int, seed: int) -> np.ndarray:
@@ -50,7 +50,7 @@ PASSES = {"one kernel per pass": interior.render_pass, "one kernel per channel":
 
 
 def timed_render(scene, spp: int, seed: int, render_pass) -> tuple:
-    """(seconds, image) of ``psdr_cli.render.render_view`` with ``render_pass`` as its pass."""
+    """(seconds, image) of ``psdr_cli.rendering.render.render_view`` with ``render_pass`` as its pass."""
     rendering.render_pass = render_pass
     try:
         t0 = time.perf_counter()

@@ -81,7 +81,7 @@ def map_error(estimate: np.ndarray, truth: np.ndarray, upper: bool = False) -> f
 def true_map(W: int, H: int) -> np.ndarray:
     """studio.exr box-averaged to W × H (its texels, before the emitter's scale)."""
     import cv2
-    from psdr_cli.scene import exr_texels
+    from psdr_cli.scene.build import exr_texels
     texels = np.asarray(exr_texels(STUDIO), np.float32)[..., :3]
     return cv2.resize(texels, (W, H), interpolation=cv2.INTER_AREA).astype(np.float64)
 
@@ -109,8 +109,8 @@ def run(data: dict, work: Path, reuse: bool = False) -> dict:
     With ``reuse``, a finished run of the same experiment (its ``optimize.json``) is read instead."""
     import shutil
     from psdr_cli import api
-    from psdr_cli.evaluate import run_values
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.commands.evaluate import run_values
+    from psdr_cli.experiment.load import load_experiment
     from psdr_cli.run_folder.checkpoints import run_checkpoints
     from psdr_cli.run_folder.layout import RunFiles
     exp = load_experiment(write_config(data, work))
@@ -135,13 +135,13 @@ def run(data: dict, work: Path, reuse: bool = False) -> dict:
 
 
 def chamfer(mesh: Path, gt: Path) -> float:
-    from psdr_cli import evaluate as ev
+    from psdr_cli.commands import evaluate as ev
     return float(ev.distance(ev.load(mesh), ev.load(gt), 100_000).chamfer_l1)
 
 
 def held_out(exp) -> dict:
     """``psdr evaluate``'s held-out means of the run's initial and last mesh."""
-    from psdr_cli.evaluate import evaluate_held_out
+    from psdr_cli.commands.evaluate import evaluate_held_out
     rows = evaluate_held_out(exp).rows
     keys = ("psnr", "psnr_mask", "ssim", "ssim_mask", "iou")
     return {"initial": {k: rows[0][k] for k in keys}, "last": {k: rows[-1][k] for k in keys}}
@@ -151,12 +151,12 @@ def relight(exp, meshes: dict, rotate_deg: float, spp: int, seed: int = 0) -> di
     """{label: [(H, W, 3) per held-out view]} of each (V, F, albedo) in ``meshes`` (dataset
     coordinates) rendered by psdr at depth 4 under ``exp``'s map turned ``rotate_deg`` about z,
     from ``exp``'s held-out cameras; also ``"mask"``: the held-out photographs' alpha ≥ ½."""
-    from psdr_cli import backend
-    from psdr_cli.dataset_scene import dataset_scene, to_normalised
+    from psdr_cli.evaluation.held_out import apply_values
+    from psdr_cli.experiment.dataset_frame import dataset_scene, to_normalised
+    from psdr_cli.rendering.render import render_view
+    from psdr_cli.scene.build import build_scene
+    from psdr_cli.support import backend
     from psdr_cli.target_sources.camera_dataset import dataset_views
-    from psdr_cli.held_out import apply_values
-    from psdr_cli.render import render_view
-    from psdr_cli.scene import build_scene
     test = dataset_scene(exp, split="test")
     backend.activate(test)
     emitters = [replace(e, rotate_deg=e.rotate_deg + rotate_deg) for e in test.scene.emitters]
@@ -172,7 +172,7 @@ def relight(exp, meshes: dict, rotate_deg: float, spp: int, seed: int = 0) -> di
 
 
 def relight_scores(images: dict, reference: str, label: str) -> dict:
-    from psdr_cli.held_out import psnr, ssim
+    from psdr_cli.evaluation.held_out import psnr, ssim
     pairs = list(zip(images[label], images[reference], images["mask"]))
     return {"psnr": float(np.mean([psnr(a, b) for a, b, _ in pairs])),
             "psnr_mask": float(np.mean([psnr(a, b, m) for a, b, m in pairs])),
@@ -181,9 +181,9 @@ def relight_scores(images: dict, reference: str, label: str) -> dict:
 
 def part_light(args) -> dict:
     import photo_dataset
-    from psdr_cli import fileio
-    from psdr_cli.meshes import read_mesh_file
-    from psdr_cli.scene import exr_texels
+    from psdr_cli.scene.build import exr_texels
+    from psdr_cli.scene.meshes import read_mesh_file
+    from psdr_cli.support import fileio
     data_dir = args.photos
     if not (data_dir / "dataset.json").exists():
         photo_dataset.main(["--out", str(data_dir), "--views", "40", "--size", "128", "--holdout", "8"])
@@ -224,7 +224,7 @@ def part_light(args) -> dict:
 
 def cup_mesh(path: Path):
     import trimesh
-    from psdr_cli.meshes import write_ply
+    from psdr_cli.scene.meshes import write_ply
     mesh = trimesh.creation.revolve(np.asarray(CUP_PROFILE), sections=64)
     assert mesh.is_volume
     write_ply(path, np.asarray(mesh.vertices), np.asarray(mesh.faces))
@@ -235,7 +235,7 @@ def cavity_distance(mesh: Path, gt: Path, samples: int = 50_000) -> float:
     axis, and the inner bottom) to ``mesh``'s surface, normalised by the ground truth's bounding
     box as Chamfer is."""
     from scipy.spatial import cKDTree
-    from psdr_cli import evaluate as ev
+    from psdr_cli.commands import evaluate as ev
     V, F = ev.load(gt)
     Vm, Fm = ev.load(mesh)
     lo, hi = V.min(0), V.max(0)
@@ -256,7 +256,7 @@ def cavity_distance(mesh: Path, gt: Path, samples: int = 50_000) -> float:
 
 def part_concave(args) -> dict:
     import photo_dataset
-    from psdr_cli.held_out import score_mesh
+    from psdr_cli.evaluation.held_out import score_mesh
     work = args.work
     data_dir = work / "cup_dataset"
     if not (data_dir / "dataset.json").exists():
@@ -303,7 +303,7 @@ def held_out_elevations(blender: Path) -> list:
 
 
 def srgb8(image: np.ndarray) -> np.ndarray:
-    from psdr_cli import fileio
+    from psdr_cli.support import fileio
     return np.round(255 * fileio.srgb(image)).astype(np.uint8)
 
 

@@ -1,17 +1,17 @@
 """psdr: path-space differentiable rendering with guided boundary sampling (Yan et al. 2022).
 
 Importing the package first prepares Dr.Jit (libLLVM, kernel cache, LLVM target: it writes
-``DRJIT_*`` environment variables, :mod:`psdr_cli.backend`), before any module loads ``drjit``;
+``DRJIT_*`` environment variables, :mod:`psdr_cli.support.backend`), before any module loads ``drjit``;
 then the API of :mod:`psdr_cli.api` is available at the top level::
 
     import psdr_cli
     exp = psdr_cli.load_experiment("configs/demo.yaml")
     result = psdr_cli.render(exp, spp=16)
 
-(``psdr_cli.render`` is the API function; the module of the same name is imported by its full
-name, ``from psdr_cli.render import render_view``.)
+(``psdr_cli.render`` is the API function; the module is imported by its full
+name, ``from psdr_cli.rendering.render import render_view``.)
 """
-from .backend import configure_environment
+from .support.backend import configure_environment
 
 configure_environment()  # must run before drjit is first imported (by the imports below)
 
@@ -19,7 +19,7 @@ from . import api  # noqa: E402
 from .api import grad, gradient_images, guide_stats, load_experiment, render, setup  # noqa: E402
 from .config.experiment_file import Experiment  # noqa: E402
 from .errors import ConfigError, PsdrError  # noqa: E402
-from .scene import build_scene  # noqa: E402
+from .scene.build import build_scene  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -1,48 +1,49 @@
 """The Python API behind the CLI: one function per subcommand, each delegating to its module.
 
-    render       → :func:`psdr_cli.render.render_experiment`
-    grad         → :func:`psdr_cli.gradient.grad_experiment` (``gradient_images``: no files)
+    render       → :func:`psdr_cli.rendering.render.render_experiment`
+    grad         → :func:`psdr_cli.commands.gradient.grad_experiment` (``gradient_images``: no files)
     guide_stats  → :func:`psdr_cli.guiding.stats.guide_stats`
-    compare      → :func:`psdr_cli.compare.run_comparison`
-    optimize     → :func:`psdr_cli.optimize.optimize` (``optimize_variants``: every run of an ablation)
-    evaluate     → :func:`psdr_cli.evaluate.evaluate_meshes` (inputs: :func:`psdr_cli.evaluate.evaluate_inputs`)
-    table2       → :func:`psdr_cli.evaluate.table2`
-    export       → :func:`psdr_cli.export.export`
+    compare      → :func:`psdr_cli.commands.compare.run_comparison`
+    optimize     → :func:`psdr_cli.commands.optimize.optimize` (``optimize_variants``: every run of an ablation)
+    evaluate     → :func:`psdr_cli.commands.evaluate.evaluate_meshes` (inputs: :func:`psdr_cli.commands.evaluate.evaluate_inputs`)
+    table2       → :func:`psdr_cli.commands.evaluate.table2`
+    export       → :func:`psdr_cli.commands.export.export`
     view         → :func:`psdr_cli.viewer.serve` (``live_viewer``: the observer of ``optimize --view``)
 
 ``optimize_variants`` and ``compare`` with ``ray=sweep.RayOptions(...)`` run each run / variant as a
-Ray task (:mod:`psdr_cli.sweep`; needs the optional extra ``psdr[ray]``).
+Ray task (:mod:`psdr_cli.commands.sweep`; needs the optional extra ``psdr[ray]``).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-from . import backend
-from . import compare as comparison
-from . import evaluate as evaluation
-from . import experiment
-from . import export as exporting
-from . import estimate, gradient
-from . import optimize as optimization
-from . import render as rendering
-from . import sweep
 from . import viewer
+from .commands import compare as comparison
+from .commands import evaluate as evaluation
+from .commands import export as exporting
+from .commands import gradient
+from .commands import optimize as optimization
+from .commands import sweep
 from .config.experiment_file import Experiment
 from .config.limits import MAX_ITERATIONS
 from .config.options import option_count
 from .errors import PsdrError
+from .experiment import load
 from .guiding import stats
-from .mitsuba_scene import warn_stderr
+from .rendering import estimate
+from .rendering import render as rendering
+from .scene.mitsuba_xml import warn_stderr
+from .support import backend
 
-#: What ``psdr evaluate --relight`` scores under (:class:`psdr_cli.evaluate.Relight`).
+#: What ``psdr evaluate --relight`` scores under (:class:`psdr_cli.commands.evaluate.Relight`).
 Relight = evaluation.Relight
 
 
 def load_experiment(path, warn=warn_stderr) -> Experiment:
     """Read and validate an experiment file, then its scene: a Mitsuba XML scene is read (one
     ``warn`` line per item psdr renders but cannot differentiate) and split OBJ objects are
-    expanded, so that object names, views and emitters are known (:mod:`psdr_cli.experiment`)."""
-    return experiment.load_experiment(path, warn)
+    expanded, so that object names, views and emitters are known (:mod:`psdr_cli.experiment.load`)."""
+    return load.load_experiment(path, warn)
 
 
 def setup(exp: Experiment) -> str:
@@ -66,8 +67,8 @@ def grad(exp: Experiment, *, spp: int | None = None, terms=None, views=None, out
     """``psdr grad``: gradient EXRs per view (and the finite-difference check); a GradResult.
     ``spp``: the interior term's samples per pixel; ``warn``: one-line warnings; ``report``: one
     line before the work, what guides each boundary term (``guiding: auto`` resolved). The
-    keywords are the command's options (:class:`psdr_cli.gradient.GradRequest`) and where it
-    reports (:class:`psdr_cli.gradient.Feedback`)."""
+    keywords are the command's options (:class:`psdr_cli.commands.gradient.GradRequest`) and where it
+    reports (:class:`psdr_cli.commands.gradient.Feedback`)."""
     request = gradient.GradRequest(spp, terms, views, out, fd, fd_spp)
     return gradient.grad_experiment(exp, request, gradient.Feedback(progress, warn, report))
 
@@ -116,7 +117,7 @@ def evaluate(paths, reference: Path | None = None, *, samples: int | None = None
     """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult
     (for an experiment with a camera dataset: held-out view scores, a HeldOutReport; ``align``:
     whether the held-out cameras are fitted first: auto (when the run refined its cameras), on, off;
-    ``relight``: an :class:`psdr_cli.evaluate.Relight`, to score the runs under other light instead)."""
+    ``relight``: an :class:`psdr_cli.commands.evaluate.Relight`, to score the runs under other light instead)."""
     dataset = evaluation.dataset_experiment(paths)
     if relight is not None:
         return evaluation.evaluate_relit(dataset, relight, json_out, progress)

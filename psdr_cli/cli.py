@@ -22,10 +22,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from . import __version__, api
+from .commands.sweep import RayOptions
 from .config.options import with_estimator
 from .errors import PsdrError, PsdrWarning
-from .sweep import RayOptions
-from .verdict import describe
+from .support.verdict import describe
 
 app = typer.Typer(
     name="psdr",

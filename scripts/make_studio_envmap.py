@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from psdr_cli import fileio as io  # noqa: E402
+from psdr_cli.support import fileio as io  # noqa: E402
 
 
 def studio(width=256, height=128):

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 import psdr_cli  # noqa: F401  (prepares Dr.Jit before any test imports it)
-from psdr_cli import backend, llvm_target
+from psdr_cli.support import backend, llvm_target
 import mitsuba as mi
 
 #: Mitsuba's log level in a new process (tests may lower it; run_psdr restores it per call)

@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from psdr_cli import meshes
 from psdr_cli.config.experiment_file import Experiment
-from psdr_cli.experiment import load_experiment
+from psdr_cli.experiment.load import load_experiment
+from psdr_cli.scene import meshes
 
 LIGHT_SIDE = {"type": "area", "center": [1.6, 0.3, 1.2], "normal": [-0.8, -0.1, -0.3], "size": [0.5, 0.5],
               "radiance": 20}

@@ -3,8 +3,8 @@ import os
 
 import pytest
 
-from psdr_cli import backend
 from psdr_cli.errors import PsdrError
+from psdr_cli.support import backend
 
 from conftest import experiment, run_cli
 
@@ -99,7 +99,7 @@ def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding(tmp
     the folder then: it went to Dr.Jit's own default when the width was applied first)."""
     import subprocess
     import sys
-    from psdr_cli import llvm_target
+    from psdr_cli.support import llvm_target
     code = ("import psdr_cli; from psdr_cli import backend, llvm_target; backend.select_variant('llvm_ad_rgb'); "
             "import drjit as dr, mitsuba as mi, numpy as np; x = dr.fma(dr.arange(mi.Float, 4096), 0.37, 1.0); "
             "print(llvm_target.current_target()[1], np.asarray(dr.rsqrt(x)).tobytes().hex())")
@@ -122,7 +122,7 @@ def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding(tmp
 
 
 def test_a_bad_or_unreachable_vector_width_is_one_line(monkeypatch, tmp_path, write_cfg):
-    from psdr_cli import llvm_target
+    from psdr_cli.support import llvm_target
     monkeypatch.setenv("PSDR_LLVM_LANES", "12")
     with pytest.raises(ValueError, match="PSDR_LLVM_LANES: expected one of 4, 8, 16"):
         llvm_target.requested_lanes()

@@ -152,7 +152,7 @@ def test_missing_config_file(tmp_path, run_psdr):
 
 def test_repair_drops_degenerate_faces(tmp_path):
     from psdr_cli.config.values import Where
-    from psdr_cli.meshes import validate_mesh
+    from psdr_cli.scene.meshes import validate_mesh
     V = np.array(TETRA_V + [[2, 0, 0]], float)
     F = np.array(TETRA_F + [[0, 1, 4]])
     V2, F2 = validate_mesh(V, F, Where("x.yaml", "m"), repair=True)

@@ -23,11 +23,13 @@ import pytest
 import yaml
 
 from conftest import experiment
-from psdr_cli import api, cli, fileio, meshes
-from psdr_cli.target_sources import rendered_mesh as targets
+from psdr_cli import api, cli
 from psdr_cli.errors import PsdrError
 from psdr_cli.run_folder.checkpoints import run_checkpoints
 from psdr_cli.run_folder.layout import RunFiles
+from psdr_cli.scene import meshes
+from psdr_cli.support import fileio
+from psdr_cli.target_sources import rendered_mesh as targets
 from test_faults import SMALL, assert_one_line_error, write_small
 from test_faults import psdr as psdr_with_bars
 from test_mitsuba_scene import write_twins
@@ -224,7 +226,7 @@ def test_evaluate_json_that_is_not_a_file(tmp_path, capsys, sphere_ply, kind, mo
     out_file = tmp_path / "out.json"
     not_a_file(out_file, kind)
     calls = []
-    monkeypatch.setattr(module("evaluate"), "distance", lambda *a, **k: calls.append(a))
+    monkeypatch.setattr(module("commands.evaluate"), "distance", lambda *a, **k: calls.append(a))
     code, out, err = psdr(capsys, "evaluate", sphere_ply, "--reference", sphere_ply, "--samples", "100",
                           "--json", out_file)
     assert_one_line_error(code, out, err, f"{out_file}: --json: not a regular file")
@@ -256,7 +258,7 @@ def test_render_output_file_that_is_a_folder_is_refused_before_rendering(tmp_pat
     cfg = write_cfg(experiment(estimator={"spp": 1}))
     blocked = tmp_path / "out" / "t" / "render" / "view_000.png"
     blocked.mkdir(parents=True)
-    monkeypatch.setattr(module("render"), "render_view", lambda *a, **k: pytest.fail("rendered"))
+    monkeypatch.setattr(module("rendering.render"), "render_view", lambda *a, **k: pytest.fail("rendered"))
     code, out, err = psdr(capsys, "render", cfg)
     assert_one_line_error(code, out, err, f"{blocked}: not a regular file (a folder)")
     assert blocked.is_dir() and not (blocked.parent / "view_000.exr").exists()
@@ -272,7 +274,7 @@ def test_optimize_refuses_run_files_that_are_not_files_before_the_work(tmp_path,
     run = tmp_path / "runs" / "small"
     run.mkdir(parents=True)
     not_a_file(run / name, kind)
-    monkeypatch.setattr(module("optimize"), "iterate", lambda *a, **k: pytest.fail("iterated"))
+    monkeypatch.setattr(module("commands.optimize"), "iterate", lambda *a, **k: pytest.fail("iterated"))
     code, out, err = psdr(capsys, "optimize", cfg, "--resume")
     assert_one_line_error(code, out, err, f"{run / name}: not a regular file")
     assert still_there(run / name, kind)
@@ -284,7 +286,7 @@ def test_grad_output_that_is_a_folder_is_refused_before_the_work(tmp_path, write
                                                                 "axis": [1, 0, 0]}))
     blocked = tmp_path / "out" / "t" / "grad" / "view_000.exr"
     blocked.mkdir(parents=True)
-    monkeypatch.setattr(module("gradient"), "forward_gradient", lambda *a, **k: pytest.fail("estimated"))
+    monkeypatch.setattr(module("commands.gradient"), "forward_gradient", lambda *a, **k: pytest.fail("estimated"))
     code, out, err = psdr(capsys, "grad", cfg)
     assert_one_line_error(code, out, err, f"{blocked}: not a regular file (a folder)")
 

@@ -11,12 +11,14 @@ import yaml
 import mitsuba as mi
 
 from conftest import experiment, write_raw_exr
-from psdr_cli import api, backend, cli, meshes, mitsuba_scene
+from psdr_cli import api, cli
 from psdr_cli.config.experiment_file import parse
 from psdr_cli.errors import ConfigError
-from psdr_cli.experiment import load_experiment
-from psdr_cli.render import render_view
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import load_experiment
+from psdr_cli.rendering.render import render_view
+from psdr_cli.scene import meshes, mitsuba_xml
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import backend
 from test_mitsuba_scene import write_twins
 
 
@@ -338,10 +340,10 @@ def test_xml_instances_are_refused_on_cuda_variants_in_one_line(tmp_path):
     at load, naming the file and the group; LLVM variants keep them."""
     xml = tmp_path / "scene.xml"
     with pytest.raises(ConfigError) as err:
-        mitsuba_scene.refuse_instances_on_cuda("grp", "cuda_ad_rgb", xml)
+        mitsuba_xml.refuse_instances_on_cuda("grp", "cuda_ad_rgb", xml)
     assert "scene.xml" in str(err.value) and "shapegroup 'grp'" in str(err.value)
     assert "llvm_ad_rgb" in str(err.value) and len(str(err.value).splitlines()) == 1
-    mitsuba_scene.refuse_instances_on_cuda("grp", "llvm_ad_rgb", xml)
+    mitsuba_xml.refuse_instances_on_cuda("grp", "llvm_ad_rgb", xml)
 
 
 def test_xml_loading_asks_the_variant_check_about_each_shapegroup(tmp_path, monkeypatch):

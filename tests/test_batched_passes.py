@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 from scipy.stats import chi2, f
 
-from psdr_cli import backend, estimate
-from psdr_cli.estimate import forward_gradient, pass_groups, prepare, term_image, term_passes, term_seed
-from psdr_cli.estimators.passes import AD_LANES
-from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.config.options import with_estimator
+from psdr_cli.estimators.passes import AD_LANES
+from psdr_cli.experiment.load import load_experiment, parse_experiment
+from psdr_cli.rendering import estimate
+from psdr_cli.rendering.estimate import forward_gradient, pass_groups, prepare, term_image, term_passes, term_seed
+from psdr_cli.support import backend
 from conftest import bit_reproducible
 from test_direct_boundary import SHADOW
 

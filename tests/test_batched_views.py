@@ -14,8 +14,6 @@ import numpy as np
 import pytest
 
 import psdr_cli
-from psdr_cli import backend, estimate, iteration
-from psdr_cli.estimate import Settings
 from psdr_cli.estimators import registry
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges, edge_list
 from psdr_cli.estimators.camera import LaneCameras, Projection, camera_ray, views_camera_rays
@@ -23,10 +21,14 @@ from psdr_cli.estimators.direct import direct_boundary, views_direct_boundary
 from psdr_cli.estimators.indirect import indirect_boundary, views_indirect_boundary
 from psdr_cli.estimators.passes import make_sampler
 from psdr_cli.estimators.primary import draw_views, view_ranges
-from psdr_cli.jitarray import concat
-from psdr_cli.render import render_view, render_views
-from psdr_cli.experiment import parse_experiment
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.optimisation import iteration
+from psdr_cli.rendering import estimate
+from psdr_cli.rendering.estimate import Settings
+from psdr_cli.rendering.render import render_view, render_views
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import backend
+from psdr_cli.support.jitarray import concat
 from test_direct_boundary import KEY as SHADOW_KEY, SHADOW
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"

@@ -1,4 +1,4 @@
-"""``optimize.cameras``: the pose corrections of every view (psdr_cli/camera_refinement.py).
+"""``optimize.cameras``: the pose corrections of every view (psdr_cli/optimisation/camera_refinement.py).
 
 The derivative the loop takes of a view's image with respect to its correction is the reverse
 mode of the same estimators that ``psdr grad`` runs in forward mode for ``parameter: {camera: i,
@@ -26,25 +26,27 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from psdr_cli import api, backend, held_out_alignment
-from psdr_cli.camera_motion import with_all_edges
-from psdr_cli.camera_refinement import CameraCorrections, gauge_basis, rotation_matrices, with_camera_mode, without_gauge
+from psdr_cli import api
 from psdr_cli.config.parameter import ParameterConfig
 from psdr_cli.config.unknowns import CamerasUnknown
-from psdr_cli.estimate import Settings, forward_gradient, prepare, term_image, term_passes, term_seed
 from psdr_cli.datasets.views import read_frames
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.experiment import load_experiment
-from psdr_cli.held_out import score_mesh
-from psdr_cli.jitarray import jit_array
-from psdr_cli.parameters import Parameter
-from psdr_cli.reference import agreement, fd_resolution, finite_difference
-from psdr_cli.render import render_view
+from psdr_cli.evaluation import held_out_alignment
+from psdr_cli.evaluation.held_out import score_mesh
+from psdr_cli.experiment.load import load_experiment
+from psdr_cli.geometry.parameters import Parameter
+from psdr_cli.optimisation.camera_refinement import CameraCorrections, gauge_basis, rotation_matrices, with_camera_mode, without_gauge
+from psdr_cli.rendering.camera_motion import with_all_edges
+from psdr_cli.rendering.estimate import Settings, forward_gradient, prepare, term_image, term_passes, term_seed
+from psdr_cli.rendering.reference import agreement, fd_resolution, finite_difference
+from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.cameras import refined_poses, similarity, transforms_document, write_colmap_text
 from psdr_cli.run_folder.state import State
-from psdr_cli.scene import build_scene
-from psdr_cli.verdict import agrees, describe
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import backend
+from psdr_cli.support.jitarray import jit_array
+from psdr_cli.support.verdict import agrees, describe
 from standins import camera_cfg, load
 
 TERMS = ("interior", "primary", "direct")

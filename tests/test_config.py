@@ -5,8 +5,8 @@ import pytest
 
 from psdr_cli.config.cameras import orbit_cameras
 from psdr_cli.config.vocabularies import TERMS
-from psdr_cli.experiment import load_experiment, parse_experiment
 from psdr_cli.errors import ConfigError
+from psdr_cli.experiment.load import load_experiment, parse_experiment
 
 from conftest import experiment
 
@@ -202,7 +202,7 @@ def test_every_shipped_experiment_file_is_valid():
     """All experiment files in configs/ (demo, validation, benchmarks, both paper scales) parse,
     and each paper reproduction exists at both scales."""
     from pathlib import Path
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     root = Path(__file__).resolve().parent.parent / "configs"
     files = sorted(root.rglob("*.yaml"))
     assert len(files) > 10
@@ -215,7 +215,7 @@ def test_every_shipped_experiment_file_is_valid():
 
 def test_stage_schedules_parse_as_one_value_or_one_per_remesh_stage(tmp_path):
     """lambda and downsample: a single value holds for every stage; a list gives one per stage."""
-    from psdr_cli.stages import stage_at, stage_value
+    from psdr_cli.optimisation.stages import stage_at, stage_value
     from psdr_cli.run_folder.fingerprint_v1 import optimize_identity_v1 as optimize_identity
     one = parse(experiment(optimize={"object": "ball"}), tmp_path).optimize
     assert one.lambda_ == (20.0,) and one.downsample == (1,)

@@ -7,12 +7,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import backend
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.coverage import coverage_image, hit_share, object_id
-from psdr_cli.experiment import parse_experiment
+from psdr_cli.experiment.load import parse_experiment
 from psdr_cli.losses.silhouette import silhouette_loss
-from psdr_cli.scene import build_scene
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import backend
 
 SCENE = {
     "name": "coverage", "seed": 0,

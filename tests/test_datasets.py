@@ -18,7 +18,7 @@ from psdr_cli.datasets import undistort as undistort_module
 from psdr_cli.datasets.frames import opencv_matrix, opengl_to_opencv
 from psdr_cli.datasets.images import downsample, read_image, read_mask, srgb_to_linear
 from psdr_cli.errors import PsdrError, PsdrWarning
-from psdr_cli.fileio import write_exr
+from psdr_cli.support.fileio import write_exr
 
 W, H, F = 16, 12, 14.0  # image size and focal length (pixels) of the small datasets
 EYES = [(0.0, -4.0, 1.0), (3.0, -3.0, 2.0), (-3.5, -1.0, 0.5), (0.5, 4.0, 1.5)]

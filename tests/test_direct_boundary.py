@@ -7,12 +7,12 @@ import pytest
 from scipy.ndimage import binary_dilation
 
 from psdr_cli.api import setup
-from psdr_cli.experiment import parse_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
 from psdr_cli.estimators.direct import direct_boundary
 from psdr_cli.estimators.passes import make_sampler
-from psdr_cli.render import render_view
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.rendering.render import render_view
+from psdr_cli.scene.build import build_scene
 
 R = 32
 SEEDS = 8

@@ -21,10 +21,11 @@ import pytest
 import yaml
 
 from conftest import bit_reproducible, experiment
-from psdr_cli import cli, fileio
+from psdr_cli import cli
 from psdr_cli.errors import PsdrError
 from psdr_cli.run_folder.layout import RunFiles, lock_run
 from psdr_cli.run_folder.log import read_log
+from psdr_cli.support import fileio
 
 
 def psdr(capsys, *args):

@@ -1,4 +1,4 @@
-"""The recorded part of an iteration (issue 38, psdr_cli/frozen_batch.py): a replay gives what
+"""The recorded part of an iteration (issue 38, psdr_cli/optimisation/frozen_batch.py): a replay gives what
 tracing the same function gives, for batches it was not recorded on; a changed structure (a new
 scene after a remesh, another film) is recorded again and still gives the traced result; and the
 loop's iteration with it is the traced iteration of before, up to rounding."""
@@ -17,16 +17,19 @@ import yaml
 
 import psdr_cli
 from conftest import bit_reproducible
-from psdr_cli import api, backend, iteration, meshes
-from psdr_cli.engines import Engine
-from psdr_cli.estimate import Settings
+from psdr_cli import api
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.recording import Recording
-from psdr_cli.frozen_batch import FrozenBatch, refusal
-from psdr_cli.jitarray import jit_array
-from psdr_cli.problem import Problem, Shape, adam_export
+from psdr_cli.optimisation import iteration
+from psdr_cli.optimisation.engines import Engine
+from psdr_cli.optimisation.frozen_batch import FrozenBatch, refusal
+from psdr_cli.optimisation.problem import Problem, Shape, adam_export
+from psdr_cli.optimisation.stages import stage_of
+from psdr_cli.rendering.estimate import Settings
 from psdr_cli.run_folder.log import read_log
-from psdr_cli.stages import stage_of
+from psdr_cli.scene import meshes
+from psdr_cli.support import backend
+from psdr_cli.support.jitarray import jit_array
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
 

@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from conftest import REPO, psdr_exit_code
-from psdr_cli.verdict import agrees, describe
+from psdr_cli.support.verdict import agrees, describe
 
 VALIDATION = REPO / "configs" / "validation"
 
@@ -60,7 +60,7 @@ def run_grad(run, config, tmp_path, h, spp, fd_spp, *extra):
 
 
 def assert_agrees(view, min_signal=10):
-    """The CLI's own verdict (psdr_cli.verdict): sum, tiles, mean z², max |z|, correlation."""
+    """The CLI's own verdict (psdr_cli.support.verdict): sum, tiles, mean z², max |z|, correlation."""
     stats = view["fd_agreement"]
     assert agrees(stats, min_signal), describe(stats, min_signal)
 
@@ -124,7 +124,7 @@ def test_indirect_term_is_needed_in_the_cornell_box(tmp_path, run_psdr):
 
 def test_outputs_of_grad(runs):
     """EXR with render, term and total channels plus metadata; previews; summary."""
-    from psdr_cli import fileio as io
+    from psdr_cli.support import fileio as io
     _, view = runs["cornell"]
     exr = io.read_exr(view["file"])
     for ch in ["R", "G", "B"] + [f"{t}.{c}" for t in ("interior", "primary", "direct", "indirect", "total", "fd")
@@ -158,9 +158,9 @@ def test_indirect_term_carries_light_that_arrives_by_way_of_a_wall():
     (no silhouette, no direct light: the primary and direct terms are exactly zero there) the
     indirect term alone must match finite differences. (A bug that kept detector subpaths only
     where x^D itself was camera-visible made this region ≈ 0 instead of ≈ −80.)"""
-    from psdr_cli.experiment import load_experiment
-    from psdr_cli.estimate import forward_gradient, prepare
-    from psdr_cli.reference import finite_difference, mean_and_error
+    from psdr_cli.experiment.load import load_experiment
+    from psdr_cli.rendering.estimate import forward_gradient, prepare
+    from psdr_cli.rendering.reference import finite_difference, mean_and_error
     exp = load_experiment(VALIDATION / "indirect.yaml")
     scene, parameter, edges, settings = prepare(exp)
     settings = settings.with_estimator(spp=256, primary_spp=256, boundary_spp=256)

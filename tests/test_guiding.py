@@ -9,14 +9,14 @@ import pytest
 
 from psdr_cli import api
 from psdr_cli.config.options import with_estimator
-from psdr_cli.experiment import parse_experiment
-from psdr_cli.estimate import forward_gradient, make_guides, prepare
-from psdr_cli.guiding import auto, build_grid, build_kdtree
 from psdr_cli.estimators.sample_log import SampleLog, thinned
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.guiding import auto, build_grid, build_kdtree
+from psdr_cli.guiding.guide import GuideStats, trilinear_weights
 from psdr_cli.guiding.kdtree import KdTreeGuide, TreeLimits
 from psdr_cli.guiding.loop_fed import fitted_guides
 from psdr_cli.guiding.targets import Guides
-from psdr_cli.guiding.guide import GuideStats, trilinear_weights
+from psdr_cli.rendering.estimate import forward_gradient, make_guides, prepare
 
 R = 24
 
@@ -29,7 +29,7 @@ def peaked(u):
 
 @pytest.fixture(scope="module")
 def variant():
-    from psdr_cli import backend
+    from psdr_cli.support import backend
     return backend.select_variant("auto")
 
 
@@ -211,7 +211,7 @@ CAMERA_SHADOW = {
 @pytest.fixture(scope="module")
 def camera_shadow(tmp_path_factory):
     """(experiment, unguided estimate, FD batches) of :data:`CAMERA_SHADOW`."""
-    from psdr_cli.reference import finite_difference
+    from psdr_cli.rendering.reference import finite_difference
     tmp = tmp_path_factory.mktemp("camera_shadow")
     exp = parse_experiment(copy.deepcopy(CAMERA_SHADOW), tmp / "camera_shadow.yaml", cwd=tmp)
     unguided = api.gradient_images(with_estimator(exp, guiding="none"), min_passes=8)
@@ -230,8 +230,8 @@ def test_moving_camera_guided_agrees_with_unguided_and_fd(camera_shadow, guiding
     and unguided agreed with each other: the bias was common to both and only the lower variance
     of the guided estimates made it visible on the camera-translation scene of
     tests/test_real_mesh_gradients.py."""
-    from psdr_cli.reference import agreement, mean_and_error
-    from psdr_cli.verdict import agrees, describe
+    from psdr_cli.rendering.reference import agreement, mean_and_error
+    from psdr_cli.support.verdict import agrees, describe
     exp, unguided, fd = camera_shadow
     guided = api.gradient_images(with_estimator(exp, guiding=guiding), min_passes=8)
     (m0, s0), (m, s) = (mean_and_error([block_sums(p) for p in e["direct"].passes], e["direct"].weights)
@@ -349,8 +349,8 @@ def test_compare_cli_equal_samples(tmp_path, write_cfg, run_psdr):
 def test_compare_passes_give_each_term_its_own_sample_count(tmp_path, monkeypatch):
     """n passes of a multi-term comparison ask every boundary term for n × boundary_spp samples
     (a shared Settings once compounded them: the second term got n² × boundary_spp)."""
-    from psdr_cli import estimate
-    from psdr_cli.compare import Comparison, Variant
+    from psdr_cli.commands.compare import Comparison, Variant
+    from psdr_cli.rendering import estimate
     data = copy.deepcopy(SHADOW)
     data["output"] = str(tmp_path / "runs")
     data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct", "indirect"]}

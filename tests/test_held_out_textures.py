@@ -18,9 +18,11 @@ import pytest
 import trimesh
 import yaml
 
-from psdr_cli import api, backend, fileio, meshes
-from psdr_cli.experiment import load_experiment
-from psdr_cli.held_out import score_mesh
+from psdr_cli import api
+from psdr_cli.evaluation.held_out import score_mesh
+from psdr_cli.experiment.load import load_experiment
+from psdr_cli.scene import meshes
+from psdr_cli.support import backend, fileio
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "configs" / "photos" / "bunny_blender.yaml"

@@ -1,8 +1,8 @@
-"""Broad phase of the intersection-curve search (:mod:`psdr_cli.intersections`)."""
+"""Broad phase of the intersection-curve search (:mod:`psdr_cli.geometry.intersections`)."""
 import numpy as np
 
-from psdr_cli import meshes
-from psdr_cli.intersections import intersection_segments, overlapping_pairs, sorted_unique
+from psdr_cli.geometry.intersections import intersection_segments, overlapping_pairs, sorted_unique
+from psdr_cli.scene import meshes
 
 
 def all_pairs(lo, hi):

@@ -9,16 +9,18 @@ import mitsuba as mi
 import numpy as np
 
 import psdr_cli
-from psdr_cli import backend, iteration, meshes
-from psdr_cli.engines import Engine
-from psdr_cli.estimate import Settings
 from psdr_cli.estimators import primary
 from psdr_cli.estimators.boundary_sampling import camera_origins, edge_distribution, edge_list
-from psdr_cli.geometry_ahead import GeometryAhead
-from psdr_cli.jitarray import jit_array
-from psdr_cli.problem import Problem, Shape
-from psdr_cli.scene import build_scene
-from psdr_cli.stages import stage_of
+from psdr_cli.optimisation import iteration
+from psdr_cli.optimisation.engines import Engine
+from psdr_cli.optimisation.geometry_ahead import GeometryAhead
+from psdr_cli.optimisation.problem import Problem, Shape
+from psdr_cli.optimisation.stages import stage_of
+from psdr_cli.rendering.estimate import Settings
+from psdr_cli.scene import meshes
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import backend
+from psdr_cli.support.jitarray import jit_array
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
 
@@ -176,7 +178,7 @@ def test_the_edge_draw_compiles_once_for_every_edge_count():
     """The edges' length distribution takes the count as an opaque array: drawing from tables of
     other lengths runs the very kernels of the first (a count written into the kernels as a
     constant compiled them anew every iteration: 4.5 s per iteration of the demo, measured). The
-    inputs come from 64-byte aligned memory as the loop's do (:func:`psdr_cli.jitarray.jit_array`):
+    inputs come from 64-byte aligned memory as the loop's do (:func:`psdr_cli.support.jitarray.jit_array`):
     Dr.Jit writes a mapped numpy array's alignment into the kernel, and arrays mapped straight from
     numpy made the kernels depend on where numpy's allocator put them (this test failed 1 run in 4)."""
     from psdr_cli.estimators.boundary_sampling import BoundaryEdges, length_distribution

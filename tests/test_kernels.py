@@ -2,7 +2,7 @@
 and building guides again reuses the kernels of the first build.
 
 Dr.Jit maps numpy arrays instead of copying them, and a load from memory that is not 64-byte
-aligned is a different kernel (``psdr_cli.jitarray``); arrays rebuilt every iteration (edge
+aligned is a different kernel (``psdr_cli.support.jitarray``); arrays rebuilt every iteration (edge
 lists, curve ids, adjoint images) used to recompile kernels in most iterations, and the guides'
 arrays (their trees, cells and target points) recompiled 1-2 kernels in some builds, about a
 second each (``psdr grad`` builds them once per call)."""
@@ -14,17 +14,17 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import backend
-from psdr_cli.experiment import load_experiment, parse_experiment
-from psdr_cli.engines import Engine
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.estimate import Settings, make_guides, prepare
-from psdr_cli.jitarray import ALIGNMENT, aligned_copy, jit_array
-from psdr_cli.iteration import adjoint_image
+from psdr_cli.experiment.load import load_experiment, parse_experiment
 from psdr_cli.losses.l1 import l1_loss
-from psdr_cli.problem import Problem, Shape
+from psdr_cli.optimisation.engines import Engine
+from psdr_cli.optimisation.iteration import adjoint_image
+from psdr_cli.optimisation.problem import Problem, Shape
+from psdr_cli.optimisation.start_state import initial_shape
+from psdr_cli.rendering.estimate import Settings, make_guides, prepare
+from psdr_cli.support import backend
+from psdr_cli.support.jitarray import ALIGNMENT, aligned_copy, jit_array
 from psdr_cli.target_sources.rendered_mesh import ground_truth
-from psdr_cli.targets import initial_shape
 from test_guiding import SHADOW
 from test_optimize import TINY, write
 

@@ -1,4 +1,4 @@
-"""One loss path: the recorded iteration (psdr_cli/frozen_batch.py) takes its loss from the
+"""One loss path: the recorded iteration (psdr_cli/optimisation/frozen_batch.py) takes its loss from the
 losses (psdr_cli/losses) as the traced one does. A loss added the README's way with a recorded
 form is summed there; one without makes ``refusal`` name it, and the traced iteration serves the
 run: no loss is left out of an iteration."""
@@ -11,11 +11,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import backend, iteration
-from psdr_cli.frozen_batch import FrozenBatch, refusal
-from psdr_cli.jitarray import jit_array
 from psdr_cli.losses import registry
 from psdr_cli.losses.loss import Loss, RecordedLoss
+from psdr_cli.optimisation import iteration
+from psdr_cli.optimisation.frozen_batch import FrozenBatch, refusal
+from psdr_cli.support import backend
+from psdr_cli.support.jitarray import jit_array
 from test_frozen_batch import iteration_gradient
 from test_frozen_batch import setup as sphere_setup
 

@@ -10,13 +10,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from psdr_cli import backend, cli, fileio, load_experiment, meshes
+from psdr_cli import cli, load_experiment
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
-from psdr_cli.estimate import Settings
-from psdr_cli.problem import Problem, Shape
-from psdr_cli.render import render_view
+from psdr_cli.optimisation.problem import Problem, Shape
+from psdr_cli.rendering.estimate import Settings
+from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.state import State
+from psdr_cli.scene import meshes
+from psdr_cli.support import backend, fileio
 from test_unknown_light import experiment_data, weighted_gradients, write
 
 

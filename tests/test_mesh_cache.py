@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from psdr_cli import meshes
+from psdr_cli.scene import meshes
 
 
 @pytest.fixture

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from psdr_cli import api, meshes
-from psdr_cli.experiment import parse_experiment
+from psdr_cli import api
 from psdr_cli.errors import ConfigError
-from psdr_cli.render import render_view
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.rendering.render import render_view
+from psdr_cli.scene import meshes
+from psdr_cli.scene.build import build_scene
 
 from conftest import run_cli
 from test_gradients import assert_agrees

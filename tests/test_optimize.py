@@ -16,9 +16,9 @@ import pytest
 import yaml
 
 from conftest import bit_reproducible, psdr_exit_code, run_cli
+from psdr_cli.commands import evaluate as ev
 from psdr_cli.config.limits import MAX_ITERATIONS
-from psdr_cli import evaluate as ev
-from psdr_cli import meshes
+from psdr_cli.scene import meshes
 
 TINY = {
     "name": "tiny", "seed": 3,
@@ -143,9 +143,10 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch, freeze):
     (A NaN in the vertex gradient alone does not reach the optimiser's variable: Mitsuba's
     LargeSteps solve drops it, measured; the loss is the signal the loop has.)"""
     import drjit as dr
-    from psdr_cli import api, estimate
-    from psdr_cli.experiment import load_experiment
-    from psdr_cli.frozen_batch import FrozenBatch
+    from psdr_cli import api
+    from psdr_cli.experiment.load import load_experiment
+    from psdr_cli.optimisation.frozen_batch import FrozenBatch
+    from psdr_cli.rendering import estimate
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=3, remesh={"method": "none"}, freeze=freeze)
     exp = load_experiment(write(tmp_path, data))
@@ -175,7 +176,7 @@ def test_nan_gradient_skips_the_update(tmp_path, monkeypatch, freeze):
 
 
 def test_atomic_path_keeps_the_old_file_on_failure(tmp_path):
-    from psdr_cli.fileio import atomic_path
+    from psdr_cli.support.fileio import atomic_path
     target = tmp_path / "mesh.ply"
     target.write_text("old")
     with pytest.raises(RuntimeError):
@@ -238,7 +239,7 @@ def test_albedo_and_environment_rotation_are_recovered(tmp_path):
     """With the true shape as the start, the joint unknowns move to the truth: albedo 0.3 → 0.6,
     environment rotation 20° → 0°."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=40, batch_size=3, learning_rate=1e-6, remesh={"method": "none"},
                             init={"mesh": {"shape": "bunny", "size": 0.8, "faces": 400}},
@@ -277,7 +278,7 @@ def test_guided_optimisation_rebuilds_its_guides_on_schedule(tmp_path):
     """With estimator.guiding set, guides are built at iteration 0 and every guide_every
     iterations (their time is logged in seconds_guiding), and the run completes."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["estimator"].update(guiding="kdtree", edge_sort=True, kdtree={"initial_samples": 4096})
     data["optimize"].update(iterations=5, guide_every=2, remesh={"method": "none"})
@@ -293,7 +294,7 @@ def test_auto_guiding_builds_no_guide_in_the_loop(tmp_path):
     """guiding: auto on a film whose boundary pass (16² × 256 = 2¹⁶ lanes) `psdr grad` would guide:
     the optimisation loop runs unguided (no guide time, no guide memory in the log)."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     from psdr_cli.guiding import auto
     data = copy.deepcopy(TINY)
     data["estimator"].update(guiding="auto", boundary_spp=256)
@@ -308,7 +309,7 @@ def test_auto_guiding_builds_no_guide_in_the_loop(tmp_path):
 def test_rgb_albedo_moments_survive_resume(tmp_path):
     """Adam moments of a vector-valued unknown (RGB albedo) are restored on --resume."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     from psdr_cli.run_folder.state import State
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0]["bsdf"] = {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}
@@ -317,7 +318,7 @@ def test_rgb_albedo_moments_survive_resume(tmp_path):
     api.optimize(exp, warn=lambda m: None)
     saved = State.load(exp.run_dir / "state.npz")
     assert saved.adam["albedo"][0] == 2
-    from psdr_cli.problem import Problem, Shape, adam_import, adam_export
+    from psdr_cli.optimisation.problem import Problem, Shape, adam_import, adam_export
     problem = Problem(exp, Shape(saved.V, saved.F, u=saved.u, basis=saved.basis), None, saved.values)
     adam_import(problem.opt, "albedo", saved.adam["albedo"])
     t, m, v = adam_export(problem.opt, "albedo")
@@ -350,7 +351,7 @@ def test_fresh_run_moves_the_previous_run_aside(tmp_path):
     """A fresh start (no --resume) on a folder holding a run never deletes it: the run is moved
     aside whole, said in one line, and the new run starts from iteration 0 (its targets reused)."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=2, remesh={"method": "none"}, checkpoint_every=1)
     exp = load_experiment(write(tmp_path, data))
@@ -461,7 +462,7 @@ def test_reports_refuse_unfinished_runs(tmp_path):
 
 def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
-    from psdr_cli.experiment import parse_experiment
+    from psdr_cli.experiment.load import parse_experiment
     from psdr_cli.run_folder.variants import variant_experiments
     from psdr_cli.target_sources.rendered_mesh import target_key
     data = copy.deepcopy(TINY)
@@ -497,8 +498,9 @@ def test_a_failing_remesher_never_ends_a_run(tmp_path, monkeypatch):
     the initial and the scheduled remesh: the run falls back to the isotropic remesher, says so
     and finishes."""
     import pymeshlab
-    from psdr_cli import api, remesh
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli import api
+    from psdr_cli.experiment.load import load_experiment
+    from psdr_cli.geometry import remesh
 
     def broken(*args, **kwargs):
         raise pymeshlab.PyMeshLabException("Failed to apply filter: meshing_re_orient_faces_coherently")
@@ -547,7 +549,7 @@ def test_plain_progress_lines_come_every_n_iterations_and_at_the_end():
 def test_optimize_under_an_exr_environment_map_does_not_hang(tmp_path):
     """mi.Bitmap reading an EXR deadlocks while Dr.Jit runs one thread (as psdr optimize does by
     default); environment maps are read with fileio instead."""
-    from psdr_cli import fileio
+    from psdr_cli.support import fileio
     fileio.write_rgb_exr(tmp_path / "env.exr", np.full((8, 16, 3), 0.8, np.float32))
     data = copy.deepcopy(TINY)
     data["scene"]["emitters"] = [{"type": "envmap", "file": str(tmp_path / "env.exr")}]
@@ -562,7 +564,7 @@ def test_mitsuba_engine_lowers_the_shape_error(tmp_path):
     batches and LargeSteps) grows a small sphere towards a larger target sphere within a few
     iterations, and the loss falls."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["scene"]["objects"][0].update(mesh={"shape": "sphere", "radius": 0.35, "subdivisions": 2},
                                        transform={"translate": [0, 0, 0.4]})
@@ -586,8 +588,8 @@ def test_l1_adjoint_from_an_independent_render_removes_the_sign_correlation():
     from 1); the sign of an independent 256-sample render P gives ≈ 1. The value is P's L1."""
     import drjit as dr
     import mitsuba as mi
-    from psdr_cli import backend
     from psdr_cli.losses.l1 import l1_loss
+    from psdr_cli.support import backend
     backend.select_variant("auto")
     rng = np.random.default_rng(0)
     n = 200_000
@@ -624,7 +626,7 @@ def test_learning_rate_final_decays_geometrically_after_the_last_remesh():
     """lr is constant up to the last remesh before the end, then decays geometrically to
     learning_rate_final at the last iteration; unset, it stays constant."""
     from psdr_cli.config.optimize import OptimizeConfig, RemeshConfig
-    from psdr_cli.iteration import learning_rate_at
+    from psdr_cli.optimisation.iteration import learning_rate_at
     cfg = OptimizeConfig(object="x", learning_rate=0.1, learning_rate_final=0.01,
                          remesh=RemeshConfig("instant", 800, (100, 200, 400), (1500, 2500, 4000)))
     assert learning_rate_at(cfg, 0, 300) == 0.1 and learning_rate_at(cfg, 200, 300) == 0.1
@@ -638,7 +640,7 @@ def test_learning_rate_final_changes_the_run_and_is_checked(tmp_path, run_psdr):
     """A run with learning_rate_final takes smaller late steps than one without (its vertices move
     less over the last three iterations), and a non-positive value is a one-line error."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     finals = {}
     for label, extra in (("const", {}), ("decay", {"learning_rate_final": 0.001})):
         data = copy.deepcopy(TINY)
@@ -659,12 +661,12 @@ def test_downsampled_targets_are_what_a_lower_resolution_render_estimates(tmp_pa
     """With the box pixel filter, the mean of k × k pixels of a W × H render is the pixel of a
     W/k × H/k render (optimize.downsample): they agree to the renders' noise, while taking every
     k-th pixel instead does not."""
-    from psdr_cli import backend
-    from psdr_cli.experiment import load_experiment
-    from psdr_cli.problem import stage_experiment
-    from psdr_cli.stages import downsample
-    from psdr_cli.render import render_view
-    from psdr_cli.scene import build_scene
+    from psdr_cli.experiment.load import load_experiment
+    from psdr_cli.optimisation.problem import stage_experiment
+    from psdr_cli.optimisation.stages import downsample
+    from psdr_cli.rendering.render import render_view
+    from psdr_cli.scene.build import build_scene
+    from psdr_cli.support import backend
     data = copy.deepcopy(TINY)
     data["scene"]["film"] = {"width": 32, "height": 32}
     data["optimize"].update(downsample=[2, 1])
@@ -687,7 +689,7 @@ def test_coarse_to_fine_and_lambda_schedule_resume_exactly(tmp_path):
     final mesh, and the previews of both stages have the film's size."""
     from PIL import Image
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(iterations=8, checkpoint_every=2, downsample=[2, 1], remesh={
         "method": "instant", "initial": 150, "at": [4], "vertices": [250]}, **{"lambda": [40, 10]})
@@ -713,8 +715,8 @@ def test_stage_lists_are_checked_again_when_code_changes_the_experiment(tmp_path
     from dataclasses import replace
     from psdr_cli import api
     from psdr_cli.config.optimize import RemeshConfig
-    from psdr_cli.experiment import load_experiment
     from psdr_cli.errors import PsdrError
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["optimize"].update(downsample=[2, 1], **{"lambda": [40, 10]})
     exp = load_experiment(write(tmp_path, data))
@@ -730,9 +732,9 @@ def test_the_loop_guiding_line_names_no_psdr_guide_under_the_mitsuba_engine(tmp_
     """The line `psdr optimize` prints per run says what the loop guides with: under
     ``estimator.engine: mitsuba`` no psdr guide is built (Mitsuba samples its own boundaries),
     whatever ``estimator.guiding`` says."""
+    from psdr_cli.commands.optimize import loop_guiding_line
     from psdr_cli.config.options import with_estimator
-    from psdr_cli.experiment import load_experiment
-    from psdr_cli.optimize import loop_guiding_line
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)
     data["estimator"].update(engine="mitsuba", guiding="kdtree")
     exp = load_experiment(write(tmp_path, data))

@@ -6,11 +6,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import backend
-from psdr_cli.experiment import parse_experiment
 from psdr_cli.errors import ConfigError
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.support import backend
 from conftest import experiment as base_experiment
-from psdr_cli.outlier_clip import AUTO_FACTOR, WARMUP, clip_factor, clip_outliers
+from psdr_cli.optimisation.outlier_clip import AUTO_FACTOR, WARMUP, clip_factor, clip_outliers
 
 
 def noisy_steps(clip: float | None, outlier: float = 30.0, steps: int = 80, at: int = 30, seed: int = 0):

@@ -16,13 +16,14 @@ import yaml
 from scipy.ndimage import binary_dilation, binary_erosion
 from skimage.metrics import structural_similarity
 
-from psdr_cli import api, backend
-from psdr_cli.dataset_scene import look_at_point, to_dataset, to_normalised
+from psdr_cli import api
 from psdr_cli.datasets.views import View
 from psdr_cli.errors import PsdrError, PsdrWarning
-from psdr_cli.experiment import load_experiment, parse_experiment
-from psdr_cli.held_out import psnr, score_view, ssim
-from psdr_cli.visual_hull import visual_hull
+from psdr_cli.evaluation.held_out import psnr, score_view, ssim
+from psdr_cli.experiment.dataset_frame import look_at_point, to_dataset, to_normalised
+from psdr_cli.experiment.load import load_experiment, parse_experiment
+from psdr_cli.support import backend
+from psdr_cli.target_sources.visual_hull import visual_hull
 from conftest import run_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -326,7 +327,7 @@ def test_held_out_views_keep_the_lights_mapped_once(tmp_path):
     """The held-out split of a loaded experiment moves only its cameras: an area light given in the
     dataset's coordinates is mapped into the normalised frame once, for training and held-out
     views alike."""
-    from psdr_cli.dataset_scene import dataset_scene
+    from psdr_cli.experiment.dataset_frame import dataset_scene
     data = experiment_data(DATA / "blender")
     data["scene"]["emitters"].append({"type": "area", "center": [4.0, -2.0, 9.0], "normal": [0, 0, -1],
                                       "size": [2.0, 2.0], "radiance": 5.0})
@@ -474,11 +475,11 @@ def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path, r
     into ``targets/undistorted/`` once (a second load reuses the files), and the undistorted
     masks agree with psdr's render of the ground truth through the new pinhole cameras (mask IoU
     ≥ 0.97 per view; the distorted masks through the original pinhole cameras reach only ~0.94)."""
-    from psdr_cli.dataset_scene import to_normalised
+    from psdr_cli.evaluation.held_out import coverage
+    from psdr_cli.experiment.dataset_frame import to_normalised
+    from psdr_cli.scene.build import build_scene
+    from psdr_cli.scene.meshes import read_mesh_file
     from psdr_cli.target_sources.camera_dataset import dataset_targets
-    from psdr_cli.held_out import coverage
-    from psdr_cli.meshes import read_mesh_file
-    from psdr_cli.scene import build_scene
     dataset = distorted_transforms_dataset(DATA / "blender", tmp_path / "distorted")
     data = experiment_data(dataset, iterations=1)
     data["optimize"]["target"]["dataset"]["holdout_every"] = 4
@@ -504,10 +505,10 @@ def test_a_y_up_dataset_finds_its_up_axis_and_turns_the_environment_with_it(tmp_
     """The example's world turned so that its up axis is +y (x ↦ R x, R: −90° about x): the up
     axis found from the cameras is +y, the environment map's zenith follows it, and psdr's render
     of the turned ground truth equals the render of the original (the same photographs)."""
-    from psdr_cli.dataset_scene import to_normalised, world_up
-    from psdr_cli.meshes import read_mesh_file
-    from psdr_cli.render import render_view
-    from psdr_cli.scene import build_scene
+    from psdr_cli.experiment.dataset_frame import to_normalised, world_up
+    from psdr_cli.rendering.render import render_view
+    from psdr_cli.scene.build import build_scene
+    from psdr_cli.scene.meshes import read_mesh_file
     R = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # z → y
     dataset = tmp_path / "y_up"
     shutil.copytree(DATA / "blender", dataset)

@@ -12,17 +12,17 @@ import pytest
 import yaml
 
 from conftest import experiment, run_cli
-from psdr_cli import backend
 from psdr_cli.config.cameras import CameraConfig
 from psdr_cli.errors import ConfigError
 from psdr_cli.estimators.camera import LaneCameras, Projection, SensorCamera, camera_connection
-from psdr_cli.experiment import parse_experiment
-from psdr_cli.pinhole import pinhole_camera
+from psdr_cli.experiment.load import parse_experiment
 from psdr_cli.run_folder.fingerprint import run_fingerprint
 from psdr_cli.run_folder.fingerprint_v1 import fingerprint_v1
-from psdr_cli.scene import sensor_dict
+from psdr_cli.scene.build import sensor_dict
+from psdr_cli.scene.pinhole import pinhole_camera
+from psdr_cli.support import backend
+from psdr_cli.support.verdict import agrees, describe
 from psdr_cli.target_sources.rendered_mesh import target_key
-from psdr_cli.verdict import agrees, describe
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -218,7 +218,7 @@ def test_xml_sensor_keeps_its_principal_point(tmp_path):
     """An XML ``perspective`` sensor with ``principal_point_offset_x/y`` is read (no longer
     refused): its camera carries the offset and the rebuilt sensor projects as the XML's."""
     from psdr_cli import api
-    from psdr_cli.scene import build_scene
+    from psdr_cli.scene.build import build_scene
     from test_mitsuba_scene import XML, write_twins
     xml_cfg, _ = write_twins(tmp_path)
     text = (tmp_path / "scene.xml").read_text()

@@ -7,7 +7,7 @@ Each gradient is taken the way Mitsuba's tests take it: θ = 0 with gradients en
 updated from θ, ``dr.forward(θ, dr.ADFlag.ClearEdges)``, then
 ``integrator.render_forward(scene, params=θ)``. It is compared with central finite differences of
 the plugin's own render (common random numbers, 8 batches on both sides) under the shared verdict
-(:func:`psdr_cli.verdict.agrees`: image sum and 4×4 tiles). The FD step is 0.003 (≈ 0.03 px of
+(:func:`psdr_cli.support.verdict.agrees`: image sum and 4×4 tiles). The FD step is 0.003 (≈ 0.03 px of
 edge motion): at 0.01 an edge within 0.1 px of a tile border leaks into the next tile's FD, where
 the derivative at θ = 0 is exactly 0.
 
@@ -23,12 +23,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import meshes
-from psdr_cli.backend import select_variant
-from psdr_cli.integrator import register
-from psdr_cli.mitsuba_scene import mesh
-from psdr_cli.reference import agreement
-from psdr_cli.verdict import agrees, describe
+from psdr_cli.rendering.integrator import register
+from psdr_cli.rendering.reference import agreement
+from psdr_cli.scene import meshes
+from psdr_cli.scene.mitsuba_xml import mesh
+from psdr_cli.support.backend import select_variant
+from psdr_cli.support.verdict import agrees, describe
 
 RES = 32
 BATCHES = 8
@@ -158,7 +158,7 @@ def fd_batches(sc, update, integrator, h, spp) -> list:
 
 
 def fd_agreement(sc, update, max_depth, spp, h, fd_spp, spp_boundary=None) -> dict:
-    """Agreement statistics (psdr_cli.reference.agreement) of the plugin's gradient with FD;
+    """Agreement statistics (psdr_cli.rendering.reference.agreement) of the plugin's gradient with FD;
     sample counts are per batch, and no warning may be raised (no shape silently left out)."""
     integrator = psdr_integrator(max_depth, spp_boundary)
     with warnings.catch_warnings():

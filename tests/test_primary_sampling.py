@@ -13,12 +13,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import api, backend
+from psdr_cli import api
 from psdr_cli.config.options import with_estimator
 from psdr_cli.estimators.primary import JUMP_ANGLE, JUMP_MIN_WEIGHT, jump_weights, stratified
-from psdr_cli.reference import block_sums, mean_and_error
+from psdr_cli.rendering.reference import block_sums, mean_and_error
+from psdr_cli.support import backend
 from standins import blob_cfg, bumpy_blob, load
-from psdr_cli.topology import build_topology
+from psdr_cli.geometry.topology import build_topology
 
 #: passes of one sample per pixel each: the variance ratio below is heavy-tailed (rare large
 #: 1/w_e draws), so it needs many (16 passes gave 1.16-2.58 over five seeds, 128 give 1.46-1.85)

@@ -54,7 +54,7 @@ def rows(run: Path) -> list:
 
 def sequential(tmp_path, data):
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
+    from psdr_cli.experiment.load import load_experiment
     (tmp_path / "seq").mkdir()
     exp = load_experiment(write(tmp_path / "seq", data))
     return exp, dict(api.optimize_variants(exp, warn=lambda m: None))
@@ -63,7 +63,7 @@ def sequential(tmp_path, data):
 def assert_same_runs(a: Path, b: Path, labels, rtol=1e-4):
     """Same files in every run folder; same losses, vertex counts and final meshes (the Dr.Jit
     thread count differs between the two: float32 sums in another order)."""
-    from psdr_cli import meshes
+    from psdr_cli.scene import meshes
     assert files_of(a) == files_of(b)
     for label in labels:
         ra, rb = rows(a / label), rows(b / label)
@@ -83,8 +83,8 @@ def assert_same_runs(a: Path, b: Path, labels, rtol=1e-4):
 @pytest.mark.parametrize("files", ["shared", "copy"])
 def test_ray_sweep_matches_the_sequential_run(tmp_path, local_ray, sequential_sweep, files):
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
-    from psdr_cli.sweep import RayOptions
+    from psdr_cli.commands.sweep import RayOptions
+    from psdr_cli.experiment.load import load_experiment
     seq_exp, seq = sequential_sweep
     (tmp_path / "ray").mkdir()
     exp = load_experiment(write(tmp_path / "ray", SWEEP))
@@ -142,8 +142,8 @@ def test_a_killed_worker_is_retried_and_resumes(tmp_path, local_ray):
     from their saved states; every iteration is logged once and the losses are the uninterrupted
     run's (to the resume tolerance of test_optimize)."""
     from psdr_cli import api
-    from psdr_cli.experiment import load_experiment
-    from psdr_cli.sweep import RayOptions
+    from psdr_cli.commands.sweep import RayOptions
+    from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(SWEEP)
     data["optimize"]["iterations"] = 16
     seq_exp, seq = sequential(tmp_path, data)
@@ -202,8 +202,8 @@ def test_ray_compare_matches_the_sequential_run(tmp_path, local_ray):
     """`psdr compare --ray` (reference and each variant one task) writes the sequential run's files
     with the same numbers (equal samples: no timing in the result)."""
     from psdr_cli import api
-    from psdr_cli.experiment import parse_experiment
-    from psdr_cli.sweep import RayOptions
+    from psdr_cli.commands.sweep import RayOptions
+    from psdr_cli.experiment.load import parse_experiment
     from test_guiding import SHADOW
     data = copy.deepcopy(SHADOW)
     data["estimator"] = {"spp": 4, "boundary_spp": 16, "terms": ["direct"], "kdtree": {"initial_samples": 4096}}

@@ -19,24 +19,25 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import api, meshes
+from psdr_cli import api
+from psdr_cli.errors import PsdrError
 from psdr_cli.estimators import interior, primary
 from psdr_cli.estimators.camera import Projection, SensorCamera, camera_ray
 from psdr_cli.estimators.passes import make_sampler
-from psdr_cli.estimate import prepare
-from psdr_cli.experiment import load_experiment
-from psdr_cli.errors import PsdrError
-from psdr_cli.intersections import intersection_segments
-from psdr_cli.reference import agreement, block_max, block_sums, fd_resolution, finite_difference, mean_and_error
-from psdr_cli.render import render_view
+from psdr_cli.experiment.load import load_experiment
+from psdr_cli.geometry.intersections import intersection_segments
+from psdr_cli.rendering.estimate import prepare
+from psdr_cli.rendering.reference import agreement, block_max, block_sums, fd_resolution, finite_difference, mean_and_error
+from psdr_cli.rendering.render import render_view
+from psdr_cli.scene import meshes
 from standins import (blob_cfg, book, bumpy_blob, camera_cfg, envmap_dome_cfg, envmap_lens_cfg, eye_cfg,
                                folded_lens, head_with_eye, joined_boxes, load, off_axis, open_dome, part_cfg,
                                resting_blob, turned_cube)
-from psdr_cli.verdict import agrees, describe
+from psdr_cli.support.verdict import agrees, describe
 
 
 def fd_agreement(exp, h, fd_spp):
-    """Agreement statistics (psdr_cli.reference.agreement) of all terms against FD, 8 batches each."""
+    """Agreement statistics (psdr_cli.rendering.reference.agreement) of all terms against FD, 8 batches each."""
     est = api.gradient_images(exp, min_passes=8)
     scene, parameter, _, _ = prepare(exp)
     fd = finite_difference(scene, parameter, 0, h, fd_spp, seed=exp.seed, batches=8)
@@ -187,8 +188,8 @@ def test_intersection_curve_sides_clear_the_ray_spawn_offset(tmp_path):
 @pytest.fixture
 def shadow_scene():
     from conftest import REPO
-    from psdr_cli.integrator import register
-    from psdr_cli.scene import build_scene
+    from psdr_cli.rendering.integrator import register
+    from psdr_cli.scene.build import build_scene
     exp = load_experiment(REPO / "configs" / "validation" / "shadow.yaml")
     api.setup(exp)
     register()
@@ -240,9 +241,9 @@ def test_plugin_with_kept_parameters(shadow_scene):
 
 
 def test_plugin_warns_about_undifferentiable_shapes():
-    from psdr_cli.backend import select_variant
-    from psdr_cli.integrator import register
-    from psdr_cli.plugin_scene import differentiable_meshes
+    from psdr_cli.rendering.integrator import register
+    from psdr_cli.rendering.plugin import differentiable_meshes
+    from psdr_cli.support.backend import select_variant
     select_variant("auto")
     register()
     scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere", "center": [0, 0, 0], "radius": 0.5},

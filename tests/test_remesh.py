@@ -4,7 +4,8 @@ from pathlib import Path
 import numpy as np
 import pymeshlab
 
-from psdr_cli import meshes, remesh
+from psdr_cli.geometry import remesh
+from psdr_cli.scene import meshes
 
 #: An optimised shape (iteration 200 of a smooth-shaded run) on which Instant Meshes + MeshLab's
 #: repair produced non-2-manifold faces and MeshLab's orientation filter raised, killing the run.

@@ -3,13 +3,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import fileio as io
 from psdr_cli.api import setup
 from psdr_cli.config.options import parse_views
 from psdr_cli.errors import PsdrError
-from psdr_cli.experiment import parse_experiment
-from psdr_cli.render import passes_for, render_view
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.rendering.render import passes_for, render_view
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import fileio as io
 
 from conftest import experiment, run_cli
 

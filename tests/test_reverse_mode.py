@@ -9,12 +9,12 @@ from conftest import REPO
 from psdr_cli.api import setup
 from psdr_cli.config.estimator import EstimatorConfig
 from psdr_cli.config.vocabularies import TERMS
-from psdr_cli.experiment import load_experiment
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
-from psdr_cli.estimate import Settings, ad_image, forward_gradient
-from psdr_cli.parameters import Parameter
-from psdr_cli.reference import block_sums, mean_and_error, mitsuba_projective
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import load_experiment
+from psdr_cli.geometry.parameters import Parameter
+from psdr_cli.rendering.estimate import Settings, ad_image, forward_gradient
+from psdr_cli.rendering.reference import block_sums, mean_and_error, mitsuba_projective
+from psdr_cli.scene.build import build_scene
 
 SILHOUETTE = REPO / "configs" / "validation" / "silhouette.yaml"
 
@@ -47,7 +47,7 @@ def test_total_gradient_matches_mitsuba_prb_projective(silhouette):
 def test_plugin_forward_and_reverse_agree(silhouette):
     """mi.render with the registered 'psdr' integrator: dr.forward (θ = x-translation) equals the
     x-components of dr.backward summed over vertices."""
-    from psdr_cli.integrator import register
+    from psdr_cli.rendering.integrator import register
     exp, scene, parameter, _ = silhouette
     register()
     integrator = mi.load_dict({"type": "psdr", "max_depth": exp.scene.max_depth})
@@ -106,7 +106,7 @@ def test_direct_lighting_in_the_cornell_box_matches_mitsuba_prb_projective():
     moving smooth sphere casts a shadow; primary + direct + interior terms). Tiles agree with
     Mitsuba's prb_projective (|z| < 4 on signal tiles, mean z² < 2) and so do the sums."""
     import dataclasses
-    from psdr_cli.estimate import prepare
+    from psdr_cli.rendering.estimate import prepare
     exp = load_experiment(REPO / "configs" / "validation" / "cornell.yaml")
     exp = dataclasses.replace(exp, scene=dataclasses.replace(exp.scene, max_depth=2))
     scene, parameter, edges, settings = prepare(exp)

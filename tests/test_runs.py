@@ -10,9 +10,9 @@ from dataclasses import field, make_dataclass, replace
 import pytest
 
 from conftest import REPO
+from psdr_cli.commands.optimize import optimize
 from psdr_cli.errors import ConfigError
-from psdr_cli.experiment import load_experiment, parse_experiment
-from psdr_cli.optimize import optimize
+from psdr_cli.experiment.load import load_experiment, parse_experiment
 from psdr_cli.run_folder.fingerprint import run_fingerprint
 from psdr_cli.run_folder.fingerprint_v1 import fingerprint_v1
 from psdr_cli.run_folder.variants import variant_experiments

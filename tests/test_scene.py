@@ -6,11 +6,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from psdr_cli import fileio as io, meshes
 from psdr_cli.api import setup
-from psdr_cli.experiment import parse_experiment
-from psdr_cli.render import render_view
-from psdr_cli.scene import build_scene
+from psdr_cli.experiment.load import parse_experiment
+from psdr_cli.rendering.render import render_view
+from psdr_cli.scene import meshes
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import fileio as io
 
 from conftest import experiment
 

@@ -12,12 +12,15 @@ import yaml
 from PIL import Image
 
 from conftest import bit_reproducible, write_raw_exr
-from psdr_cli import atlas, backend, cli, fileio, load_experiment, meshes
+from psdr_cli import cli, load_experiment
 from psdr_cli.config.optimize import OptimizeConfig
-from psdr_cli.material_params import texture_experiment
-from psdr_cli.render import render_view
+from psdr_cli.geometry import atlas
+from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.log import read_log
-from psdr_cli.scene import build_scene
+from psdr_cli.scene import meshes
+from psdr_cli.scene.build import build_scene
+from psdr_cli.scene.material_params import texture_experiment
+from psdr_cli.support import backend, fileio
 
 # a 64 × 32 texture: 8 × 4 coloured cells (bilinear lookups blur only the cells' borders)
 CELLS = np.random.default_rng(7).uniform(0.1, 0.9, (4, 8, 3))
@@ -143,9 +146,9 @@ def test_export_of_a_textured_run_round_trips_and_renders_alike(tmp_path, full_r
     final mesh, its UVs and the recovered texture in a diffuse material; Mitsuba's own ``path``
     integrator rendering the OBJ with its PNG agrees with psdr's render of the run's state."""
     import trimesh
-    from psdr_cli.problem import Problem
+    from psdr_cli.optimisation.problem import Problem
     from psdr_cli.run_folder.state import State
-    from psdr_cli.scene import emitter_dict, sensor_dict
+    from psdr_cli.scene.build import emitter_dict, sensor_dict
     path, run = full_run
     out = tmp_path / "asset"
     assert cli.run(["export", str(run), "--out", str(out)]) == 0
@@ -238,8 +241,8 @@ def test_rotated_environment_lights_as_the_rotated_emitter(tmp_path):
     """The exported environment map, used with the emitter's own frame, gives the radiance the
     rotated emitter gives (Mitsuba's envmap evaluated in random directions)."""
     import drjit as dr
-    from psdr_cli.export import rotate_latlong
-    from psdr_cli.scene import environment_to_world
+    from psdr_cli.commands.export import rotate_latlong
+    from psdr_cli.scene.build import environment_to_world
     backend.select_variant("auto")
     y, x = np.mgrid[0:32, 0:64]
     image = np.stack([1 + np.sin(x / 64 * 2 * np.pi), 1 + np.cos(y / 32 * np.pi), 1 + 0.5 * np.sin(x / 32 * 2 * np.pi)], -1)

@@ -10,10 +10,12 @@ import pytest
 import yaml
 
 from conftest import bit_reproducible, write_raw_exr
-from psdr_cli import backend, cli, fileio, load_experiment, meshes
-from psdr_cli.render import render_view
+from psdr_cli import cli, load_experiment
+from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.log import read_log
-from psdr_cli.scene import build_scene, emitter_dict, sensor_dict
+from psdr_cli.scene import meshes
+from psdr_cli.scene.build import build_scene, emitter_dict, sensor_dict
+from psdr_cli.support import backend, fileio
 
 CHECKER = np.where((np.add.outer(np.arange(8), np.arange(16)) % 2)[..., None] == 1,
                    np.array([0.85, 0.25, 0.1]), np.array([0.1, 0.5, 0.8]))  # (8, 16, 3), linear

@@ -1,8 +1,9 @@
 """Edge tables: counts, classes (open, flat, concave), welding, silhouettes."""
 import numpy as np
 
-from psdr_cli import meshes, topology
-from psdr_cli.topology import build_topology, face_normals, weld, winding_numbers
+from psdr_cli.geometry import topology
+from psdr_cli.geometry.topology import build_topology, face_normals, weld, winding_numbers
+from psdr_cli.scene import meshes
 
 
 def test_cube_edges_are_convex_and_diagonals_flat():

@@ -14,17 +14,19 @@ import pytest
 import yaml
 
 from conftest import bit_reproducible, write_raw_exr
-from psdr_cli import api, backend, cli, fileio, load_experiment, photo_light
+from psdr_cli import api, cli, load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
-from psdr_cli.estimate import Settings, ad_image
-from psdr_cli.held_out import apply_values
-from psdr_cli.problem import Problem, Shape, solid_angle_weights
-from psdr_cli.render import render_view
+from psdr_cli.evaluation.held_out import apply_values
+from psdr_cli.optimisation import photo_light
+from psdr_cli.optimisation.problem import Problem, Shape, solid_angle_weights
+from psdr_cli.rendering.estimate import Settings, ad_image
+from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.log import read_log
 from psdr_cli.run_folder.state import State
-from psdr_cli.scene import build_scene
+from psdr_cli.scene.build import build_scene
+from psdr_cli.support import backend, fileio
 from psdr_cli.target_sources.camera_dataset import dataset_views
 from psdr_cli.target_sources.source import TargetMasks
 
@@ -277,7 +279,7 @@ def test_held_out_scenes_apply_the_recovered_materials(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# A capture without a light probe (psdr_cli/photo_light.py)
+# A capture without a light probe (psdr_cli/optimisation/photo_light.py)
 # --------------------------------------------------------------------------------------------
 def test_photograph_brightness_is_the_straight_mean_inside_the_masks():
     """B = Σ T / Σ α over premultiplied targets: a half-covered view of colour c gives c."""

@@ -57,7 +57,7 @@ class Experiment:
 def parse(data, file: Path, cwd: Path | None = None) -> Experiment:
     """Validate an already-loaded YAML document. ``file`` names the source in messages. The
     experiment as the file states it: its scene is read, and the checks that need object names
-    run, by :func:`psdr_cli.experiment.parse_experiment`, which every user of an experiment loads with."""
+    run, by :func:`psdr_cli.experiment.load.parse_experiment`, which every user of an experiment loads with."""
     file = Path(file)
     where = Where(str(file), "")
     sec = Section(data, where)
@@ -121,7 +121,7 @@ def check_stages(exp: Experiment):
 
 def check_experiment(exp: Experiment):
     """Checks that need the scene's object names, views and emitters. An XML scene or a split
-    OBJ object is checked once it has been read (:func:`psdr_cli.experiment.parse_experiment`);
+    OBJ object is checked once it has been read (:func:`psdr_cli.experiment.load.parse_experiment`);
     ``optimize`` runs them again on the experiment it is given, which may have been changed in
     code after loading (another remesh schedule, another film: :func:`check_stages`)."""
     where = Where(str(exp.file), "")
@@ -206,7 +206,7 @@ UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, 
 
 def read_file(path) -> Experiment:
     """Read and validate an experiment file, as :func:`parse` (its scene not yet read:
-    :func:`psdr_cli.experiment.load_experiment` loads it whole)."""
+    :func:`psdr_cli.experiment.load.load_experiment` loads it whole)."""
     path = Path(path)
     try:
         text = path.read_text()

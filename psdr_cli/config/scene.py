@@ -13,12 +13,12 @@ from .values import Parser, Section, Where, boolean, describe, integer, list_of,
 
 @dataclass
 class MitsubaSource:
-    """``scene: {mitsuba: scene.xml}``: a Mitsuba 3 XML scene (read by :mod:`psdr_cli.mitsuba_scene`).
+    """``scene: {mitsuba: scene.xml}``: a Mitsuba 3 XML scene (read by :mod:`psdr_cli.scene.mitsuba_xml`).
 
     ``params``: ``$name`` substitutions; ``film``: (width, height) replacing the XML film's size;
     ``edges``: {shape id: bool} overrides; ``up``: the scene's up axis (default of camera ``up``
     and of rotation axes); ``up_given``: whether the file set it. ``digest`` and ``geometry``
-    are filled when the experiment is loaded (:mod:`psdr_cli.experiment`), once the XML has been
+    are filled when the experiment is loaded (:mod:`psdr_cli.experiment.load`), once the XML has been
     read: ``geometry`` holds the world-space (V, F) of each XML mesh by id, as read then (what was
     loaded, not what the file says: no part of a run's fingerprint or a target's key,
     :func:`psdr_cli.run_folder.fingerprint.scene_identity`)."""

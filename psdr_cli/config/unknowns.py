@@ -47,7 +47,7 @@ class MaterialUnknown:
 def parse_envmap_unknown(base: Path) -> Parser:
     """``optimize.envmap: {resolution: [W, H], init: VALUE | [r, g, b] | FILE.exr, learning_rate,
     smoothness, mean}``; an init file's texels are checked once the experiment is loaded
-    (:func:`psdr_cli.experiment.check_envmap_init`: OpenEXR is not imported here)."""
+    (:func:`psdr_cli.experiment.load.check_envmap_init`: OpenEXR is not imported here)."""
     def init_value(value, where):
         if isinstance(value, str):
             path = Path(value) if Path(value).is_absolute() else base / value
@@ -117,7 +117,7 @@ def parse_material(value, where) -> tuple:
 class CamerasUnknown:
     """``optimize.cameras``: a pose correction per training view (a rotation about the camera's
     centre and a translation in units of its distance to the object), refined with the shape
-    (:mod:`psdr_cli.camera_refinement`). ``mode``: ``auto`` (on for camera datasets), ``on`` (a
+    (:mod:`psdr_cli.optimisation.camera_refinement`). ``mode``: ``auto`` (on for camera datasets), ``on`` (a
     mapping was given) or ``off``."""
     mode: str = "auto"
     rotation: bool = True                  # refine the orientations

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import OpenEXR
 
-from ..fileio import image_size, read_exr
+from ..support.fileio import image_size, read_exr
 from .frames import DatasetError, MissingImage
 
 EXPECTED = "expected a readable PNG, JPEG or EXR image"

@@ -19,7 +19,7 @@ EXR convention) and, for a separate mask file, a one-channel (Y) EXR remapped wi
 (bilinear, clipped to [0, 1]: coverage). Both are named ``<image stem>-<hash>.exr`` and
 ``<image stem>-<hash>.mask.exr``, the hash (SHA-256, 16 hex digits) covering the bytes of the
 image and mask files, the intrinsics, the coefficients and the ``linear`` flag; each file is
-written to a temporary name and renamed into place (:func:`psdr_cli.fileio.write_exr`). When
+written to a temporary name and renamed into place (:func:`psdr_cli.support.fileio.write_exr`). When
 both already exist they are reused as they are.
 
 A lens model that cannot be the lens's is refused before anything is resampled: one whose radial
@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..fileio import write_exr
+from ..support.fileio import write_exr
 from .frames import DatasetError, Frame, opencv_matrix
 from .images import read_image, read_mask
 

@@ -5,7 +5,7 @@ it, p(x^B) = 1/Σℓ per unit length; u2 picks ω by the ``dir`` technique (unif
 silhouette double wedge, p(ω) = 1/(4φ0), the uniform sphere on open edges) or the ``light``
 technique (Mitsuba's emitter sampling from x^B, p(ω) in solid angle). A guide
 (:mod:`psdr_cli.guiding`, §5) supplies u instead of independent uniforms and the sample is
-divided by its density g(u); edge sorting (:mod:`psdr_cli.edge_sort`, §5) orders the edge list
+divided by its density g(u); edge sorting (:mod:`psdr_cli.geometry.edge_sort`, §5) orders the edge list
 into chains, traversing some edges backwards, so that x^B(u1) is continuous along each chain.
 
 Parameters (experiment keys)
@@ -32,9 +32,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..edge_sort import Chains, sort_edges
-from ..jitarray import jit_array
-from ..topology import build_topology, weld
+from ..geometry.edge_sort import Chains, sort_edges
+from ..geometry.topology import build_topology, weld
+from ..support.jitarray import jit_array
 
 #: BSDFs through which a ray grazing a concave edge can continue (concave edges kept).
 TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric")
@@ -75,7 +75,7 @@ class BoundaryEdges:
     Vertex ids index the concatenation of those objects' ``vertex_positions`` buffers (in
     ``names`` order), so :meth:`positions` returns one differentiable buffer for all of them.
     ``ids``: v0, v1, v2 (face0 with normal n0) and v1, v0, v3 (face1 with normal n1, consistent
-    with n0 whatever the faces' winding: see :mod:`psdr_cli.topology`; a copy of face0's on open
+    with n0 whatever the faces' winding: see :mod:`psdr_cli.geometry.topology`; a copy of face0's on open
     edges); ``open``: border edges. ``meshes`` keeps (topology, vertex offset, smooth
     shading) per object for the per-view primary (silhouette) edges. ``flip``: edges traversed
     from v1 to v0 (edge sorting); ``chains``: the chain structure of the edge order (every edge
@@ -157,7 +157,7 @@ def edge_rows(objects: dict, cameras: np.ndarray, sort: bool = False, max_turn: 
     """Secondary edges of the objects with ``edges: true`` among ``objects`` (name → scene object
     with numpy ``vertices``, ``faces`` and its ``config``), ``cameras`` the sensors' positions
     (:func:`camera_origins`), in chains when ``sort``. numpy only: it may run on a thread of its own
-    while Dr.Jit kernels run (:mod:`psdr_cli.geometry_ahead`)."""
+    while Dr.Jit kernels run (:mod:`psdr_cli.optimisation.geometry_ahead`)."""
     cols = [[] for _ in range(6)]
     opens, names, meshes, verts, offset = [], [], [], [], 0
     for name, om in objects.items():
@@ -227,7 +227,7 @@ class LengthDistribution:
     length) and reuses the remainder s = (u·T − C_{k−1}) / ℓ_k ∈ [0, 1), as Mitsuba's
     ``DiscreteDistribution.sample_reuse``; ``sum()`` is T. The count n enters as an array and the
     bisection takes :data:`SEARCH_STEPS` steps whatever n is, so no kernel depends on the number
-    of edges (a frozen function replays it for any count, :mod:`psdr_cli.frozen_batch`)."""
+    of edges (a frozen function replays it for any count, :mod:`psdr_cli.optimisation.frozen_batch`)."""
 
     def __init__(self, lengths: mi.Float, count: mi.UInt32):
         self.pmf = lengths

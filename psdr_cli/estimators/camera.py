@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..jitarray import jit_array
+from ..support.jitarray import jit_array
 from .shading_frame import bend_shading_normal
 
 
@@ -272,7 +272,7 @@ def table_camera_rays(table: CameraTable, views: mi.UInt32, sampler: mi.Sampler,
     ``views[i // (W·H·spp)]`` (a row of ``table``) and to its pixel (i mod W·H·spp) // spp, at the
     film point (x, y) + ξ; the same samples are drawn (ξ, then the unused wavelength sample) and the
     perspective camera's weight is 1. The lane counts are literals: its caller records it once per
-    film and sample count (:mod:`psdr_cli.frozen_batch`), where an opaque scalar would be a memset
+    film and sample count (:mod:`psdr_cli.optimisation.frozen_batch`), where an opaque scalar would be a memset
     at every replay."""
     width, height = table.width, table.height
     per_view = width * height * spp

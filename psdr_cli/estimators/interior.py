@@ -221,7 +221,7 @@ def radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int
 
 def render_pass(scene: mi.Scene, sensor: mi.Sensor, width: int, height: int, spp: int,
                 max_depth: int, seed: int, *, hide_background: bool = False) -> np.ndarray:
-    """One primal pass of the renderer (:func:`psdr_cli.render.render_view`): the sum over ``spp``
+    """One primal pass of the renderer (:func:`psdr_cli.rendering.render.render_view`): the sum over ``spp``
     samples of every pixel, as a (H, W, 3) float64 array."""
     sampler = make_sampler(seed, width * height * spp)
     ray, weight = camera_rays(sensor, sampler, width, height, spp)

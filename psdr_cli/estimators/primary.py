@@ -47,9 +47,9 @@ import numpy as np
 from dataclasses import dataclass
 
 from . import interior
-from ..intersections import Segments, intersection_segments, segment_points
-from ..jitarray import concat, jit_array
-from ..topology import face_normals
+from ..geometry.intersections import Segments, intersection_segments, segment_points
+from ..geometry.topology import face_normals
+from ..support.jitarray import concat, jit_array
 from .boundary_sampling import BoundaryEdges, sensor_origins
 from .camera import CameraTable, LaneCameras, Projection, SensorCamera, film_pixel, sensor_groups
 from .term import Term, boundary_pass
@@ -89,7 +89,7 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
                      sampling: str = "length", normals=None):
     """(v0, v1, face0, face1, mesh index, strict, inner, weight) of the edges that can carry an
     image discontinuity for this camera (vertex ids into ``V``, faces per mesh; face1 = face0 on
-    open edges): the rows of :meth:`psdr_cli.topology.Topology.creases` (non-flat edges, and flat
+    open edges): the rows of :meth:`psdr_cli.geometry.topology.Topology.creases` (non-flat edges, and flat
     edges between a turned and an unturned face, with at least one face showing its front to the
     camera: an edge between two back faces of a closed mesh is never seen, and near a silhouette
     it projects just behind a grazing front face).
@@ -124,7 +124,7 @@ def primary_edge_ids(edges: BoundaryEdges, V: np.ndarray, camera_origin, scatter
 
 
 def mesh_normals(edges: BoundaryEdges, V: np.ndarray) -> list:
-    """(n0, n1) of every edge row of each edge object (:meth:`psdr_cli.topology.Topology.normals`),
+    """(n0, n1) of every edge row of each edge object (:meth:`psdr_cli.geometry.topology.Topology.normals`),
     its vertices in ``V``: they depend on the vertices only, not on the camera."""
     return [topo.normals(V[offset: offset + int(topo.faces.max()) + 1]) for topo, offset, _ in edges.meshes]
 
@@ -250,7 +250,7 @@ def scene_segments(edges: BoundaryEdges, meshes) -> Segments:
     """Intersection segments of ``meshes`` ((shape, V, F) each), searched once per geometry: the
     result is kept in ``edges.segments`` under :func:`segments_key`, so the views of one
     iteration (same vertices) share one search, and a search run ahead
-    (:mod:`psdr_cli.geometry_ahead`) is found there."""
+    (:mod:`psdr_cli.optimisation.geometry_ahead`) is found there."""
     key = segments_key([(V, F) for _, V, F in meshes])
     if key not in edges.segments:
         edges.segments.clear()
@@ -273,7 +273,7 @@ def crossing_count(scene: mi.Scene, edges: BoundaryEdges, P) -> int:
 
 
 def intersection_curves(scene: mi.Scene, edges: BoundaryEdges, P) -> Curves:
-    """Intersection curves that involve at least one edge object (:mod:`psdr_cli.intersections`)."""
+    """Intersection curves that involve at least one edge object (:mod:`psdr_cli.geometry.intersections`)."""
     meshes, seg, keep = moving_segments(scene, edges, P)
     empty = np.zeros(0, np.int64)
     if not keep.any():
@@ -663,7 +663,7 @@ def views_primary_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n_
     ``sensors``, draws a point of that view's curves (:func:`draw_views`) and casts that view's
     camera rays; each view's curves are projected into its camera (:class:`.camera.LaneCameras`
     for several views, rays and projections from one camera table: the arithmetic of the recorded
-    part, :mod:`psdr_cli.frozen_batch`); one image per view. One view is the per-view pass."""
+    part, :mod:`psdr_cli.optimisation.frozen_batch`); one image per view. One view is the per-view pass."""
     width, height = (int(s) for s in sensors[0].film().size())
     count = len(sensors)
     images = [dr.zeros(mi.Float, width * height * 3) for _ in sensors]
@@ -702,7 +702,7 @@ def curve_pass(scene, views: CurveCameras, curves: CurveTable, ranges, n_samples
     projected by ``views.projector``, weighed (:func:`curve_mass`) and drawn per lane among its
     view's (``ranges`` = (start, count) per view; :func:`draw_views` at :func:`stratified`
     uniforms: the sampler's first dimension). The traced pass and the recorded one
-    (:mod:`psdr_cli.frozen_batch`) both run this."""
+    (:mod:`psdr_cli.optimisation.frozen_batch`) both run this."""
     (q0, z0), (q1, z1) = views.projector.project(curves.p0), views.projector.project(curves.p1)
     mass = curve_mass(q0, q1, z0, z1, views.projector.near, curves.weight)
     start, count = ranges

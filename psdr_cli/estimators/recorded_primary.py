@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..jitarray import jit_array
+from ..support.jitarray import jit_array
 from .boundary_sampling import vertex_buffer
 from .camera import CameraTable, LaneCameras
 from .passes import AD_LANES, make_sampler

@@ -19,7 +19,7 @@ from importlib import import_module
 from ..config.vocabularies import TERMS as NAMES
 from .term import Term
 
-#: Random-number stream of primal renders (:func:`psdr_cli.render.render_view`).
+#: Random-number stream of primal renders (:func:`psdr_cli.rendering.render.render_view`).
 RENDER_STREAM = 0
 #: Random-number stream of Mitsuba's renders (``estimator.engine: mitsuba``).
 MITSUBA_STREAM = 9

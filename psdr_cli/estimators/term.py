@@ -6,7 +6,7 @@ which computes one pass:
 
     estimate(scene, edges, view, spp, seed, estimator, max_depth, *, guide=None) -> mi.Float
 
-``scene`` is a :class:`psdr_cli.scene.Scene` or anything with its ``mi_scene``, ``sensors`` and
+``scene`` is a :class:`psdr_cli.scene.build.Scene` or anything with its ``mi_scene``, ``sensors`` and
 ``resolution`` (W, H); its AD state (θ or vertex gradients) is set before the call. ``edges`` are
 the boundary edges, ``spp`` the samples per pixel of this pass, ``seed`` its sampler seed,
 ``estimator`` the experiment's :class:`psdr_cli.config.EstimatorConfig`, ``max_depth`` the scene's

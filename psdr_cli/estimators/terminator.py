@@ -11,7 +11,7 @@ y^± being what rays leaving x just above and just below the plane reach (the de
 environment, closed and open meshes: §8). It is estimated with one direction per vertex, drawn
 ∝ n_s·ω (:class:`PlaneSample`); the estimate has primal value 0 and carries only the derivative
 (each ∂_θ g enters as g − detach(g)). Only reflection is covered: smooth meshes with a
-transmitting BSDF are warned about (:mod:`psdr_cli.shading`).
+transmitting BSDF are warned about (:mod:`psdr_cli.geometry.shading`).
 
 Parameters (experiment keys)
 ----------------------------

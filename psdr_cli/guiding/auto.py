@@ -26,7 +26,7 @@ def choose(term: str, lanes: int) -> str:
 def decide(guiding: str, pixels: int, boundary_spp: int, loop: bool = False) -> dict:
     """{term: guide kind} for every guidable term (``guiding`` auto or a kind) on images of
     ``pixels`` pixels; ``loop``: in the optimisation loop (:func:`in_loop`). Made once, where the
-    settings of an estimate are made (:class:`psdr_cli.estimate.Settings`); the guides, the
+    settings of an estimate are made (:class:`psdr_cli.rendering.estimate.Settings`); the guides, the
     stages and the report read it."""
     guiding = in_loop(guiding) if loop else guiding
     return {t: choose(t, pixels * boundary_spp) if guiding == "auto" else guiding for t in GUIDED_TERMS}

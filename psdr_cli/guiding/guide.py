@@ -26,7 +26,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..jitarray import jit_array
+from ..support.jitarray import jit_array
 
 #: corner index c = i + 2j + 4k ↔ offsets (i, j, k)
 CORNERS = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.float64)

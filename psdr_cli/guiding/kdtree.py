@@ -40,7 +40,7 @@ Used when ``estimator.guiding`` is ``kdtree``, or ``auto`` picks it (:mod:`.auto
     Uniform share ε of the guide (trees fitted in the loop: at least :data:`EXPLORE`, which is
     also the share with which a first tree or a prior places its samples).
 ``estimator.edge_sort`` (bool, default false)
-    Breakpoints at chain ends instead of edge ends (:mod:`psdr_cli.edge_sort`).
+    Breakpoints at chain ends instead of edge ends (:mod:`psdr_cli.geometry.edge_sort`).
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..jitarray import jit_array
+from ..support.jitarray import jit_array
 from .guide import CORNERS, Guide, GuideKind, GuideStats
 
 #: relative ridge keeping the small least-squares systems well posed

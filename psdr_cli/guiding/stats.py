@@ -10,15 +10,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import backend, fileio, plots
 from ..config.experiment_file import Experiment
 from ..config.options import parse_views
 from ..errors import PsdrError
-from ..estimators.boundary_sampling import edge_distribution, edge_list, sample_edge_point
 from ..estimators import registry
+from ..estimators.boundary_sampling import edge_distribution, edge_list, sample_edge_point
 from ..estimators.registry import GUIDED
-from ..jitarray import jit_array
-from ..scene import build_scene
+from ..scene.build import build_scene
+from ..support import backend, fileio, plots
+from ..support.jitarray import jit_array
 from .kinds import NAMES as GUIDE_KINDS, guide_kind
 from .targets import target_function
 

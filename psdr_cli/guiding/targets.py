@@ -16,7 +16,7 @@ import numpy as np
 from ..estimators import registry
 from ..estimators.boundary_sampling import edge_draw
 from ..estimators.passes import make_sampler
-from ..jitarray import jit_array
+from ..support.jitarray import jit_array
 from .kdtree import share_profiles
 from .kinds import guide_kind
 

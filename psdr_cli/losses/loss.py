@@ -10,13 +10,13 @@ A loss is a :class:`Loss`: its name, the words it adds to the loss plot's axis l
 its loss for every loss of :mod:`.registry`, in that order. Each loss module declares its
 ``LOSS``.
 
-The recorded iteration (:mod:`psdr_cli.frozen_batch`, replayed by ``dr.freeze``) asks two more
+The recorded iteration (:mod:`psdr_cli.optimisation.frozen_batch`, replayed by ``dr.freeze``) asks two more
 things of a loss before anything renders:
 
     applies(stage, optimize: OptimizeConfig) -> bool
 
 whether ``value`` may give a value for the views of a run on ``stage`` (a
-:class:`psdr_cli.stages.Stage`; false promises None for every view; by default true), and
+:class:`psdr_cli.optimisation.stages.Stage`; false promises None for every view; by default true), and
 ``recorded``, the loss in the form that iteration evaluates (:class:`RecordedLoss`), or None: it
 has none, and every run the loss applies to is traced. That iteration sums the recorded form of
 every loss that applies, so a loss with one answers ``applies`` exactly (true only where ``value``

@@ -13,7 +13,7 @@ variant, ``<output>/<name>/<label>/``) and holds
     reference.ply       the ground truth the targets were rendered from (mesh targets only)
     final.ply, optimize.json, loss.png, chamfer.png   once the run has finished
 
-Every file is written atomically (:func:`psdr_cli.fileio.atomic_path`) except ``log.csv``, which
+Every file is written atomically (:func:`psdr_cli.support.fileio.atomic_path`) except ``log.csv``, which
 is appended to and rewritten (atomically) up to the last saved iteration on resume; it is read
 tolerantly (:func:`.log.read_log`: a torn or garbage tail is ignored with a warning).
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .. import fileio
+from ..support import fileio
 
 #: OpenGL camera axes (x right, y up, z backward) from OpenCV's, and back (its own inverse).
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio
 from ..errors import PsdrError
-from ..meshes import write_ply
+from ..scene.meshes import write_ply
+from ..support import fileio
 from .layout import RunFiles
 
 

@@ -9,9 +9,9 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .. import fileio
 from ..config.vocabularies import COMMAND_FOLDERS
 from ..errors import PsdrError
+from ..support import fileio
 
 
 class RunFiles:
@@ -40,7 +40,7 @@ class RunFiles:
 
     def check_files(self):
         """Refuse a run folder whose state, log, summary, meshes or plots are not regular files
-        (a folder, a device, a FIFO: :func:`psdr_cli.fileio.check_output_file`), before any of
+        (a folder, a device, a FIFO: :func:`psdr_cli.support.fileio.check_output_file`), before any of
         them is read (a FIFO would block) or the run's work is done."""
         for path in (self.state, self.log, self.reference, self.final, self.summary, self.run,
                      self.root / "loss.png", self.albedo, self.envmap):

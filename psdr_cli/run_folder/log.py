@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio, plots
 from ..errors import PsdrError, PsdrWarning
+from ..support import fileio, plots
 from .layout import RunFiles
 
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio
 from ..config.experiment_file import Experiment
 from ..errors import PsdrError
+from ..support import fileio
 from .layout import RunFiles
 from .record import same_experiment
 

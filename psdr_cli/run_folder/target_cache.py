@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio
+from ..support import fileio
 
 
 def cached_target(path, key: str, shape: tuple):

@@ -1,5 +1,5 @@
 """The target source ``dataset`` (``optimize.target.dataset``): the photographs of the
-views the experiment's cameras are (:mod:`psdr_cli.dataset_scene`), decoded to linear RGB at the
+views the experiment's cameras are (:mod:`psdr_cli.experiment.dataset_frame`), decoded to linear RGB at the
 film's size, and the initial shape: the masks' visual hull, or a sphere without masks.
 
 With the background hidden (masked photographs), a target is the premultiplied composite
@@ -14,13 +14,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from .. import meshes
-from ..dataset_scene import dataset_frames, to_normalised
 from ..datasets.masks import check_masks
 from ..datasets.views import load_views
 from ..errors import PsdrError
-from ..visual_hull import visual_hull
+from ..experiment.dataset_frame import dataset_frames, to_normalised
+from ..scene import meshes
 from .source import TargetInputs, TargetMasks, TargetSource
+from .visual_hull import visual_hull
 
 
 def undistortion_cache(exp):

@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 
-from .. import fileio
 from ..errors import PsdrError
-from ..render import header_camera
+from ..rendering.render import header_camera
+from ..support import fileio
 from .source import TargetInputs, TargetSource
 
 

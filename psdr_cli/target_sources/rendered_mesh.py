@@ -11,15 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio, meshes
-from ..meshes import object_mesh, xml_geometry
-from ..mitsuba_scene import scene_files
-from ..render import camera_header, render_view
+from ..rendering.render import camera_header, render_view
 from ..run_folder.checkpoints import write_mesh
 from ..run_folder.fingerprint import scene_identity
 from ..run_folder.layout import RunFiles
 from ..run_folder.target_cache import cached_target
-from ..scene import build_scene
+from ..scene import meshes
+from ..scene.build import build_scene
+from ..scene.meshes import object_mesh, xml_geometry
+from ..scene.mitsuba_xml import scene_files
+from ..support import fileio
 from .source import TargetInputs, TargetSource
 
 
@@ -43,7 +44,7 @@ def target_seed(exp) -> int:
 def input_files(exp) -> list:
     """Every file the experiment's scene reads: those it names (mesh files, textures, environment
     maps, the XML scene) and, for an XML scene, the files the XML names (its includes, meshes,
-    textures, environment maps: :func:`psdr_cli.mitsuba_scene.scene_files`)."""
+    textures, environment maps: :func:`psdr_cli.scene.mitsuba_xml.scene_files`)."""
     found = set()
 
     def walk(value):

@@ -37,7 +37,7 @@ class TargetMasks:
 class TargetInputs(NamedTuple):
     """What a run's targets come from: the target images (with their cameras when they carry
     them), or the ground truth (V, F) the targets are rendered from; for a fresh run, its initial
-    shape (V, F, UV or None: :func:`psdr_cli.targets.initial_shape_uv`); the targets' (H, W) masks
+    shape (V, F, UV or None: :func:`psdr_cli.optimisation.start_state.initial_shape_uv`); the targets' (H, W) masks
     when every photograph of a dataset has one (else None); and what the source read that its
     initial shape needs (a dataset's views)."""
     images: list | None

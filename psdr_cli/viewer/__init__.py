@@ -22,7 +22,7 @@ def viewer_module(name: str):
 
 def live_viewer(host: str = "127.0.0.1", port: int = 8080, warn=print, interval: float = 1.0):
     """A :class:`psdr_cli.viewer.live.LiveViewer` serving on ``host:port`` (the observer of
-    :func:`psdr_cli.optimize.optimize`)."""
+    :func:`psdr_cli.commands.optimize.optimize`)."""
     return viewer_module("live").LiveViewer(host, port, warn, interval)
 
 

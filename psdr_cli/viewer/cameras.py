@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio
+from ..support import fileio
 from .pictures import read_png, thumbnail
 
 

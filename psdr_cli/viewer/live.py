@@ -14,12 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera_refinement import OPENCV_FLIP
-from ..dataset_scene import dataset_frames
 from ..errors import PsdrWarning
+from ..experiment.dataset_frame import dataset_frames
+from ..optimisation.camera_refinement import OPENCV_FLIP
+from ..optimisation.start_state import dataset_coordinates
 from ..run_folder.cameras import refined_poses
 from ..run_folder.layout import RunFiles
-from ..targets import dataset_coordinates
 from .cameras import ViewCamera, config_camera, pinhole_camera
 from .pictures import read_png, rgb8, thumbnail
 from .run_folder_view import newest_preview, run_pictures
@@ -50,7 +50,7 @@ class RunScene:
 
 
 class LiveViewer:
-    """The observer of :func:`psdr_cli.optimize.optimize`: ``iteration(...)`` after each saved
+    """The observer of :func:`psdr_cli.commands.optimize.optimize`: ``iteration(...)`` after each saved
     iteration. A viewer that cannot serve, or whose page fails, prints one warning and the run
     goes on without it."""
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .. import fileio
+from ..support import fileio
 
 
 def rgb8(linear: np.ndarray) -> np.ndarray:
