@@ -350,7 +350,7 @@ def test_xml_loading_asks_the_variant_check_about_each_shapegroup(tmp_path, monk
     group = ('<shape type="shapegroup" id="grp"><shape type="cube"><bsdf type="diffuse"/></shape></shape>'
              '<shape type="instance"><ref id="grp"/></shape>')
     asked = []
-    monkeypatch.setattr(mitsuba_scene, "refuse_instances_on_cuda", lambda name, variant, xml: asked.append(name))
+    monkeypatch.setattr(mitsuba_xml, "refuse_instances_on_cuda", lambda name, variant, xml: asked.append(name))
     load_experiment(xml_experiment(tmp_path, group), warn=lambda m: None)
     assert asked == ["grp"]
 
