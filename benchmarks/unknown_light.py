@@ -236,6 +236,7 @@ def cavity_distance(mesh: Path, gt: Path, samples: int = 50_000) -> float:
     box as Chamfer is."""
     from scipy.spatial import cKDTree
     from psdr_cli.commands import evaluate as ev
+    from psdr_cli.evaluation import mesh_distance
     V, F = ev.load(gt)
     Vm, Fm = ev.load(mesh)
     lo, hi = V.min(0), V.max(0)
@@ -248,9 +249,9 @@ def cavity_distance(mesh: Path, gt: Path, samples: int = 50_000) -> float:
     radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-30)
     height = (c[:, 2] - lo[2]) / (hi[2] - lo[2])
     inner = ((n[:, :2] * radial).sum(1) < -0.1) | ((n[:, 2] > 0.9) & (height < 0.5))
-    centre, scale = ev.normalisation(V)
-    P = ev.surface_points((V - centre) * scale, F[inner], samples, 0)
-    Q = ev.surface_points((Vm - centre) * scale, Fm, 4 * samples, 1)
+    centre, scale = mesh_distance.normalisation(V)
+    P = mesh_distance.surface_points((V - centre) * scale, F[inner], samples, 0)
+    Q = mesh_distance.surface_points((Vm - centre) * scale, Fm, 4 * samples, 1)
     return float(cKDTree(Q).query(P, workers=-1)[0].mean())
 
 

@@ -204,3 +204,31 @@ def test_a_taken_port_and_a_failing_page_are_one_warning_each_and_the_run_goes_o
     assert result.iterations == 4 and result.final.is_file()
     assert viewer.server.port != port
     assert [w for w in warnings if "in use" in w] and len([w for w in warnings if "stopped updating" in w]) == 1, warnings
+
+
+def test_the_live_page_renders_the_selected_view_and_measures_the_chamfer_distance(tmp_path):
+    """While the run goes the selected view is rendered at the current shape (target | render |
+    error beside each other) and, with a reference mesh in the run folder, the Chamfer-L1 of the
+    current shape is plotted (snapshots the page had no time for are skipped): at the last
+    iteration it is psdr evaluate's distance of final.ply."""
+    from psdr_cli.commands import evaluate as ev
+    from psdr_cli.viewer.live import CHAMFER_SAMPLES, LiveViewer
+    data = dict(TINY, optimize=dict(TINY["optimize"], remesh={"method": "instant", "initial": 150}))
+    exp = api.load_experiment(write(tmp_path, data))
+    viewer = LiveViewer(port=free_port(), warn=print, interval=0.0, render_interval=0.0, chamfer_interval=0.0)
+    try:
+        api.optimize(exp, iterations=4, observer=viewer)
+        deadline = time.monotonic() + 20
+        while not (viewer.chamfers and viewer.chamfers[-1][0] == 3) and time.monotonic() < deadline:
+            time.sleep(0.1)  # the viewer's thread shows the last snapshot
+        view, strip = viewer.live
+        assert view == 0 and strip.ndim == 3 and strip.shape[1] > 3 * strip.shape[0] - 1
+        assert np.isfinite(strip).all() and strip[:, : strip.shape[1] // 3].max() > 0  # the target's third
+        assert "live" in viewer.server.strip.label
+        iterations, values = zip(*viewer.chamfers)
+        assert iterations[-1] == 3 and list(iterations) == sorted(iterations) and all(np.isfinite(values))
+        final = ev.distance(ev.load(exp.run_dir / "final.ply"), ev.load(exp.run_dir / "reference.ply"),
+                            CHAMFER_SAMPLES).chamfer_l1
+        assert values[-1] == pytest.approx(final, rel=1e-3)
+    finally:
+        viewer.close()

@@ -1,17 +1,7 @@
-"""Shape error (``psdr evaluate``): symmetric Chamfer and Hausdorff distances to a reference.
-Reads meshes and run folders; writes the evaluation's report, JSON, plots and mesh copies.
-
-Both meshes are normalised with the *reference's* bounding box (centre at the origin, longest
-side 1), N points are drawn on each surface by area with a fixed seed, and with
-d(p, Q) = min_q |p − q| (nearest sampled point, scipy's cKDTree):
-
-    Chamfer-L1  = ½ (mean_{p∈P} d(p, Q) + mean_{q∈Q} d(q, P)),
-    Chamfer-L2² = ½ (mean_{p∈P} d(p, Q)² + mean_{q∈Q} d(q, P)²),
-    Hausdorff   = max(max_P d(p, Q), max_Q d(q, P)).
-
-Point sampling puts a noise floor under these numbers: two independent samplings of the same
-surface are on average ~0.5/√N·(area)^½ apart; :func:`noise_floor` measures it.
-"""
+"""Shape error (``psdr evaluate``): symmetric Chamfer and Hausdorff distances to a reference
+(:mod:`psdr_cli.evaluation.mesh_distance`), held-out scores and relighting of runs on camera
+datasets. Reads meshes and run folders; writes the evaluation's report, JSON, plots and mesh
+copies."""
 from __future__ import annotations
 
 import json
@@ -21,13 +11,13 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..config.experiment_file import read_file
 from ..config.limits import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES
 from ..config.options import option_count
 from ..errors import PsdrError
 from ..evaluation.held_out import score_mesh
+from ..evaluation.mesh_distance import distance, noise_floor
 from ..evaluation.held_out_geometry import check_units
 from ..experiment.dataset_frame import dataset_frames
 from ..experiment.load import load_experiment
@@ -39,13 +29,6 @@ from ..scene.build import look_at, mitsuba_mesh
 from ..scene.meshes import face_areas, read_mesh_file
 from ..support import backend, fileio, plots
 from .relight import check_latlong, relight_mesh
-
-
-@dataclass
-class Distance:
-    chamfer_l1: float
-    chamfer_l2: float
-    hausdorff: float
 
 
 def load(path: Path):
@@ -83,42 +66,6 @@ def mesh_problem(V, F) -> str | None:
     if not face_areas(V, F).sum() > 0:
         return f"mesh has zero surface area (all {len(F)} triangles are degenerate)"
     return None
-
-
-def normalisation(V):
-    """(centre, scale) mapping the bounding box of V to a box with longest side 1 at the origin."""
-    lo, hi = V.min(0), V.max(0)
-    return (lo + hi) / 2, 1.0 / max(float((hi - lo).max()), 1e-30)
-
-
-def surface_points(V, F, n: int, seed: int):
-    """n points uniformly distributed by area on the triangles (V, F)."""
-    rng = np.random.default_rng(seed)
-    area = face_areas(V, F)
-    if not area.sum() > 0:
-        raise PsdrError("mesh has zero surface area")
-    tri = rng.choice(len(F), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    a, b, c = V[F[tri, 0]], V[F[tri, 1]], V[F[tri, 2]]
-    return (1 - s)[:, None] * a + (s * (1 - r2))[:, None] * b + (s * r2)[:, None] * c
-
-
-def distance(mesh, reference, samples: int = 100_000, seed: int = 0) -> Distance:
-    """Chamfer (L1, squared L2) and Hausdorff distance of ``mesh`` to ``reference`` (each (V, F)),
-    both normalised with the reference's bounding box."""
-    centre, scale = normalisation(reference[0])
-    P = surface_points((mesh[0] - centre) * scale, mesh[1], samples, seed)
-    Q = surface_points((reference[0] - centre) * scale, reference[1], samples, seed + 1)
-    dp = cKDTree(Q).query(P, workers=-1)[0]
-    dq = cKDTree(P).query(Q, workers=-1)[0]
-    return Distance(0.5 * (dp.mean() + dq.mean()), 0.5 * ((dp ** 2).mean() + (dq ** 2).mean()),
-                    float(max(dp.max(), dq.max())))
-
-
-def noise_floor(reference, samples: int = 100_000, seed: int = 0) -> Distance:
-    """The distance of the reference to itself with independent samplings."""
-    return distance(reference, reference, samples, seed + 1000)
 
 
 def mesh_view(V, F, reference_V, size: int = 160, spp: int = 64, direction=(0.55, -1.0, 0.45)) -> np.ndarray:

@@ -12,30 +12,45 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 
 from ..errors import PsdrWarning
+from ..evaluation.mesh_distance import distance
 from ..experiment.dataset_frame import dataset_frames
 from ..optimisation.camera_refinement import OPENCV_FLIP
 from ..optimisation.start_state import dataset_coordinates
+from ..rendering.render import render_view
 from ..run_folder.cameras import refined_poses
+from ..run_folder.checkpoints import strip
 from ..run_folder.layout import RunFiles
+from ..scene.meshes import read_mesh_file
 from .cameras import ViewCamera, config_camera, pinhole_camera
 from .pictures import read_png, rgb8, thumbnail
 from .run_folder_view import newest_preview, run_pictures
 from .server import ViewerServer
 
 
+#: Samples per pixel of the selected view's live render.
+RENDER_SPP = 4
+
+#: Points sampled on each mesh for the live Chamfer-L1 (:func:`.evaluation.mesh_distance.distance`).
+CHAMFER_SAMPLES = 20_000
+
+
 @dataclass
 class Snapshot:
     """What the loop hands over: the shape (scene coordinates), the refined cameras' transforms
-    (Mitsuba axes; None without pose refinement), the iteration count and optimisation seconds."""
+    (Mitsuba axes; None without pose refinement), the iteration count and optimisation seconds,
+    and the selected view's (index, target | render | |error| strip, linear RGB) when one was
+    rendered for it."""
     V: np.ndarray
     F: np.ndarray
     camera_matrices: np.ndarray | None
     done: int
     total: int
     seconds: float
+    strip: tuple | None = None
 
 
 @dataclass
@@ -47,6 +62,7 @@ class RunScene:
     cameras: list
     frames: list | None        # a dataset's training frames (their poses), None for a scene's cameras
     initial: np.ndarray | None  # the cameras' transforms before refinement (Mitsuba axes)
+    reference: tuple | None = None  # the run's reference mesh (V, F) when it has one
 
 
 class LiveViewer:
@@ -54,8 +70,16 @@ class LiveViewer:
     iteration. A viewer that cannot serve, or whose page fails, prints one warning and the run
     goes on without it."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 8080, warn=print, interval: float = 1.0):
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, warn=print, interval: float = 1.0,
+                 render_interval: float = 5.0, chamfer_interval: float = 10.0):
+        """Serve on ``host``:``port``; hand the shape over at most every ``interval`` seconds,
+        render the selected view at most every ``render_interval`` seconds (on the loop's thread)
+        and measure the Chamfer-L1 to a reference mesh at most every ``chamfer_interval`` seconds
+        (on the viewer's thread)."""
         self.warn, self.interval = warn, interval
+        self.render_interval, self.chamfer_interval = render_interval, chamfer_interval
+        self.last_render = self.last_chamfer = -np.inf
+        self.chamfers: list = []
         self.resume = threading.Event()
         self.resume.set()
         self.wake = threading.Condition()
@@ -65,6 +89,7 @@ class LiveViewer:
         self.last_push = -np.inf
         self.started = None  # (monotonic time, iterations done) when this viewer first saw the run
         self.closed = False
+        self.live = None  # (view, strip) of the last live render
         try:
             self.server = ViewerServer(host, port, "psdr optimize", warn)
         except Exception as exc:  # noqa: BLE001  (a host that cannot be bound, ...: the run goes on)
@@ -108,8 +133,12 @@ class LiveViewer:
         if t - self.last_push >= self.interval or done == total or self.paused:
             self.last_push = t
             cams = now.problem.cameras
+            strip = None
+            if t - self.last_render >= self.render_interval or done == total:
+                self.last_render = t
+                strip = self.live_strip(now)
             snapshot = Snapshot(now.problem.vertices(), now.problem.F, cams.matrices() if cams else None,
-                                done, total, seconds)
+                                done, total, seconds, strip)
             with self.wake:
                 self.pending = snapshot
                 self.wake.notify()
@@ -119,9 +148,25 @@ class LiveViewer:
     def start_run(self, exp, now, done: int):
         """The cameras of a run the viewer has not seen yet (one-time, on the loop's thread)."""
         cams = now.problem.cameras
-        self.run = RunScene(exp, RunFiles(exp.run_dir), *run_cameras(exp, now.stage.images),
-                            None if cams is None else np.array(cams.initial))
-        self.losses, self.started = [], (time.monotonic(), done)
+        files = RunFiles(exp.run_dir)
+        reference = read_mesh_file(files.reference) if files.reference.exists() else None
+        self.run = RunScene(exp, files, *run_cameras(exp, now.stage.images),
+                            None if cams is None else np.array(cams.initial), reference)
+        self.losses, self.chamfers, self.started = [], [], (time.monotonic(), done)
+        self.live = None
+
+    def live_strip(self, now) -> tuple | None:
+        """(view, target | render | |error|) of the selected training view at the current shape:
+        :data:`RENDER_SPP` samples per pixel at the stage's resolution (on the loop's thread,
+        between iterations, as the checkpoints' previews are rendered)."""
+        view = self.server.selected
+        targets = now.stage.images
+        if view >= len(targets):
+            return None  # a held-out camera: no target in the loop
+        with dr.suspend_grad():
+            image = render_view(now.problem.scene, view, RENDER_SPP, seed=self.run.exp.seed)
+        target = np.asarray(targets[view], np.float64).reshape(image.shape)
+        return view, strip(target, np.asarray(image, np.float64), zoom=max(1, 192 // max(image.shape[:2])))
 
     def push_forever(self):
         """The background thread: each snapshot handed over, shown on the page."""
@@ -145,16 +190,34 @@ class LiveViewer:
         server.show_cameras(moved_cameras(run, s.camera_matrices))
         iterations, losses = zip(*self.losses) if self.losses else ((), ())
         server.show_losses(iterations, losses)
+        self.show_chamfer(s)
         server.show_status(self.status_line(s))
+        if s.strip is not None:
+            self.live = s.strip
         self.show_strip()
         for name, image in run_pictures(run.files).items():
             server.show_picture(name, image)
 
+    def show_chamfer(self, s: Snapshot):
+        """The Chamfer-L1 of the snapshot's shape to the run's reference mesh (when it has one), at
+        most every ``chamfer_interval`` seconds, and its curve."""
+        t = time.monotonic()
+        if self.run.reference is None or (t - self.last_chamfer < self.chamfer_interval and s.done != s.total):
+            return
+        self.last_chamfer = t
+        shape = (dataset_coordinates(self.run.exp, s.V), s.F)
+        self.chamfers.append((s.done - 1, distance(shape, self.run.reference, CHAMFER_SAMPLES).chamfer_l1))
+        self.server.show_chamfer(*zip(*self.chamfers))
+
     def show_strip(self):
-        """The selected view's newest preview strip from the run folder (or its target)."""
+        """The selected view's live strip when it was rendered last, else its newest preview strip
+        from the run folder (or its target)."""
         if self.run is None:
             return
         view = self.server.selected
+        if self.live is not None and self.live[0] == view:
+            self.server.show_strip(rgb8(self.live[1]), f"view {view}, live: target | render | error")
+            return
         path = newest_preview(self.run.files, view)
         strip = read_png(path) if path else None
         if strip is not None:

@@ -49,6 +49,7 @@ class ViewerServer:
                                   {"label": "loss", "stroke": "orange", "width": 2}),
                                   scales={"x": {"time": False}, "y": {"distr": 3}}, title="loss", aspect=1.6,
                                   order=30)
+        self.chamfer = None  # the Chamfer-L1 curve, made when a run has a reference mesh
 
     @property
     def url(self) -> str:
@@ -165,6 +166,19 @@ class ViewerServer:
         if len(iterations) == 0:
             return
         self.loss.data = (np.asarray(iterations, np.float64), np.maximum(np.asarray(losses, np.float64), 1e-12))
+
+    def show_chamfer(self, iterations, values):
+        """The Chamfer-L1 curve against the run's reference mesh (made on first use)."""
+        if len(iterations) == 0:
+            return
+        data = (np.asarray(iterations, np.float64), np.asarray(values, np.float64))
+        if self.chamfer is None:
+            self.chamfer = self.server.gui.add_uplot(
+                data=data, series=({"label": "iteration"}, {"label": "Chamfer-L1", "stroke": "teal", "width": 2}),
+                scales={"x": {"time": False}, "y": {"distr": 3}}, title="Chamfer-L1 to the reference", aspect=1.6,
+                order=31)
+        else:
+            self.chamfer.data = data
 
     def show_picture(self, name: str, image: np.ndarray | None):
         """A named image panel (the recovered environment map, the texture), created on first use."""
