@@ -100,7 +100,7 @@ def test_a_vector_width_is_applied_in_a_new_process_and_changes_the_rounding(tmp
     import subprocess
     import sys
     from psdr_cli.support import llvm_target
-    code = ("import psdr_cli; from psdr_cli import backend, llvm_target; backend.select_variant('llvm_ad_rgb'); "
+    code = ("import psdr_cli; from psdr_cli.support import backend, llvm_target; backend.select_variant('llvm_ad_rgb'); "
             "import drjit as dr, mitsuba as mi, numpy as np; x = dr.fma(dr.arange(mi.Float, 4096), 0.37, 1.0); "
             "print(llvm_target.current_target()[1], np.asarray(dr.rsqrt(x)).tobytes().hex())")
     flags = llvm_target.cpu_flags()

@@ -210,7 +210,7 @@ def test_the_live_page_renders_the_selected_view_and_measures_the_chamfer_distan
     """While the run goes the selected view is rendered at the current shape (target | render |
     error beside each other) and, with a reference mesh in the run folder, the Chamfer-L1 of the
     current shape is plotted (snapshots the page had no time for are skipped): at the last
-    iteration it is psdr evaluate's distance of final.ply."""
+    iteration it is psdr evaluate's distance of final.ply; the live render's PSNR is plotted too."""
     from psdr_cli.commands import evaluate as ev
     from psdr_cli.viewer.live import CHAMFER_SAMPLES, LiveViewer
     data = dict(TINY, optimize=dict(TINY["optimize"], remesh={"method": "instant", "initial": 150}))
@@ -221,8 +221,9 @@ def test_the_live_page_renders_the_selected_view_and_measures_the_chamfer_distan
         deadline = time.monotonic() + 20
         while not (viewer.chamfers and viewer.chamfers[-1][0] == 3) and time.monotonic() < deadline:
             time.sleep(0.1)  # the viewer's thread shows the last snapshot
-        view, strip = viewer.live
+        view, strip, live_psnr = viewer.live
         assert view == 0 and strip.ndim == 3 and strip.shape[1] > 3 * strip.shape[0] - 1
+        assert viewer.psnrs[-1] == (3, live_psnr) and 5 < live_psnr < 99
         assert np.isfinite(strip).all() and strip[:, : strip.shape[1] // 3].max() > 0  # the target's third
         assert "live" in viewer.server.strip.label
         iterations, values = zip(*viewer.chamfers)

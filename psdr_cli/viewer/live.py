@@ -16,6 +16,7 @@ import drjit as dr
 import numpy as np
 
 from ..errors import PsdrWarning
+from ..evaluation.held_out import psnr
 from ..evaluation.mesh_distance import distance
 from ..experiment.dataset_frame import dataset_frames
 from ..optimisation.camera_refinement import OPENCV_FLIP
@@ -42,8 +43,8 @@ CHAMFER_SAMPLES = 20_000
 class Snapshot:
     """What the loop hands over: the shape (scene coordinates), the refined cameras' transforms
     (Mitsuba axes; None without pose refinement), the iteration count and optimisation seconds,
-    and the selected view's (index, target | render | |error| strip, linear RGB) when one was
-    rendered for it."""
+    and the selected view's (index, target | render | |error| strip in linear RGB, PSNR of the
+    render against its target) when one was rendered for it."""
     V: np.ndarray
     F: np.ndarray
     camera_matrices: np.ndarray | None
@@ -80,6 +81,7 @@ class LiveViewer:
         self.render_interval, self.chamfer_interval = render_interval, chamfer_interval
         self.last_render = self.last_chamfer = -np.inf
         self.chamfers: list = []
+        self.psnrs: list = []  # (iteration, PSNR of the live render of the view selected then)
         self.resume = threading.Event()
         self.resume.set()
         self.wake = threading.Condition()
@@ -152,13 +154,14 @@ class LiveViewer:
         reference = read_mesh_file(files.reference) if files.reference.exists() else None
         self.run = RunScene(exp, files, *run_cameras(exp, now.stage.images),
                             None if cams is None else np.array(cams.initial), reference)
-        self.losses, self.chamfers, self.started = [], [], (time.monotonic(), done)
+        self.losses, self.chamfers, self.psnrs, self.started = [], [], [], (time.monotonic(), done)
         self.live = None
 
     def live_strip(self, now) -> tuple | None:
-        """(view, target | render | |error|) of the selected training view at the current shape:
-        :data:`RENDER_SPP` samples per pixel at the stage's resolution (on the loop's thread,
-        between iterations, as the checkpoints' previews are rendered)."""
+        """(view, target | render | |error|, PSNR of the render against the target) of the
+        selected training view at the current shape: :data:`RENDER_SPP` samples per pixel at the
+        stage's resolution (on the loop's thread, between iterations, as the checkpoints' previews
+        are rendered)."""
         view = self.server.selected
         targets = now.stage.images
         if view >= len(targets):
@@ -166,7 +169,8 @@ class LiveViewer:
         with dr.suspend_grad():
             image = render_view(now.problem.scene, view, RENDER_SPP, seed=self.run.exp.seed)
         target = np.asarray(targets[view], np.float64).reshape(image.shape)
-        return view, strip(target, np.asarray(image, np.float64), zoom=max(1, 192 // max(image.shape[:2])))
+        image = np.asarray(image, np.float64)
+        return view, strip(target, image, zoom=max(1, 192 // max(image.shape[:2]))), psnr(image, target)
 
     def push_forever(self):
         """The background thread: each snapshot handed over, shown on the page."""
@@ -194,6 +198,8 @@ class LiveViewer:
         server.show_status(self.status_line(s))
         if s.strip is not None:
             self.live = s.strip
+            self.psnrs.append((s.done - 1, s.strip[2]))
+            server.show_psnr(*zip(*self.psnrs))
         self.show_strip()
         for name, image in run_pictures(run.files).items():
             server.show_picture(name, image)

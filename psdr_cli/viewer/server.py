@@ -50,6 +50,7 @@ class ViewerServer:
                                   scales={"x": {"time": False}, "y": {"distr": 3}}, title="loss", aspect=1.6,
                                   order=30)
         self.chamfer = None  # the Chamfer-L1 curve, made when a run has a reference mesh
+        self.psnr = None  # the live render's PSNR curve, made on the first live render
 
     @property
     def url(self) -> str:
@@ -179,6 +180,17 @@ class ViewerServer:
                 order=31)
         else:
             self.chamfer.data = data
+
+    def show_psnr(self, iterations, values):
+        """The PSNR of each live render against its target (the view selected at the time)."""
+        data = (np.asarray(iterations, np.float64), np.minimum(np.asarray(values, np.float64), 99.0))
+        if self.psnr is None:
+            self.psnr = self.server.gui.add_uplot(
+                data=data, series=({"label": "iteration"}, {"label": "PSNR (dB)", "stroke": "purple", "width": 2}),
+                scales={"x": {"time": False}}, title="PSNR of the selected view's live render", aspect=1.6,
+                order=32)
+        else:
+            self.psnr.data = data
 
     def show_picture(self, name: str, image: np.ndarray | None):
         """A named image panel (the recovered environment map, the texture), created on first use."""
