@@ -28,7 +28,7 @@ from ..rendering.estimate import Settings, ad_image
 from ..support.jitarray import jit_array
 
 #: Adam steps of a held-out view's pose fit (the orbit about the object, seen only through
-#: parallax, is the slowest part: on a 64² bunny, 1° took about 80 steps to fall to 0.2°).
+#: parallax, is the slowest part; docs/optimize.md, "Camera poses").
 ITERATIONS = 100
 
 #: Adam's step at the start of the fit (radians, camera distances).

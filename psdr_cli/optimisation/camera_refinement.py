@@ -11,9 +11,8 @@ cameras' common look-at point c: both unknowns are angles of about the same size
 image. Adam updates x = (r_v, τ_v) of every view per element; a view's moments wait while it is
 out of the batch (masked updates). The gradients are psdr's camera derivatives (the interior
 term's moving rays, the primary term's moving silhouettes, the direct term's sliding shadow
-edges: :mod:`psdr_cli.rendering.camera_motion`). (A rotation about c instead, which separates the orbit
-about the object from the shift across the image, did worse in the loop: the orbit, seen only
-through parallax, wandered while the shape was still rough; docs/optimize.md.)
+edges: :mod:`psdr_cli.rendering.camera_motion`). Why the pivot is the camera's centre and not c:
+docs/optimize.md, "Camera poses".
 
 Gauge: a similarity of the whole capture (every camera and the object together) leaves the
 images unchanged. To first order it moves x along seven directions: rotation about c by e_i

@@ -298,7 +298,8 @@ def rebuild_guides(problem, settings, V, values: dict, n_views: int, terms):
 
 def adjoint_images(scene, views, spp: int, seed: int, iteration: int) -> list:
     """:func:`adjoint_image` of each of ``views``: several traced as one wavefront per pass
-    (:func:`psdr_cli.rendering.render.render_views`, from their own random stream), one view as before."""
+    (:func:`psdr_cli.rendering.render.render_views`, from their own random stream); one view alone
+    through :func:`adjoint_image`."""
     if len(views) == 1:
         return [adjoint_image(scene, views[0], spp, seed, iteration)]
     return render_views(scene, views, spp, seed=views_seed(seed, views, iteration, ADJOINT_STREAM))
