@@ -233,3 +233,29 @@ def test_the_live_page_renders_the_selected_view_and_measures_the_chamfer_distan
         assert values[-1] == pytest.approx(final, rel=1e-3)
     finally:
         viewer.close()
+
+
+def test_the_live_page_of_a_capture_shows_held_out_cameras_and_the_refined_poses(tmp_path):
+    """A camera dataset with pose refinement: the held-out cameras are drawn (held_out, their
+    photographs as pictures) beside the training cameras, which are drawn at their refined poses
+    (moved from the dataset's by the run's corrections, as cameras.json has them)."""
+    import json
+    from test_camera_refinement import dataset_experiment
+    from psdr_cli.viewer.live import LiveViewer
+    exp = api.load_experiment(dataset_experiment(tmp_path, cameras={"start": 0, "warmup": 0}))
+    viewer = LiveViewer(port=free_port(), warn=print, interval=0.0, render_interval=1e9, chamfer_interval=1e9)
+    try:
+        api.optimize(exp, iterations=6, observer=viewer)
+        deadline = time.monotonic() + 20
+        while not (viewer.server.cameras and "6/6" in viewer.server.status.content) and time.monotonic() < deadline:
+            time.sleep(0.1)  # the viewer's thread shows the last snapshot
+        drawn = viewer.server.cameras
+        refined = json.loads((exp.run_dir / "cameras.json").read_text())["views"]
+        train = [c for c in drawn if not c.held_out]
+        assert len(train) == len(refined) and any(c.held_out and c.image is not None for c in drawn)
+        for cam, view in zip(train, refined):
+            np.testing.assert_allclose(cam.pose, view["cam_to_world"], atol=1e-6)
+        given = [c.pose for c in viewer.run.cameras if not c.held_out]
+        assert max(float(np.abs(a.pose - b).max()) for a, b in zip(train, given)) > 1e-6  # they moved
+    finally:
+        viewer.close()
