@@ -604,7 +604,8 @@ def verdict(results: list) -> list:
     for mesh in dict.fromkeys(r["mesh"] for r in results):
         auto, off = exact_mean(results, mesh, "auto"), exact_mean(results, mesh, "off")
         if auto and off:
-            seeds = sum(1 for r in results if r["mesh"] == mesh and r["level_deg"] == 0 and r["mode"] == "auto")
+            seeds = sum(1 for r in results if r["mesh"] == mesh and r["level_deg"] == 0 and r["mode"] == "auto"
+                        and "error" not in r)
             out.append(f"- {mesh} exact poses: auto {auto:.5f} / off {off:.5f} = {auto / off:.3f} "
                        f"({'pass' if auto / off <= 1.05 else 'FAIL'}, ≤ 1.05; means over {seeds} seeds)")
     for (mesh, level, mode), r in sorted(done.items()):

@@ -23,7 +23,8 @@ from psdr_cli.evaluation.held_out import psnr, score_view, ssim
 from psdr_cli.experiment.dataset_frame import look_at_point, to_dataset, to_normalised
 from psdr_cli.experiment.load import load_experiment, parse_experiment
 from psdr_cli.support import backend
-from psdr_cli.target_sources.visual_hull import visual_hull
+from psdr_cli.target_sources import visual_hull as visual_hull_module
+from psdr_cli.target_sources.visual_hull import mask_distance, visual_hull
 from conftest import run_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -254,6 +255,20 @@ def test_the_visual_hull_of_slightly_wrong_cameras_keeps_the_object():
         V0, F0 = visual_hull(truth)
     V1, F1 = visual_hull(truth, margin=0)
     assert np.array_equal(V0, V1) and np.array_equal(F0, F1)
+
+
+def test_a_view_with_an_empty_mask_sees_every_point_infinitely_far_from_it(monkeypatch):
+    """No margin keeps a point that a view with an empty mask sees (its distance to the mask is
+    +∞, not the distance to the image's corner); masks that no margin explains get the largest
+    margin, and the warning says "more than" (here no hull may leave anything uncovered)."""
+    views = torus_views(count=4)
+    empty = copy.copy(views[0])
+    empty.mask = np.zeros_like(views[0].mask)
+    points = np.array([[0.6, 0.0, 0.0], [0.0, 0.0, 5.0]])
+    assert np.isinf(mask_distance(points, [empty])).all()
+    monkeypatch.setattr(visual_hull_module, "LOST_WIDTH", -1.0)
+    with pytest.warns(PsdrWarning, match="more than 8 px"):
+        visual_hull(turned_views(torus_views(), 2.0))
 
 
 def test_held_out_scores():

@@ -259,3 +259,23 @@ def test_the_live_page_of_a_capture_shows_held_out_cameras_and_the_refined_poses
         assert max(float(np.abs(a.pose - b).max()) for a, b in zip(train, given)) > 1e-6  # they moved
     finally:
         viewer.close()
+
+
+def test_a_viewer_that_fails_on_the_loop_thread_stops_with_one_warning_and_the_run_goes_on(tmp_path, monkeypatch):
+    """A live render that fails (here: out of memory) stops the viewer with one warning; the run
+    finishes as without a viewer."""
+    from psdr_cli.viewer import live
+    exp = api.load_experiment(write(tmp_path, dict(TINY, optimize=dict(TINY["optimize"],
+                                                                        remesh={"method": "instant", "initial": 150}))))
+
+    def out_of_memory(*args, **kwargs):
+        raise RuntimeError("jit_malloc(): out of memory")
+    monkeypatch.setattr(live, "render_view", out_of_memory)
+    warnings = []
+    viewer = live.LiveViewer(port=free_port(), warn=warnings.append, interval=0.0, render_interval=0.0)
+    try:
+        result = api.optimize(exp, iterations=4, observer=viewer)
+    finally:
+        viewer.close()
+    assert result.iterations == 4 and result.final.is_file()
+    assert len([w for w in warnings if w.startswith("viewer: stopped")]) == 1 and "out of memory" in warnings[0], warnings

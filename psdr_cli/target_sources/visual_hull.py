@@ -70,15 +70,11 @@ def mask_distance(points: np.ndarray, views) -> np.ndarray:
         u, v, z = project(points, view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
         h, w = view.mask.shape
         visible = (z > 1e-9) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        distance = ndimage.distance_transform_edt(view.mask < 0.5)
+        outside = view.mask < 0.5
+        distance = ndimage.distance_transform_edt(outside) if not outside.all() else np.full(outside.shape, np.inf)
         far = np.where(visible, np.maximum(far, distance[pixel(u, v, (h, w))]), far)
         seen |= visible
     return np.where(seen, far, np.inf)
-
-
-def occupancy(points: np.ndarray, views, margin: float = 0.0) -> np.ndarray:
-    """Whether each point is inside the hull H_m of ``views`` (module docstring, m = ``margin``)."""
-    return mask_distance(points, views) <= margin
 
 
 def lost_width(points: np.ndarray, step: float, view) -> float:
@@ -101,17 +97,17 @@ def lost_width(points: np.ndarray, step: float, view) -> float:
     return float((mask & ~near).sum() / max(perimeter, 1))
 
 
-def hull_margin(grid: np.ndarray, distance: np.ndarray, step: float, views) -> float:
-    """The smallest margin of :data:`MARGINS` whose hull leaves at most :data:`LOST_WIDTH` of the
-    masks uncovered (:func:`lost_width`) in 90 % of (up to :data:`COVERAGE_VIEWS`) views; the
-    largest when none does."""
+def hull_margin(grid: np.ndarray, distance: np.ndarray, step: float, views) -> tuple:
+    """(margin, explained): the smallest margin of :data:`MARGINS` whose hull leaves at most
+    :data:`LOST_WIDTH` of the masks uncovered (:func:`lost_width`) in 90 % of (up to
+    :data:`COVERAGE_VIEWS`) views, explained True; the largest, explained False, when none does."""
     checked = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, COVERAGE_VIEWS).round().astype(int))]
     for margin in MARGINS:
         inside = grid[distance <= margin]
         widths = [lost_width(inside, step, view) for view in checked] if len(inside) else [np.inf]
-        if np.percentile(widths, 90) <= LOST_WIDTH:
-            return margin
-    return MARGINS[-1]
+        if np.percentile(np.minimum(widths, 1e30), 90) <= LOST_WIDTH:
+            return margin, True
+    return MARGINS[-1], False
 
 
 def visual_hull(views, bound: float = 1.5, resolution: int = 72, margin: float | None = None):
@@ -122,9 +118,9 @@ def visual_hull(views, bound: float = 1.5, resolution: int = 72, margin: float |
     grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     distance = mask_distance(grid, views)
     if margin is None:
-        margin = hull_margin(grid, distance, axis[1] - axis[0], views)
+        margin, explained = hull_margin(grid, distance, axis[1] - axis[0], views)
         if margin > 0:
-            about = "more than" if margin == MARGINS[-1] else "about"
+            about = "about" if explained else "more than"
             warnings.warn(f"the masks disagree by {about} {margin:g} px (camera poses or masks slightly off): the "
                           f"visual hull is carved {margin:g} px wide of them so that it keeps the object's thin parts",
                           PsdrWarning, stacklevel=2)

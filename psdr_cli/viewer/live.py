@@ -125,9 +125,23 @@ class LiveViewer:
     def iteration(self, exp, now, done: int, total: int, seconds: float, loss: float):
         """After iteration ``done - 1`` was saved (called on the loop's thread): the loss kept,
         a snapshot handed over when ``interval`` has passed (or the run ends), then held here
-        while paused."""
+        while paused. Whatever fails in the viewer stops the viewer with one warning, never the
+        run."""
         if self.server is None or self.closed:
             return
+        try:
+            self.hand_over(exp, now, done, total, seconds, loss)
+        except Exception as exc:  # noqa: BLE001  (a render, a file, the page: the run goes on)
+            self.warn(f"viewer: stopped ({type(exc).__name__}: {exc}); the run goes on")
+            self.close()
+            return
+        while not self.resume.wait(0.2):
+            pass
+
+    def hand_over(self, exp, now, done: int, total: int, seconds: float, loss: float):
+        """The loss kept and, when ``interval`` has passed (or the run ends, or it is paused), a
+        snapshot (with the selected view's live render every ``render_interval``) handed to the
+        viewer's thread."""
         if self.run is None or self.run.exp.run_dir != exp.run_dir:
             self.start_run(exp, now, done)
         self.losses.append((done - 1, loss))
@@ -144,8 +158,6 @@ class LiveViewer:
             with self.wake:
                 self.pending = snapshot
                 self.wake.notify()
-        while not self.resume.wait(0.2):
-            pass
 
     def start_run(self, exp, now, done: int):
         """The cameras of a run the viewer has not seen yet (one-time, on the loop's thread)."""
