@@ -16,7 +16,7 @@ from .boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
 from .camera import CameraTable, LaneCameras, ViewLanes
 from .direct import direct_samples
 from .passes import AD_LANES, make_sampler
-from .recording import PassInputs, RecordedScene, Recording, adjoint_sum, edge_slots, opaque
+from .recording import PaddedRecording, PassInputs, RecordedScene, adjoint_sum, opaque
 
 #: Most edges the part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
 MAX_EDGES = 1 << SEARCH_STEPS
@@ -71,21 +71,12 @@ def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.
     return count  # (a frozen function returns something)
 
 
-class DirectPart:
+class DirectPart(PaddedRecording):
     """The direct term's recorded part (:class:`.recording.RecordedPart`); ``enabled`` false runs
     the same function traced every call."""
 
     def __init__(self, enabled: bool = True):
-        self.recording = Recording(direct_backward, enabled)
-        self.slots = 0  # the edge slots: the most this scene needed
-
-    def reset(self):
-        self.recording.reset()
-        self.slots = 0
-
-    @property
-    def n_recordings(self) -> int:
-        return self.recording.n_recordings
+        super().__init__(direct_backward, enabled)
 
     def serves(self, scene, views, spp: int, edges) -> bool:
         """Whether the part can run on ``edges`` (the batch in one AD pass, 1 to
@@ -97,10 +88,8 @@ class DirectPart:
         """The backward pass of Σ δ·I_direct over the batch (into the scene's leaves), replayed;
         returns the number of edges."""
         width, height = scene.resolution
-        self.slots = max(self.slots, edge_slots(edges.count))  # never fewer: a count going back and
-        # forth across a power of two would record again each time
         shape = DirectShape(recorded.scene_id, width, height, len(inputs.views), inputs.spp,
-                            inputs.estimator.sampling, tuple(edges.names), self.slots)
+                            inputs.estimator.sampling, tuple(edges.names), self.grown_slots(edges.count))
         ids, flip, open_ = padded_edges(edges, shape.slots)
         self.recording(shape, scene.mi_scene, recorded.table, mi.UInt32(inputs.views), opaque(inputs.seed),
                        (ids, flip, open_, opaque(edges.count)), delta)

@@ -21,7 +21,7 @@ from .camera import CameraTable, LaneCameras
 from .passes import AD_LANES, make_sampler
 from .primary import (CurveCameras, CurveTable, SideReading, camera_edge_ids, crossing_count, curve_pass,
                       drawable, edge_shape_ids, view_starts)
-from .recording import PassInputs, RecordedScene, Recording, adjoint_sum, edge_slots, opaque
+from .recording import PaddedRecording, PassInputs, RecordedScene, adjoint_sum, opaque
 
 
 @dataclass(frozen=True)
@@ -115,21 +115,12 @@ def unpacked_curves(packed: mi.UInt32, slots: int, views: int) -> tuple:
     return columns, start, count
 
 
-class PrimaryPart:
+class PrimaryPart(PaddedRecording):
     """The primary term's recorded part (:class:`.recording.RecordedPart`); ``enabled`` false runs
     the same function traced every call."""
 
     def __init__(self, enabled: bool = True):
-        self.recording = Recording(primary_backward, enabled)
-        self.slots = 0  # the curve slots: the most this scene needed
-
-    def reset(self):
-        self.recording.reset()
-        self.slots = 0
-
-    @property
-    def n_recordings(self) -> int:
-        return self.recording.n_recordings
+        super().__init__(primary_backward, enabled)
 
     def serves(self, scene, views, spp: int, edges) -> bool:
         """Whether the part can run on ``edges`` (the batch in one AD pass, edge objects with
@@ -153,10 +144,9 @@ class PrimaryPart:
         total = sum(len(p["v0"]) for p in parts)
         if not total:
             return 0  # no curve in any view: the term adds nothing
-        self.slots = max(self.slots, edge_slots(total))  # never fewer: a count going back and forth
-        # across a power of two would record again each time
-        packed, folds = packed_curves(parts, edge_shape_ids(scene.mi_scene, edges), self.slots)
-        shape = PrimaryShape(recorded.scene_id, width, height, len(inputs.views), inputs.spp, self.slots,
+        slots = self.grown_slots(total)
+        packed, folds = packed_curves(parts, edge_shape_ids(scene.mi_scene, edges), slots)
+        shape = PrimaryShape(recorded.scene_id, width, height, len(inputs.views), inputs.spp, slots,
                              tuple(edges.names), inputs.max_depth, bool(scene.config.hide_background), folds)
         self.recording(shape, scene.mi_scene, recorded.table, mi.UInt32(inputs.views), opaque(inputs.seed), packed,
                        delta)

@@ -74,6 +74,31 @@ def edge_slots(count: int) -> int:
     return max(MIN_EDGE_SLOTS, 1 << (count - 1).bit_length())
 
 
+class PaddedRecording:
+    """What a recorded part keeps between iterations: its frozen function (:class:`Recording` of
+    ``body``; ``enabled`` false: traced every call) and the slots of its padded arrays, the most
+    this scene has needed (never fewer: a count going back and forth across a power of two would
+    record again each time)."""
+
+    def __init__(self, body, enabled: bool = True):
+        self.recording = Recording(body, enabled)
+        self.slots = 0
+
+    def reset(self):
+        """Drop the recordings and the slots (a new scene or stage)."""
+        self.recording.reset()
+        self.slots = 0
+
+    @property
+    def n_recordings(self) -> int:
+        return self.recording.n_recordings
+
+    def grown_slots(self, count: int) -> int:
+        """The slots for ``count`` entries (:func:`edge_slots`), kept if more than before."""
+        self.slots = max(self.slots, edge_slots(count))
+        return self.slots
+
+
 def adjoint_sum(delta: mi.Float, samples) -> mi.Float:
     """Σ δ·I of the image I that the lanes' contributions ``samples`` ((v, pixel, mask) each, v a
     colour, the pixel's index in the views' joined image) add up to, without forming I:
