@@ -47,7 +47,7 @@ sys.path.insert(0, str(REPO))
 
 import psdr_cli  # noqa: E402  (configures Dr.Jit / LLVM before drjit is imported)
 from psdr_cli.commands.compare import Comparison, rel_mse  # noqa: E402
-from psdr_cli.config.variants import Variant  # noqa: E402
+from psdr_cli.config.variants_section import Variant  # noqa: E402
 from psdr_cli.config.vocabularies import SAMPLINGS  # noqa: E402
 from psdr_cli.experiment.load import load_experiment  # noqa: E402
 from psdr_cli.support import fileio, plots  # noqa: E402

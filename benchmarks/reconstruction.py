@@ -70,7 +70,7 @@ sys.path.insert(0, str(REPO))
 import psdr_cli  # noqa: E402,F401  (configures Dr.Jit / LLVM before drjit is imported)
 from psdr_cli.commands import evaluate as ev  # noqa: E402
 from psdr_cli.commands.optimize import optimize  # noqa: E402
-from psdr_cli.config.optimize import RemeshConfig  # noqa: E402
+from psdr_cli.config.optimize_section import RemeshConfig  # noqa: E402
 from psdr_cli.config.options import with_estimator  # noqa: E402
 from psdr_cli.experiment.load import load_experiment  # noqa: E402
 from psdr_cli.run_folder.layout import RunFiles  # noqa: E402

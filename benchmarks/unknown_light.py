@@ -151,7 +151,7 @@ def relight(exp, meshes: dict, rotate_deg: float, spp: int, seed: int = 0) -> di
     """{label: [(H, W, 3) per held-out view]} of each (V, F, albedo) in ``meshes`` (dataset
     coordinates) rendered by psdr at depth 4 under ``exp``'s map turned ``rotate_deg`` about z,
     from ``exp``'s held-out cameras; also ``"mask"``: the held-out photographs' alpha ≥ ½."""
-    from psdr_cli.evaluation.held_out import apply_values
+    from psdr_cli.scoring.held_out import apply_values
     from psdr_cli.experiment.dataset_frame import dataset_scene, to_normalised
     from psdr_cli.rendering.render import render_view
     from psdr_cli.scene.build import build_scene
@@ -172,7 +172,7 @@ def relight(exp, meshes: dict, rotate_deg: float, spp: int, seed: int = 0) -> di
 
 
 def relight_scores(images: dict, reference: str, label: str) -> dict:
-    from psdr_cli.evaluation.held_out import psnr, ssim
+    from psdr_cli.scoring.held_out import psnr, ssim
     pairs = list(zip(images[label], images[reference], images["mask"]))
     return {"psnr": float(np.mean([psnr(a, b) for a, b, _ in pairs])),
             "psnr_mask": float(np.mean([psnr(a, b, m) for a, b, m in pairs])),
@@ -236,7 +236,7 @@ def cavity_distance(mesh: Path, gt: Path, samples: int = 50_000) -> float:
     box as Chamfer is."""
     from scipy.spatial import cKDTree
     from psdr_cli.commands import evaluate as ev
-    from psdr_cli.evaluation import mesh_distance
+    from psdr_cli.scoring import mesh_distance
     V, F = ev.load(gt)
     Vm, Fm = ev.load(mesh)
     lo, hi = V.min(0), V.max(0)
@@ -257,7 +257,7 @@ def cavity_distance(mesh: Path, gt: Path, samples: int = 50_000) -> float:
 
 def part_concave(args) -> dict:
     import photo_dataset
-    from psdr_cli.evaluation.held_out import score_mesh
+    from psdr_cli.scoring.held_out import score_mesh
     work = args.work
     data_dir = work / "cup_dataset"
     if not (data_dir / "dataset.json").exists():

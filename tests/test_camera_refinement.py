@@ -32,8 +32,8 @@ from psdr_cli.config.unknowns import CamerasUnknown
 from psdr_cli.datasets.views import read_frames
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.evaluation import held_out_alignment
-from psdr_cli.evaluation.held_out import score_mesh
+from psdr_cli.scoring import held_out_alignment
+from psdr_cli.scoring.held_out import score_mesh
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.geometry.parameters import Parameter
 from psdr_cli.optimisation.camera_refinement import CameraCorrections, gauge_basis, rotation_matrices, with_camera_mode, without_gauge
@@ -41,7 +41,7 @@ from psdr_cli.rendering.camera_motion import with_all_edges
 from psdr_cli.rendering.estimate import Settings, forward_gradient, prepare, term_image, term_passes, term_seed
 from psdr_cli.rendering.reference import agreement, fd_resolution, finite_difference
 from psdr_cli.rendering.render import render_view
-from psdr_cli.run_folder.cameras import refined_poses, similarity, transforms_document, write_colmap_text
+from psdr_cli.run_folder.refined_cameras import refined_poses, similarity, transforms_document, write_colmap_text
 from psdr_cli.run_folder.state import State
 from psdr_cli.scene.build import build_scene
 from psdr_cli.support import backend

@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from psdr_cli.config.cameras import orbit_cameras
+from psdr_cli.config.cameras_section import orbit_cameras
 from psdr_cli.config.vocabularies import TERMS
 from psdr_cli.errors import ConfigError
 from psdr_cli.experiment.load import load_experiment, parse_experiment

@@ -19,7 +19,7 @@ import trimesh
 import yaml
 
 from psdr_cli import api
-from psdr_cli.evaluation.held_out import score_mesh
+from psdr_cli.scoring.held_out import score_mesh
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.scene import meshes
 from psdr_cli.support import backend, fileio

@@ -463,7 +463,7 @@ def test_reports_refuse_unfinished_runs(tmp_path):
 def test_variant_experiments_share_the_targets(tmp_path):
     """A variant replaces estimator keys and the run seed; its targets keep the base seed."""
     from psdr_cli.experiment.load import parse_experiment
-    from psdr_cli.run_folder.variants import variant_experiments
+    from psdr_cli.run_folder.variant_folders import variant_experiments
     from psdr_cli.target_sources.rendered_mesh import target_key
     data = copy.deepcopy(TINY)
     data["optimize"]["variants"] = [{"label": "a", "sampling": "light"}, {"label": "b", "seed": 42, "edge_sort": True}]
@@ -625,7 +625,7 @@ def test_adjoint_spp_optimisation_runs_and_is_checked(tmp_path, run_psdr):
 def test_learning_rate_final_decays_geometrically_after_the_last_remesh():
     """lr is constant up to the last remesh before the end, then decays geometrically to
     learning_rate_final at the last iteration; unset, it stays constant."""
-    from psdr_cli.config.optimize import OptimizeConfig, RemeshConfig
+    from psdr_cli.config.optimize_section import OptimizeConfig, RemeshConfig
     from psdr_cli.optimisation.iteration import learning_rate_at
     cfg = OptimizeConfig(object="x", learning_rate=0.1, learning_rate_final=0.01,
                          remesh=RemeshConfig("instant", 800, (100, 200, 400), (1500, 2500, 4000)))
@@ -714,7 +714,7 @@ def test_stage_lists_are_checked_again_when_code_changes_the_experiment(tmp_path
     film) is checked again by optimize: one-line errors, not a traceback or a silent mismatch."""
     from dataclasses import replace
     from psdr_cli import api
-    from psdr_cli.config.optimize import RemeshConfig
+    from psdr_cli.config.optimize_section import RemeshConfig
     from psdr_cli.errors import PsdrError
     from psdr_cli.experiment.load import load_experiment
     data = copy.deepcopy(TINY)

@@ -19,7 +19,7 @@ from skimage.metrics import structural_similarity
 from psdr_cli import api
 from psdr_cli.datasets.views import View
 from psdr_cli.errors import PsdrError, PsdrWarning
-from psdr_cli.evaluation.held_out import psnr, score_view, ssim
+from psdr_cli.scoring.held_out import psnr, score_view, ssim
 from psdr_cli.experiment.dataset_frame import look_at_point, to_dataset, to_normalised
 from psdr_cli.experiment.load import load_experiment, parse_experiment
 from psdr_cli.support import backend
@@ -490,7 +490,7 @@ def test_a_distorted_capture_is_undistorted_once_into_the_run_folder(tmp_path, r
     into ``targets/undistorted/`` once (a second load reuses the files), and the undistorted
     masks agree with psdr's render of the ground truth through the new pinhole cameras (mask IoU
     ≥ 0.97 per view; the distorted masks through the original pinhole cameras reach only ~0.94)."""
-    from psdr_cli.evaluation.held_out import coverage
+    from psdr_cli.scoring.held_out import coverage
     from psdr_cli.experiment.dataset_frame import to_normalised
     from psdr_cli.scene.build import build_scene
     from psdr_cli.scene.meshes import read_mesh_file

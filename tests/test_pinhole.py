@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from conftest import experiment, run_cli
-from psdr_cli.config.cameras import CameraConfig
+from psdr_cli.config.cameras_section import CameraConfig
 from psdr_cli.errors import ConfigError
 from psdr_cli.estimators.camera import LaneCameras, Projection, SensorCamera, camera_connection
 from psdr_cli.experiment.load import parse_experiment

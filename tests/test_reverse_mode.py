@@ -7,7 +7,7 @@ import pytest
 
 from conftest import REPO
 from psdr_cli.api import setup
-from psdr_cli.config.estimator import EstimatorConfig
+from psdr_cli.config.estimator_section import EstimatorConfig
 from psdr_cli.config.vocabularies import TERMS
 from psdr_cli.estimators.boundary_sampling import BoundaryEdges
 from psdr_cli.experiment.load import load_experiment

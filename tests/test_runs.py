@@ -15,7 +15,7 @@ from psdr_cli.errors import ConfigError
 from psdr_cli.experiment.load import load_experiment, parse_experiment
 from psdr_cli.run_folder.fingerprint import run_fingerprint
 from psdr_cli.run_folder.fingerprint_v1 import fingerprint_v1
-from psdr_cli.run_folder.variants import variant_experiments
+from psdr_cli.run_folder.variant_folders import variant_experiments
 from test_optimize import TINY, write
 
 #: A run written by psdr with version-1 fingerprints: tiny.yaml, 2 iterations (run.json, state, log, targets).

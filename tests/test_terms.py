@@ -2,7 +2,7 @@
 image keeps the random-number stream it has always had."""
 from dataclasses import fields
 
-from psdr_cli.config.estimator import EstimatorConfig
+from psdr_cli.config.estimator_section import EstimatorConfig
 from psdr_cli.config.vocabularies import TERMS
 from psdr_cli.estimators import registry
 from psdr_cli.guiding.auto import GUIDED_TERMS

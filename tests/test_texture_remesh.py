@@ -13,7 +13,7 @@ from PIL import Image
 
 from conftest import bit_reproducible, write_raw_exr
 from psdr_cli import cli, load_experiment
-from psdr_cli.config.optimize import OptimizeConfig
+from psdr_cli.config.optimize_section import OptimizeConfig
 from psdr_cli.geometry import atlas
 from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.log import read_log

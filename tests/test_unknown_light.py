@@ -18,7 +18,7 @@ from psdr_cli import api, cli, load_experiment
 from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
-from psdr_cli.evaluation.held_out import apply_values
+from psdr_cli.scoring.held_out import apply_values
 from psdr_cli.optimisation import photo_light
 from psdr_cli.optimisation.problem import Problem, Shape, solid_angle_weights
 from psdr_cli.rendering.estimate import Settings, ad_image

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..config.experiment_file import Experiment
 from ..config.options import with_estimator
-from ..config.variants import Variant
+from ..config.variants_section import Variant
 from ..errors import PsdrError
 from ..estimators.boundary_sampling import edge_list
 from ..rendering import estimate

@@ -1,5 +1,5 @@
 """Shape error (``psdr evaluate``): symmetric Chamfer and Hausdorff distances to a reference
-(:mod:`psdr_cli.evaluation.mesh_distance`), held-out scores and relighting of runs on camera
+(:mod:`psdr_cli.scoring.mesh_distance`), held-out scores and relighting of runs on camera
 datasets. Reads meshes and run folders; writes the evaluation's report, JSON, plots and mesh
 copies."""
 from __future__ import annotations
@@ -16,15 +16,15 @@ from ..config.experiment_file import read_file
 from ..config.limits import MAX_COORD, MAX_EVAL_SAMPLES, MIN_EVAL_SAMPLES
 from ..config.options import option_count
 from ..errors import PsdrError
-from ..evaluation.held_out import score_mesh
-from ..evaluation.mesh_distance import distance, noise_floor
-from ..evaluation.held_out_geometry import check_units
+from ..scoring.held_out import score_mesh
+from ..scoring.mesh_distance import distance, noise_floor
+from ..scoring.held_out_geometry import check_units
 from ..experiment.dataset_frame import dataset_frames
 from ..experiment.load import load_experiment
 from ..run_folder.checkpoints import run_checkpoints
 from ..run_folder.layout import RunFiles
 from ..run_folder.log import run_seconds, run_summary
-from ..run_folder.variants import existing_runs, variant_experiments
+from ..run_folder.variant_folders import existing_runs, variant_experiments
 from ..scene.build import look_at, mitsuba_mesh
 from ..scene.meshes import face_areas, read_mesh_file
 from ..support import backend, fileio, plots
@@ -200,7 +200,7 @@ def write_run_report(folder: Path, ref, runs: list, labels: list, result: Evalua
 @dataclass
 class HeldOutReport:
     """Scores of a dataset run's initial and final meshes on the held-out views
-    (:mod:`psdr_cli.evaluation.held_out`), one row per mesh, with Chamfer/Hausdorff when a reference is given."""
+    (:mod:`psdr_cli.scoring.held_out`), one row per mesh, with Chamfer/Hausdorff when a reference is given."""
     experiment: Path
     folders: list = field(default_factory=list)
     rows: list = field(default_factory=list)

@@ -20,7 +20,7 @@ atomically after every iteration, checkpoints and previews at ``checkpoint_every
 An optional wall-clock budget (``optimize.seconds``, optimisation time only) ends a run early,
 for equal-time comparisons; ``optimize.variants`` turns one experiment into an ablation whose
 runs (estimator overrides) live in ``<output>/<name>/<label>/``
-(:func:`psdr_cli.run_folder.variants.variant_experiments`; the run-folder layout is :mod:`psdr_cli.run_folder`).
+(:func:`psdr_cli.run_folder.variant_folders.variant_experiments`; the run-folder layout is :mod:`psdr_cli.run_folder`).
 """
 from __future__ import annotations
 
@@ -49,13 +49,13 @@ from ..optimisation.stages import Stage, stage_of
 from ..optimisation.start_state import dataset_coordinates, initial_state, load_targets, read_targets
 from ..rendering.estimate import Settings, guiding_line
 from ..rendering.render import render_view
-from ..run_folder.cameras import input_format, refined_poses, write_cameras
+from ..run_folder.refined_cameras import input_format, refined_poses, write_cameras
 from ..run_folder.checkpoints import write_checkpoint, write_mesh
 from ..run_folder.layout import RunFiles, keep_previous_run, lock_run
 from ..run_folder.log import append_log, plot_loss, read_log, write_log
 from ..run_folder.record import run_record
 from ..run_folder.state import resumable_state
-from ..run_folder.variants import variant_experiments
+from ..run_folder.variant_folders import variant_experiments
 from ..support import backend, fileio
 
 
@@ -250,7 +250,7 @@ def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> P
 
 
 def save_cameras(exp, files: RunFiles, problem, iteration: int):
-    """cameras.json and the refined cameras in the dataset's format (:mod:`psdr_cli.run_folder.cameras`)."""
+    """cameras.json and the refined cameras in the dataset's format (:mod:`psdr_cli.run_folder.refined_cameras`)."""
     cams = problem.cameras
     dataset = exp.optimize.target_dataset
     if dataset is not None:

@@ -32,7 +32,7 @@ import numpy as np
 from ..config.dataset import DatasetConfig
 from ..config.emitters import EmitterConfig
 from ..errors import PsdrError
-from ..evaluation.held_out import apply_values, coverage, error_strip, ssim, textured_experiment
+from ..scoring.held_out import apply_values, coverage, error_strip, ssim, textured_experiment
 from ..experiment.dataset_frame import dataset_frames, dataset_scene, to_normalised, world_up
 from ..rendering.render import render_view
 from ..scene import meshes

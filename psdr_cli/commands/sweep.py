@@ -2,7 +2,7 @@
 Ray task. Reads the experiment and its run folders; starts or joins a Ray instance; writes the run
 folders and the comparison's files (in ``copy`` mode the driver is their only writer).
 
-``psdr optimize cfg.yaml --ray [ADDRESS]`` runs each run of :func:`psdr_cli.run_folder.variants.variant_experiments`
+``psdr optimize cfg.yaml --ray [ADDRESS]`` runs each run of :func:`psdr_cli.run_folder.variant_folders.variant_experiments`
 (each variant × seed of ``optimize.variants``) as one Ray task calling the same
 :func:`psdr_cli.commands.optimize.optimize` as the sequential path; ``psdr compare cfg.yaml --ray`` renders
 the reference as one task and measures each variant as one task
@@ -54,7 +54,7 @@ from . import compare as comparison
 from ..config.experiment_file import Experiment
 from ..errors import PsdrError
 from ..run_folder.layout import RunFiles, clear_run, keep_previous_run, lock_run
-from ..run_folder.variants import variant_experiments
+from ..run_folder.variant_folders import variant_experiments
 from ..support import backend, fileio
 from .optimize import loop_guiding_line, optimize
 

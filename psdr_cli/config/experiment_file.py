@@ -13,13 +13,13 @@ from pathlib import Path
 import yaml
 
 from ..errors import ConfigError
-from .compare import CompareConfig, parse_compare
-from .estimator import EstimatorConfig, parse_estimator
-from .evaluate import EvaluateConfig, parse_evaluate
+from .compare_section import CompareConfig, parse_compare
+from .estimator_section import EstimatorConfig, parse_estimator
+from .evaluate_section import EvaluateConfig, parse_evaluate
 from .limits import check_paths
-from .optimize import OptimizeConfig, parse_optimize
+from .optimize_section import OptimizeConfig, parse_optimize
 from .parameter import ParameterConfig, parse_parameter
-from .scene import SceneConfig, parse_scene
+from .scene_section import SceneConfig, parse_scene
 from .unknowns import MATERIAL_UNKNOWNS
 from .values import Section, Where, choice, integer, stage_count_error, string
 from .vocabularies import VARIANTS

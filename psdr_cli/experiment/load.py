@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config.experiment_file import Experiment, check_experiment, parse, read_file
-from ..config.scene import check_scene
+from ..config.scene_section import check_scene
 from ..errors import ConfigError
 from ..scene import mitsuba_xml
 from ..scene.mitsuba_xml import warn_stderr

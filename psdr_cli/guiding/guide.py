@@ -160,7 +160,7 @@ class GuideKind:
         build(target, breaks, estimator, seed, pixels) -> Guide
 
     ``target`` maps numpy u (N, 3) to F̃ (N,), ``breaks`` are the u1 breakpoints of the edges,
-    ``estimator`` the experiment's :class:`~psdr_cli.config.estimator.EstimatorConfig` (the
+    ``estimator`` the experiment's :class:`~psdr_cli.config.estimator_section.EstimatorConfig` (the
     kind's own keys), ``seed`` the build's seed and ``pixels`` the film's W·H."""
     name: str
     build: Callable[..., Guide]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..config.estimator import EstimatorConfig
+from ..config.estimator_section import EstimatorConfig
 from ..estimators.coverage import coverage_image
 from ..estimators.passes import pass_seed
 from ..estimators.registry import COVERAGE_STREAMS, MITSUBA_STREAM

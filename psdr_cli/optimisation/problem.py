@@ -11,9 +11,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..config.optimize import OptimizeConfig, needs_uv, unwrap_size
+from ..config.optimize_section import OptimizeConfig, needs_uv, unwrap_size
 from ..config.parameter import ParameterConfig
-from ..config.scene import SceneConfig
+from ..config.scene_section import SceneConfig
 from ..config.scene_ids import emitter_id
 from ..config.unknowns import MATERIAL_DEFAULTS, MATERIAL_UNKNOWNS
 from ..errors import PsdrError

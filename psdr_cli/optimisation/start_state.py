@@ -4,7 +4,7 @@ EXR files from ``psdr render``, or the photographs of a camera dataset) and the 
 Reads the experiment and the sources; writes the initial shape as the run's checkpoint 0."""
 from __future__ import annotations
 
-from ..config.optimize import needs_uv, unwrap_size
+from ..config.optimize_section import needs_uv, unwrap_size
 from ..errors import PsdrError
 from ..experiment.dataset_frame import to_dataset, to_normalised
 from ..geometry import atlas

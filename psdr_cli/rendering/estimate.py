@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..config.estimator import EstimatorConfig
+from ..config.estimator_section import EstimatorConfig
 from ..config.experiment_file import Experiment
 from ..config.options import parse_terms, with_estimator
 from ..errors import PsdrError

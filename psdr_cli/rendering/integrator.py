@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import drjit as dr
 import mitsuba as mi
 
-from ..config.estimator import EstimatorConfig
+from ..config.estimator_section import EstimatorConfig
 from ..config.vocabularies import TERMS
 from ..estimators.boundary_sampling import BoundaryEdges
 from .estimate import Settings, ad_image, term_passes

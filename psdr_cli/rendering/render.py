@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..config.cameras import CameraConfig
+from ..config.cameras_section import CameraConfig
 from ..config.experiment_file import Experiment
 from ..config.options import option_spp, parse_views
 from ..estimators.interior import render_pass, split_views, views_pass

@@ -16,7 +16,7 @@ from ..config.emitters import EmitterConfig
 from ..config.experiment_file import Experiment
 from ..config.limits import MAX_TEXELS
 from ..config.objects import BSDF_RANGES, BitmapConfig, ObjectConfig
-from ..config.scene import SceneConfig
+from ..config.scene_section import SceneConfig
 from ..config.scene_ids import INTEGRATOR_ID, emitter_id, sensor_id
 from ..errors import ConfigError
 from ..support import fileio

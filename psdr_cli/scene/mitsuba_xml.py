@@ -45,12 +45,12 @@ import mitsuba as mi
 import numpy as np
 
 from . import meshes
-from ..config.cameras import CameraConfig
+from ..config.cameras_section import CameraConfig
 from ..config.emitters import EmitterConfig
 from ..config.experiment_file import Experiment
 from ..config.limits import MAX_COORD, MAX_FILM, MAX_PRINCIPAL_OFFSET, MAX_TEXELS
 from ..config.objects import BsdfConfig, MeshSpec, ObjectConfig
-from ..config.scene import SceneConfig
+from ..config.scene_section import SceneConfig
 from ..config.scene_ids import emitter_id, name_problem, sensor_id
 from ..errors import ConfigError
 from ..support import backend, fileio

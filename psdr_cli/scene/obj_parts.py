@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config.objects import BsdfConfig
-from ..config.scene import SceneConfig
+from ..config.scene_section import SceneConfig
 from ..config.values import Where
 from ..errors import ConfigError
 

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from ..config.cameras import CameraConfig
+from ..config.cameras_section import CameraConfig
 from ..config.limits import MAX_PRINCIPAL_OFFSET
 
 #: Largest |fx/fy − 1| accepted: psdr's film has square pixels (fy = fx); images with other

@@ -3,13 +3,13 @@ first whose ``given`` holds for its ``optimize`` section (``mesh``, the default,
 
 The module of this package with each name declares its :class:`~.source.TargetSource` as
 ``SOURCE``. Adding a source is its module plus its name in :data:`NAMES`; the keys a source
-declares (``TargetSource.keys``) are registered with :mod:`psdr_cli.config.optimize` here.
+declares (``TargetSource.keys``) are registered with :mod:`psdr_cli.config.optimize_section` here.
 """
 from __future__ import annotations
 
 from importlib import import_module
 
-from ..config.optimize import register_target_keys
+from ..config.optimize_section import register_target_keys
 from .source import TargetSource
 
 #: The sources, by module name, in the order they are asked.

@@ -16,17 +16,17 @@ import drjit as dr
 import numpy as np
 
 from ..errors import PsdrWarning
-from ..evaluation.held_out import psnr
-from ..evaluation.mesh_distance import distance
+from ..scoring.held_out import psnr
+from ..scoring.mesh_distance import distance
 from ..experiment.dataset_frame import dataset_frames
 from ..optimisation.camera_refinement import OPENCV_FLIP
 from ..optimisation.start_state import dataset_coordinates
 from ..rendering.render import render_view
-from ..run_folder.cameras import refined_poses
+from ..run_folder.refined_cameras import refined_poses
 from ..run_folder.checkpoints import strip
 from ..run_folder.layout import RunFiles
 from ..scene.meshes import read_mesh_file
-from .cameras import ViewCamera, config_camera, pinhole_camera
+from .frustums import ViewCamera, config_camera, pinhole_camera
 from .pictures import read_png, rgb8, thumbnail
 from .run_folder_view import newest_preview, run_pictures
 from .server import ViewerServer
@@ -35,7 +35,7 @@ from .server import ViewerServer
 #: Samples per pixel of the selected view's live render.
 RENDER_SPP = 4
 
-#: Points sampled on each mesh for the live Chamfer-L1 (:func:`.evaluation.mesh_distance.distance`).
+#: Points sampled on each mesh for the live Chamfer-L1 (:func:`psdr_cli.scoring.mesh_distance.distance`).
 CHAMFER_SAMPLES = 20_000
 
 

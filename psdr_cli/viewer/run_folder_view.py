@@ -17,7 +17,7 @@ from ..run_folder.checkpoints import CHECKPOINT_NAME
 from ..run_folder.layout import RunFiles
 from ..run_folder.log import read_log
 from ..scene.meshes import read_mesh_file
-from .cameras import cameras_json, target_cameras
+from .frustums import cameras_json, target_cameras
 from .pictures import read_exr, read_png
 from .server import ViewerServer
 

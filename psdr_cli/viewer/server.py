@@ -14,7 +14,7 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
-from .cameras import ViewCamera, up_direction
+from .frustums import ViewCamera, up_direction
 
 #: The colours the page draws with (the browser test looks for them in its screenshots).
 MESH_COLOR = (235, 120, 30)

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .cameras import parse_cameras
+from .cameras_section import parse_cameras
 from .emitters import parse_emitter
 from .limits import MAX_DEPTH, MAX_FILM
 from .objects import parse_object

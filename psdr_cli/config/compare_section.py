@@ -3,10 +3,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .estimator import term_names
+from .estimator_section import term_names
 from .limits import MAX_PASSES
 from .values import Section, integer, list_of, number
-from .variants import parse_compare_variant, unique_labels
+from .variants_section import parse_compare_variant, unique_labels
 
 
 @dataclass

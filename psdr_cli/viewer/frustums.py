@@ -46,7 +46,7 @@ def vertical_fov(horizontal_deg: float, aspect: float) -> float:
 
 
 def config_camera(name: str, cam, width: int, height: int, image=None) -> ViewCamera:
-    """A :class:`~psdr_cli.config.cameras.CameraConfig` (horizontal fov) on a ``width`` × ``height`` film."""
+    """A :class:`~psdr_cli.config.cameras_section.CameraConfig` (horizontal fov) on a ``width`` × ``height`` film."""
     aspect = width / height
     return ViewCamera(name, look_at_pose(cam.origin, cam.target, cam.up), vertical_fov(cam.fov, aspect), aspect, image)
 

@@ -10,7 +10,7 @@ from .limits import MAX_FILM, MAX_ITERATIONS, MAX_SPP, MAX_VERTICES
 from .objects import MeshSpec, TransformConfig, parse_mesh, parse_transform
 from .unknowns import CamerasUnknown, EnvmapUnknown, parse_cameras, parse_envmap_unknown, parse_material, texture_size
 from .values import Parser, Section, boolean, choice, integer, list_of, number, per_stage, reflectance, string, vector
-from .variants import run_variant_parser, unique_labels
+from .variants_section import run_variant_parser, unique_labels
 from .vocabularies import REMESH_METHODS
 
 

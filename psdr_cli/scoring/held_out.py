@@ -16,7 +16,7 @@ Each view also gets a target | render | |error| strip (PNG, sRGB).
 
 With ``align`` (a run that refined its training cameras), every held-out camera is first scored
 as given, then aligned to the recovered scene (a pose-only fit against its photograph:
-:mod:`psdr_cli.evaluation.held_out_alignment`) and scored again; the strips show the aligned renders.
+:mod:`psdr_cli.scoring.held_out_alignment`) and scored again; the strips show the aligned renders.
 """
 from __future__ import annotations
 
@@ -189,7 +189,7 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
     (:func:`apply_values`) from every held-out camera of ``exp``'s dataset and score it against
     the photographs; strips go to ``out`` when given; with ``align``, scored again from the
     aligned cameras (module docstring); with a ``reference`` (V, F), depth and normals against it
-    (:mod:`psdr_cli.evaluation.held_out_geometry`, from the aligned cameras when aligned)."""
+    (:mod:`psdr_cli.scoring.held_out_geometry`, from the aligned cameras when aligned)."""
     test = dataset_scene(exp, split="test")
     views = dataset_views(test)
     V, F, uv = meshes.read_mesh_file_uv(mesh)
