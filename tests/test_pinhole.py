@@ -182,6 +182,16 @@ def test_projection_and_importance_with_an_offset():
     assert np.abs(np.asarray(uv_l) - np.asarray(uv_s))[:, ok].max() < 1e-3
 
 
+def test_projection_takes_any_vector_type_as_a_point():
+    """The boundary terms hand the projection points typed as Point3f or as Vector3f (x^B − ω is
+    a vector to Dr.Jit): both are points, moved by the camera's translation."""
+    cam = CameraConfig(origin=(0.3, -2.5, 1.0), target=(0.0, 0.0, 0.3), fov=37.0, principal_point=(0.12, -0.08))
+    proj = Projection(sensor(cam, 40, 30))
+    X = [mi.Float([0.1, -0.4, 0.3]), mi.Float([0.2, 0.0, -0.3]), mi.Float([0.0, 0.5, 0.2])]
+    for f in (proj.importance, lambda x: proj(x)[0].x, lambda x: proj(x)[1]):
+        assert np.allclose(np.asarray(f(mi.Vector3f(*X))), np.asarray(f(mi.Point3f(*X))), rtol=1e-6)
+
+
 def test_grad_matches_finite_differences_through_an_off_centre_camera(tmp_path):
     """``psdr grad --fd`` through a camera made by :func:`pinhole_camera` (fx = 60 px on a 32×24
     film: fov 29.9°, principal point (0.38 W, 0.58 H): offset (0.12, −0.08)): a dark ball moving

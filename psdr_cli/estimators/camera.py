@@ -92,8 +92,9 @@ class Projection:
         self.centre = (0.5 - self.offset[0], 0.5 - self.offset[1])
 
     def __call__(self, p):
-        """(film position in pixels, camera-space depth z) of world points ``p``."""
-        local = self.to_local @ p
+        """(film position in pixels, camera-space depth z) of world points ``p`` (any 3-vector
+        type: a point, so that the camera's translation applies)."""
+        local = self.to_local @ mi.Point3f(p)
         z = local.z
         aspect = self.width / self.height
         x = local.x / (z * self.tan_half)
@@ -108,8 +109,9 @@ class Projection:
     def importance(self, p):
         """Importance W_e of the pinhole toward world points ``p`` (no visibility, no film test):
         1 / (A cos³θ d²) with A = (2 tan(f/2))² / a the film's area at distance 1, θ the angle to
-        the optical axis and d the distance, Mitsuba's ``PerspectiveCamera::importance``."""
-        local = self.to_local @ p
+        the optical axis and d the distance, Mitsuba's ``PerspectiveCamera::importance``; ``p``
+        any 3-vector type, taken as a point."""
+        local = self.to_local @ mi.Point3f(p)
         dist2 = dr.squared_norm(local)
         cos = local.z * dr.rsqrt(dist2)
         area = (2 * self.tan_half) ** 2 * self.height / self.width
