@@ -62,7 +62,7 @@ def setup(subdivisions: int = 2, width: int | None = None, shadowed: bool = Fals
 
 def batch_gradient(fb: FrozenBatch, problem, stage, engine, cfg, views, it):
     """(ℓ, δ, the vertex leaf's gradient) of one call, on leaves written afresh."""
-    problem.applied = None
+    problem.invalidate()
     values, leaves = problem.apply_leaves()
     loss, delta = fb(problem, stage, views, it, engine.settings, cfg)
     g = dr.grad(leaves[problem.key])
@@ -378,7 +378,7 @@ def perturbed_shapes(seed: int, trials: int = 4, deform=None):
             edges = edge_list(problem.scene, engine.settings.estimator, False)
             views = iteration.batch_views(0, trial, len(stage.arrays), exp.optimize.batch_size)
             yield problem, engine, frozen, traced, trial, V, edges, views, delta
-    problem.applied = None
+    problem.invalidate()
     problem.release()
 
 
@@ -398,7 +398,7 @@ def vertex_leaf_written(problem, V):
     numpy array each call replayed wrong results on Dr.Jit 1.5: docs/benchmarks/iteration_time.md,
     stop 52)."""
     problem.opt["u"] = problem.steps.to_differential(jit_array(mi.Float, np.ravel(V)))
-    problem.applied = None
+    problem.invalidate()
     _, leaves = problem.apply_leaves()
     return leaves[problem.key]
 

@@ -75,7 +75,7 @@ def test_apply_after_a_backward_pass_rebuilds_the_ad_graph():
         problem.apply()
         problem.apply()  # a no-op
         dr.backward(dr.sum(problem.params[problem.key]))
-        problem.applied = None  # as iterate() does after its backward pass
+        problem.invalidate()  # as iterate() does after its backward pass
         grads.append(np.asarray(dr.grad(problem.opt["u"])).copy())
         dr.set_grad(problem.opt["u"], 0.0)
     assert np.abs(grads[0]).sum() > 0
@@ -142,7 +142,7 @@ def test_an_iteration_searches_intersections_on_the_worker_only(monkeypatch):
 
 
 def test_leaves_after_an_apply_carry_the_gradient_of_a_fresh_apply():
-    """The loop applies after each step in the form its iteration used (problem.use_leaves); the
+    """The loop applies after each step in the form its iteration used (problem.write_as_leaves); the
     next iteration's leaves (frozen_batch.py) are then the ones written, with no second scene
     update, and the gradient they carry back to u is that of leaves written afresh."""
     exp = experiment()
@@ -154,7 +154,7 @@ def test_leaves_after_an_apply_carry_the_gradient_of_a_fresh_apply():
     problem.params.update = lambda *a, **k: updates.append(1) or update(*a, **k)
     grads = []
     for reuse in (True, False):
-        problem.use_leaves = reuse
+        problem.write_as_leaves(reuse)
         if reuse:
             problem.apply()  # after the step: leaves already
         before = len(updates)
@@ -163,7 +163,7 @@ def test_leaves_after_an_apply_carry_the_gradient_of_a_fresh_apply():
         assert problem.params[problem.key].index == leaves[problem.key].index  # the scene's buffer is the leaf
         dr.backward(dr.sum(problem.params[problem.key] * weights))
         problem.backward_leaves(values, leaves)
-        problem.applied = None  # as iterate() does after its backward pass
+        problem.invalidate()  # as iterate() does after its backward pass
         grads.append(np.asarray(dr.grad(problem.opt["u"])).copy())
         dr.set_grad(problem.opt["u"], 0.0)
     assert np.abs(grads[0]).sum() > 0

@@ -53,7 +53,7 @@ def test_material_texel_gradients_agree_with_finite_differences(tmp_path):
             problem.apply()
             img = render_view(problem.scene, 0, 32, seed=pass_seed(7, 0, k, 3))
             problem.opt[key] = mi.TensorXf(x0[key])
-            problem.applied = None
+            problem.invalidate()
         return float((img * weights).sum())
 
     ad = [reverse(k) for k in range(n)]

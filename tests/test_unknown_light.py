@@ -20,7 +20,8 @@ from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.passes import pass_seed
 from psdr_cli.scoring.held_out import apply_values
 from psdr_cli.optimisation import photo_light
-from psdr_cli.optimisation.problem import Problem, Shape, solid_angle_weights
+from psdr_cli.optimisation.problem import Problem, Shape
+from psdr_cli.optimisation.unknowns.environment_map import solid_angle_weights
 from psdr_cli.rendering.estimate import Settings, ad_image
 from psdr_cli.rendering.render import render_view
 from psdr_cli.run_folder.log import read_log
@@ -76,7 +77,7 @@ def weighted_gradients(problem, edges, exp, settings, weights, k: int) -> dict:
     problem.apply()
     img = ad_image(problem.scene, edges, 0, exp.estimator.terms, settings, pass_index=k)
     dr.backward(dr.sum(img * mi.Float(weights.ravel().astype(np.float32))))
-    problem.applied = None
+    problem.invalidate()
     grads = {key: np.asarray(dr.grad(problem.opt[key])) for key in problem.opt.keys()}
     for key in problem.opt.keys():
         dr.set_grad(problem.opt[key], 0.0)
@@ -122,7 +123,7 @@ def test_envmap_and_material_gradients_agree_with_finite_differences(tmp_path):
             problem.apply()
             img = render_view(problem.scene, 0, 32, seed=pass_seed(7, 0, k, 3))
             problem.opt[key] = type(problem.opt[key])(x0[key])
-            problem.applied = None
+            problem.invalidate()
         return float((img * weights).sum())
 
     ad = [reverse(k) for k in range(n)]

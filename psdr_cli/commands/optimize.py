@@ -25,20 +25,15 @@ runs (estimator overrides) live in ``<output>/<name>/<label>/``
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
-import numpy as np
 
 from ..config.experiment_file import Experiment, check_experiment
-from ..datasets.frames import Frame
-from ..errors import PsdrError, PsdrWarning
-from ..estimators.camera import Projection
-from ..experiment.dataset_frame import dataset_frames
+from ..errors import PsdrError
 from ..losses.registry import PLOT_LABEL
-from ..optimisation.camera_refinement import OPENCV_FLIP, with_camera_mode
+from ..optimisation.camera_refinement import with_camera_mode
 from ..optimisation.engines import Engine
 from ..optimisation.frozen_batch import FrozenBatch
 from ..optimisation.iteration import GuideCache, Loop, iterate
@@ -49,7 +44,6 @@ from ..optimisation.stages import Stage, stage_of
 from ..optimisation.start_state import dataset_coordinates, initial_state, load_targets, read_targets
 from ..rendering.estimate import Settings, guiding_line
 from ..rendering.render import render_view
-from ..run_folder.refined_cameras import input_format, refined_poses, write_cameras
 from ..run_folder.checkpoints import write_checkpoint, write_mesh
 from ..run_folder.layout import RunFiles, keep_previous_run, lock_run
 from ..run_folder.log import append_log, plot_loss, read_log, write_log
@@ -230,50 +224,15 @@ def save_state(problem, files: RunFiles, iteration: int, seconds: float, guides:
 
 
 def save_checkpoint(problem, files: RunFiles, iteration: int, targets, exp) -> Path:
-    """iter_NNNN.ply and a target | current | |difference| strip per preview view, at the
-    stage's resolution (``targets``: the stage's) with pixels enlarged to the film's size."""
+    """Checkpoint ``iteration``: every unknown's files (:meth:`Problem.checkpoint_files`: the mesh
+    iter_NNNN.ply, textures, maps, cameras) and a target | current | |difference| strip per
+    preview view, at the stage's resolution (``targets``: the stage's) with pixels enlarged to the
+    film's size, all written by :func:`psdr_cli.run_folder.checkpoints.write_checkpoint`."""
     with dr.suspend_grad():
         previews = {v: (targets[v], render_view(problem.scene, v, 16, seed=exp.seed))
                     for v in exp.optimize.preview_views}
-    texture = problem.texture_image() if problem.texture else None
-    for name in problem.material_textures:  # optimize.material.NAME.texture, grey
-        grey = np.repeat(problem.material_image(name), 3, axis=-1)
-        fileio.write_rgb_exr(files.material(name), grey, {"psdr.iteration": str(iteration)})
-        fileio.write_preview(files.material(name).with_suffix(".png"), grey)
-    if problem.environment:  # optimize.envmap: the map as the emitter uses it (before its scale)
-        fileio.write_rgb_exr(files.envmap, problem.environment.radiance(problem.opt["envmap"]),
-                             {"psdr.iteration": str(iteration)})
-    if problem.cameras:
-        save_cameras(exp, files, problem, iteration)
-    return write_checkpoint(files, iteration, dataset_coordinates(exp, problem.vertices()), problem.F,
-                            texture=texture, previews=previews, zoom=problem.factor, uv=problem.uv)
-
-
-def save_cameras(exp, files: RunFiles, problem, iteration: int):
-    """cameras.json and the refined cameras in the dataset's format (:mod:`psdr_cli.run_folder.refined_cameras`)."""
-    cams = problem.cameras
-    dataset = exp.optimize.target_dataset
-    if dataset is not None:
-        with warnings.catch_warnings():  # the dataset's warnings were given when the run read it
-            warnings.simplefilter("ignore", PsdrWarning)
-            frames = dataset_frames(dataset, "train")[1]
-        poses = refined_poses([f.cam_to_world for f in frames], cams.initial, cams.matrices(), dataset.frame)
-        kind, fmt = "dataset", input_format(frames)
-    else:
-        frames = [scene_frame(problem.scene.sensors[v], v) for v in range(cams.views)]
-        poses = [M @ OPENCV_FLIP for M in cams.matrices()]
-        kind, fmt = "scene", None
-    rotation, translation = cams.errors()
-    write_cameras(files.root, frames, poses, {"rotation": rotation, "translation": translation,
-                                              "stopped": cams.stopped}, iteration, kind, fmt)
-
-
-def scene_frame(sensor, view: int) -> Frame:
-    """A :class:`~psdr_cli.datasets.frames.Frame` of a scene's camera (no image): its intrinsics in pixels."""
-    proj = Projection(sensor)
-    f = proj.width / (2 * proj.tan_half)
-    return Frame(name=f"camera {view}", image=Path(""), mask=None, cam_to_world=np.eye(4), fx=f, fy=f,
-                 cx=proj.width * proj.centre[0], cy=proj.height * proj.centre[1], width=proj.width, height=proj.height)
+    return write_checkpoint(files, iteration, problem.checkpoint_files(files, iteration), previews,
+                            zoom=problem.factor)
 
 
 @dataclass
@@ -300,24 +259,9 @@ def finish(exp, files: RunFiles, problem, result: OptimizeResult, end: RunEnd, w
     fileio.write_json(files.summary, {
         "experiment": str(exp.file), "iterations": total, "resumed_from": result.resumed_from, "views": end.views,
         "final": str(files.final), "final_vertices": int(len(problem.vertices())),
-        "values": summary_values(problem, files), "skipped_updates": result.skipped,
+        "values": problem.summary(files), "skipped_updates": result.skipped,
         "seconds": seconds})
     return result
-
-
-def summary_values(problem, files: RunFiles) -> dict:
-    """The recovered unknowns for optimize.json: numbers, or the file of a texture or map."""
-    out = {}
-    for k, v in problem.values().items():
-        if k == "envmap_log":
-            out["envmap"] = str(files.envmap)
-        elif k.startswith("camera_"):
-            out["cameras"] = str(files.root / "cameras.json")
-        elif k in problem.material_textures:
-            out[k] = str(files.material(k))
-        else:
-            out[k] = str(files.albedo) if k == "albedo" and problem.texture else v.tolist()
-    return out
 
 
 def loop_guiding_line(label: str, run: Experiment) -> str:

@@ -88,7 +88,7 @@ def refusal(problem, stage, cfg, engine, settings, batch: int) -> str | None:
     losses = recording_refusal(stage, cfg)
     if losses is not None:
         return losses
-    if list(problem.opt.keys()) != ["u"]:
+    if list(problem.opt.keys()) != ["u"] or any(u.name not in ("shape", "cameras") for u in problem.unknowns):
         return "unknowns besides the shape (albedo, lighting, materials)"
     if problem.cameras is not None and (problem.cameras.attached or problem.cameras.moved):
         return "camera poses refined (the recorded batch holds the starting cameras as constants)"

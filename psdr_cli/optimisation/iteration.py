@@ -28,7 +28,7 @@ from ..rendering.render import render_view, render_views
 from ..support.jitarray import jit_array
 from .frozen_batch import FrozenBatch, refusal
 from .geometry_ahead import GeometryAhead
-from .outlier_clip import clip_outliers
+from .unknowns.unknown import At, Saved
 
 
 @dataclass
@@ -85,8 +85,8 @@ class GuideCache:
         fed, built = split_terms(loop.settings, loop.terms)
         guides = Guides()
         if state.guide_V is not None and built:
-            guides = rebuild_guides(problem, loop.settings, state.guide_V, state.guide_values, len(stage.arrays),
-                                    built)
+            guides = rebuild_guides(problem, loop.settings, Saved(state.guide_V, state.guide_values),
+                                    len(stage.arrays), built)
         log = None
         if fed:
             log = log_from_arrays(state.guide_arrays, window_budget(loop.cfg, len(stage.arrays)))
@@ -159,16 +159,13 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     cfg, engine, settings, warn = loop.cfg, loop.engine, loop.settings, loop.warn
     n_views, seed = len(stage.arrays), settings.seed
     views = batch_views(seed, it, n_views, cfg.batch_size)
-    cameras = problem.cameras is not None and problem.cameras.refining(it, loop.total)
-    problem.refine_cameras(cameras)  # optimize.cameras: the poses move from their start on
+    problem.begin(it, loop.total)  # optimize.cameras: the poses move from their start on
     frozen = loop.frozen is not None and refusal(problem, stage, cfg, engine, settings, len(views)) is None
-    problem.use_leaves = frozen  # the form the loop's apply after the step writes (problem.py)
+    problem.write_as_leaves(frozen)  # the form the loop's apply after the step writes (problem.py)
     if frozen:
         values, leaves = problem.apply_leaves()
     else:
-        problem.apply()
-    problem.scene.objects[cfg.object].vertices = problem.vertices()
-    problem.scene.objects[cfg.object].faces = problem.F
+        problem.apply()  # (the scene's copy of the mesh too, for the edge table)
     intersections = any(registry.term(t).reads_intersections for t in engine.terms)
     ahead = GeometryAhead(problem.scene, settings.estimator, settings.edge_sort, intersections) \
         if engine.needs_edges else None  # the edge table on the worker thread (geometry_ahead.py)
@@ -187,24 +184,16 @@ def iterate(problem, loop: Loop, stage, guides: GuideCache, it: int) -> Step:
     else:
         loss = traced_loss(problem, loop, stage, guides, batch)
         dr.backward(loss)
-    problem.applied = None  # the backward pass used up the scene's AD graph: the next apply rebuilds it
+    problem.invalidate()  # the backward pass used up the scene's AD graph: the next apply rebuilds it
     loss_value = float(loss[0])
     t_post = time.perf_counter()
-    grads = [np.asarray(dr.grad(problem.opt[k])) for k in problem.opt.keys()]
-    skipped = not all(np.isfinite(g).all() for g in grads) or not math.isfinite(loss_value)
+    skipped = not problem.finite_gradients() or not math.isfinite(loss_value)
     if skipped:
         warn(f"iteration {it}: non-finite gradient or loss; update skipped")
-        for opt in (problem.opt, *([problem.cameras.opt] if problem.cameras else [])):
-            for k in opt.keys():
-                dr.set_grad(opt[k], 0.0)
-    else:
-        if cfg.learning_rate_final is not None:
-            problem.opt.set_learning_rate(learning_rate_at(cfg, it, loop.total))
-        clip_outliers(problem.opt, loop.clip)
-        problem.opt.step()
-        problem.after_step()  # ranges and the environment's mean (problem.py)
-        if cameras:  # each view's pose, its stops and the gauge (camera_refinement.py)
-            problem.cameras.step(it, loop.total, warn)
+        problem.drop_gradients()
+    else:  # Adam at the iteration's rate, then each unknown's own step (ranges, the cameras' Adam)
+        rate = learning_rate_at(cfg, it, loop.total) if cfg.learning_rate_final is not None else None
+        problem.step(At(it, loop.total, warn), rate, loop.clip)
     return Step(loss_value, skipped, t_guide, t_render, t_post, time.perf_counter())
 
 
@@ -273,25 +262,12 @@ def learning_rate_at(cfg, iteration: int, total: int) -> float:
     return lr * (final / lr) ** (min(iteration - s, total - 1 - s) / (total - 1 - s))
 
 
-def rebuild_guides(problem, settings, V, values: dict, n_views: int, terms):
-    """The guides of ``problem`` as they were built from vertices ``V`` and unknowns ``values``
+def rebuild_guides(problem, settings, saved: Saved, n_views: int, terms):
+    """The guides of ``problem`` as they were built from the saved shape and unknowns ``saved``
     (a resumed run continues with the guides the interrupted run was using; guide building is
     seeded, so they are the same guides). The scene is left for :meth:`Problem.apply` to reset."""
-    cfg = problem.cfg
+    problem.write_saved(saved)
     with dr.suspend_grad():
-        problem.applied = None  # the scene is written here, for Problem.apply to reset
-        problem.params[problem.key] = jit_array(mi.Float, np.ravel(V))
-        if problem.albedo_key and "albedo" in values:
-            problem.params[problem.albedo_key] = problem.albedo_value(values["albedo"])
-        problem.write_values(values)
-        if problem.cameras:  # the poses the guides were built from
-            problem.cameras.write(problem.params, values)
-        if problem.envmap and "envmap_angle" in values:
-            problem.envmap.apply(mi.Float(float(np.ravel(values["envmap_angle"])[0])))
-        else:
-            problem.params.update()
-        problem.scene.objects[cfg.object].vertices = np.asarray(V, np.float64)
-        problem.scene.objects[cfg.object].faces = problem.F
         edges = edge_list(problem.scene, settings.estimator, settings.edge_sort)
         return make_guides(problem.scene, edges, list(range(n_views)), terms, settings)
 
