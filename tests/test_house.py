@@ -48,3 +48,36 @@ def test_only_the_estimators_and_the_config_name_a_term():
              if path.parent.name not in ("estimators", "config")
              for line in term_names_in_code(path, set(TERMS))]
     assert not named, "term names outside estimators/ and config/:\n" + "\n".join(named)
+
+
+def writes_through(path: Path, name: str) -> list:
+    """Lines of ``path`` that assign through a variable or attribute called ``name``: a target
+    such as ``name.x = …``, ``name.params[k] = …`` or ``now.name.scene.y += …`` (assigning
+    ``now.name`` itself is not writing through it)."""
+    def through(node) -> bool:
+        node = node.value if isinstance(node, (ast.Attribute, ast.Subscript)) else None
+        while node is not None:
+            if (isinstance(node, ast.Name) and node.id == name) or (isinstance(node, ast.Attribute) and node.attr == name):
+                return True
+            node = node.value if isinstance(node, (ast.Attribute, ast.Subscript)) else None
+        return False
+    tree = ast.parse(path.read_text())
+    lines = []
+    for node in ast.walk(tree):
+        targets = node.targets if isinstance(node, ast.Assign) else \
+            [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign)) else []
+        flat = [t for target in targets for t in (target.elts if isinstance(target, ast.Tuple) else [target])]
+        lines += [node.lineno for t in flat if through(t)]
+    return lines
+
+
+def test_only_the_problem_and_its_unknowns_write_the_problem():
+    """The optimisation's state is written by ``optimisation/problem.py`` and the unknowns
+    (``optimisation/unknowns/``) only: every other module asks the problem (``apply``,
+    ``invalidate``, ``write_saved``, ``step``, ...) rather than assigning through a ``problem``.
+    (A problem bound to another name escapes this check; the convention is the name ``problem``.)"""
+    allowed = {PACKAGE / "optimisation" / "problem.py"}
+    found = [f"{path.relative_to(PACKAGE.parent)}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+             if path not in allowed and path.parent.name != "unknowns"
+             for line in writes_through(path, "problem")]
+    assert not found, "assignments through a problem outside problem.py and unknowns/:\n" + "\n".join(found)

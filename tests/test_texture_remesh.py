@@ -241,7 +241,7 @@ def test_rotated_environment_lights_as_the_rotated_emitter(tmp_path):
     """The exported environment map, used with the emitter's own frame, gives the radiance the
     rotated emitter gives (Mitsuba's envmap evaluated in random directions)."""
     import drjit as dr
-    from psdr_cli.commands.export import rotate_latlong
+    from psdr_cli.optimisation.unknowns.environment_rotation import rotate_latlong
     from psdr_cli.scene.build import environment_to_world
     backend.select_variant("auto")
     y, x = np.mgrid[0:32, 0:64]

@@ -43,17 +43,17 @@ from PIL import Image
 from ..config.objects import BitmapConfig
 from ..errors import ConfigError, PsdrError
 from ..experiment.load import load_experiment
+from ..optimisation.unknowns import registry
+from ..optimisation.unknowns.asset import PBR_PNG, Asset
 from ..run_folder.layout import RunFiles
 from ..run_folder.state import State
 from ..scene import meshes
-from ..scene.build import environment_to_world, exr_texels, read_bitmap
+from ..scene.build import read_bitmap
 from ..support import fileio
 
 #: Files of an export (export.json lists the ones written).
 OBJ, MTL, PNG, GLB, ENV, RECORD = "mesh.obj", "mesh.mtl", "albedo.png", "mesh.glb", "environment.exr", "export.json"
-MR_PNG = "metallic_roughness.png"  # glTF: G roughness, B metallic (linear)
-PBR_PNG = {"roughness": "roughness.png", "metallic": "metallic.png"}  # MTL map_Pr, map_Pm (linear grey)
-GREY = (0.5, 0.5, 0.5)
+MR_PNG = "metallic_roughness.png"  # glTF: G roughness, B metallic (linear); PBR_PNG: MTL map_Pr, map_Pm
 
 
 @dataclass
@@ -61,23 +61,6 @@ class ExportResult:
     folder: Path
     files: list = field(default_factory=list)
     notes: list = field(default_factory=list)   # what was not exported, and why (one line each)
-
-
-@dataclass
-class Asset:
-    """What is exported: the mesh in the user's coordinates, its UVs (Mitsuba's convention) and
-    diffuse albedo (a linear (H, W, 3) texture or an RGB colour), and the environment."""
-    V: np.ndarray
-    F: np.ndarray
-    uv: np.ndarray | None = None
-    texture: np.ndarray | None = None
-    color: tuple = GREY
-    environment: np.ndarray | None = None
-    metallic: float = 0.0
-    roughness: float = 1.0
-    maps: dict = field(default_factory=dict)  # "roughness"/"metallic" → (H, W) glTF-convention texels
-    notes: list = field(default_factory=list)
-    record: dict = field(default_factory=dict)
 
 
 def export(source, out=None, texture=None, warn=print) -> ExportResult:
@@ -117,49 +100,10 @@ def run_asset(folder: Path, warn) -> Asset:
         raise PsdrError(f"{folder}: final.ply is not the mesh of the saved state (the run was continued "
                         f"and is unfinished); finish it with `psdr optimize --resume`")
     asset = Asset(V, F, record={"source": str(folder), "iteration": state.iteration})
-    albedo = state.values.get("albedo")
     exp = run_experiment(files, asset.notes, warn)
-    if albedo is not None and np.ndim(albedo) == 3:
-        if state.uv is None:
-            raise PsdrError(f"{files.state}: the run recovered a texture but its state has no UV coordinates")
-        asset.uv, asset.texture = np.asarray(state.uv, np.float64), np.clip(np.asarray(albedo, np.float64), 0, 1)
-    elif albedo is not None:
-        asset.color = tuple(float(c) for c in np.broadcast_to(np.clip(np.ravel(albedo), 0, 1), 3))
-    else:
-        asset.color = object_color(exp, asset.notes)
-    if any(np.ndim(state.values.get(k)) == 3 for k in PBR_PNG) and asset.uv is None:
-        if state.uv is None:
-            raise PsdrError(f"{files.state}: the run recovered a material texture but its state has no UV coordinates")
-        asset.uv = np.asarray(state.uv, np.float64)
-    angle = state.values.get("envmap_angle")
-    if angle is not None:
-        asset.record["envmap_angle_deg"] = float(np.degrees(np.ravel(angle)[0]))
-        asset.environment = rotated_environment(exp, float(np.ravel(angle)[0]), asset.notes)
-    if state.values.get("envmap_log") is not None:  # optimize.envmap: the recovered map itself
-        asset.environment = np.exp(np.asarray(state.values["envmap_log"], np.float64))
-        asset.record["environment"] = "the recovered optimize.envmap (use it with the emitter's scale and rotate_deg)"
-    recovered_material(asset, exp, state.values)
+    for unknown in registry.UNKNOWNS:  # what each recovered (optimisation/unknowns: Unknown.export)
+        unknown.export(asset, state, exp, files.state)
     return asset
-
-
-def recovered_material(asset: Asset, exp, values: dict):
-    """glTF metallic and roughness factors of the recovered ``optimize.material`` values (the
-    defaults, 0 and 1, for those not recovered); every recovered value in ``export.json``."""
-    obj = run_object(exp)
-    principled = obj is None or obj.bsdf.type == "principled"
-    for name in ("roughness", "metallic"):
-        if values.get(name) is None:
-            continue
-        v = np.clip(np.asarray(values[name], np.float64), 0, 1)
-        v = v if name == "metallic" or principled else np.sqrt(v)  # glTF roughness of an α
-        if v.ndim == 3:
-            asset.maps[name] = v[..., 0]
-            asset.record[name] = PBR_PNG[name]
-        else:
-            setattr(asset, name, float(v.ravel()[0]))
-            asset.record[name] = float(np.ravel(values[name])[0])
-    if values.get("specular") is not None:
-        asset.record["specular"] = float(np.ravel(values["specular"])[0])
 
 
 def run_experiment(files: RunFiles, notes: list, warn):
@@ -178,65 +122,6 @@ def run_experiment(files: RunFiles, notes: list, warn):
     except PsdrError as exc:
         notes.append(f"the run's experiment cannot be read ({exc}); its object's colour and environment are not used")
         return None
-
-
-def run_object(exp):
-    name = exp.optimize.object if exp is not None and exp.optimize else None
-    return next((o for o in exp.scene.objects if o.name == name), None) if name else None
-
-
-def object_color(exp, notes: list) -> tuple:
-    """The constant diffuse reflectance (or base colour) of the run's object, else grey."""
-    obj = run_object(exp)
-    if obj is not None:
-        value = obj.bsdf.params.get("reflectance", obj.bsdf.params.get("base_color"))
-        if isinstance(value, (int, float)):
-            return (float(value),) * 3
-        if isinstance(value, tuple) and len(value) == 3:
-            return tuple(float(v) for v in value)
-        notes.append("the run recovered no albedo and its object has no constant colour: exported grey")
-    return GREY
-
-
-def rotated_environment(exp, angle: float, notes: list):
-    """The run's environment map rotated by ``angle`` (radians) about ``optimize.envmap_axis``, for
-    the emitter's own ``rotate_deg`` (None, with a note, when the environment is no image file)."""
-    emitters = [] if exp is None else [e for e in exp.scene.emitters if e.type in ("envmap", "sky")]
-    if not emitters or emitters[0].type != "envmap" or exp.scene.mitsuba is not None:
-        notes.append("the recovered environment rotation is not exported as an image (the environment is "
-                     "not an envmap file of a YAML scene); it is in export.json")
-        return None
-    em = emitters[0]
-    if em.file.suffix.lower() == ".exr":
-        texels = exr_texels(em.file)
-    else:
-        texels = np.asarray(mi.Bitmap(str(em.file)).convert(component_format=mi.Struct.Type.Float32,
-                                                             srgb_gamma=False))
-    texels = np.asarray(texels, np.float64)[..., :3]
-    if texels.shape[-1] == 1:
-        texels = np.repeat(texels, 3, -1)
-    M = np.array(environment_to_world(em.rotate_deg).matrix, np.float64)[:3, :3]
-    R = meshes.rotation_matrix(exp.optimize.envmap_axis, np.degrees(angle))
-    return rotate_latlong(texels, M.T @ R.T @ M)
-
-
-def rotate_latlong(image, Q):
-    """The lat-long map (Mitsuba's ``envmap`` parametrisation: u = atan2(x, −z)/2π, v = acos(y)/π
-    of the local direction) E' with E'(l) = E(Q l), resampled bilinearly (u wraps, v clamps)."""
-    H, W = image.shape[:2]
-    v, u = (np.arange(H) + 0.5) / H, (np.arange(W) + 0.5) / W
-    theta, phi = np.meshgrid(np.pi * v, 2 * np.pi * u, indexing="ij")
-    l = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
-    d = l @ np.asarray(Q).T
-    u2 = np.mod(np.arctan2(d[..., 0], -d[..., 2]) / (2 * np.pi), 1.0)
-    v2 = np.arccos(np.clip(d[..., 1], -1, 1)) / np.pi
-    x, y = u2 * W - 0.5, np.clip(v2 * H - 0.5, 0, H - 1)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
-    xa, xb = np.mod(x0, W), np.mod(x0 + 1, W)
-    ya, yb = y0, np.minimum(y0 + 1, H - 1)
-    return ((1 - fy) * ((1 - fx) * image[ya, xa] + fx * image[ya, xb])
-            + fy * ((1 - fx) * image[yb, xa] + fx * image[yb, xb]))
 
 
 def read_mesh(path: Path):

@@ -1,7 +1,8 @@
 """``optimize.albedo``: the object's diffuse reflectance (or principled base colour), one value or,
 with ``texture: [W, H]``, an (H, W, 3) bitmap; Adam entry and saved value ``albedo``, written into
 the scene clipped to [0, 1]. Owns that BSDF parameter; a texture's checkpoint files are
-``albedo.exr``, ``albedo.png`` and ``previews/iter_NNNN_albedo.png``."""
+``albedo.exr``, ``albedo.png`` and ``previews/iter_NNNN_albedo.png``; exported as the asset's
+texture or colour."""
 from __future__ import annotations
 
 import drjit as dr
@@ -12,6 +13,7 @@ from ...errors import PsdrError
 from ...run_folder.checkpoints import Picture
 from ...scene.material_params import texture_experiment
 from ...support.jitarray import jit_array
+from .asset import object_color
 from .unknown import Saved, Start, Unknown, detached
 
 
@@ -108,6 +110,20 @@ class Albedo(Unknown):
 
     def detach(self):
         detached(self.start.params, self.key)
+
+    @staticmethod
+    def export(asset, state, exp, where):
+        """The recovered texture (with the state's UVs) or colour, clipped to [0, 1]; without a
+        recovered albedo, the experiment's own object colour, else grey."""
+        albedo = state.values.get("albedo")
+        if albedo is not None and np.ndim(albedo) == 3:
+            if state.uv is None:
+                raise PsdrError(f"{where}: the run recovered a texture but its state has no UV coordinates")
+            asset.uv, asset.texture = np.asarray(state.uv, np.float64), np.clip(np.asarray(albedo, np.float64), 0, 1)
+        elif albedo is not None:
+            asset.color = tuple(float(c) for c in np.broadcast_to(np.clip(np.ravel(albedo), 0, 1), 3))
+        else:
+            asset.color = object_color(exp, asset.notes)
 
 
 UNKNOWN = Albedo

@@ -2,7 +2,7 @@
 of log-radiance (Adam entry ``envmap``, saved value ``envmap_log``); the emitter's texels are
 exp(x) (:class:`Environment`), its mean radiance optionally held (``optimize.envmap.mean``) and its
 smoothness a prior. Owns that emitter's texels; its checkpoint file is ``envmap.exr``, the map
-as the emitter uses it (before its scale)."""
+as the emitter uses it (before its scale), and ``psdr export`` writes exp(x)."""
 from __future__ import annotations
 
 import drjit as dr
@@ -68,6 +68,13 @@ class EnvironmentMap(Unknown):
 
     def detach(self):
         detached(self.start.params, self.map.key)
+
+    @staticmethod
+    def export(asset, state, exp, where):
+        """The recovered map exp(x) as the asset's environment."""
+        if state.values.get("envmap_log") is not None:
+            asset.environment = np.exp(np.asarray(state.values["envmap_log"], np.float64))
+            asset.record["environment"] = "the recovered optimize.envmap (use it with the emitter's scale and rotate_deg)"
 
 
 class Environment:

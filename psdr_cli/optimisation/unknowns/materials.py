@@ -2,7 +2,7 @@
 :data:`psdr_cli.config.unknowns.MATERIAL_UNKNOWNS`), each one value or, with ``texture: [W, H]``,
 an (H, W, 1) bitmap, clamped to its range after every step; Adam entry and saved value by the
 parameter's name. Owns those BSDF parameters; a texture's checkpoint files are ``NAME.exr`` and
-``NAME.png`` (grey)."""
+``NAME.png`` (grey); exported as glTF metallic-roughness factors or maps and MTL PBR values."""
 from __future__ import annotations
 
 import drjit as dr
@@ -14,6 +14,7 @@ from ...errors import PsdrError
 from ...run_folder.checkpoints import Picture
 from ...scene.material_params import bsdf_parameter, material_key, material_texture_experiment, object_bsdf
 from ...support.jitarray import jit_array
+from .asset import PBR_PNG, run_object
 from .unknown import Saved, Start, Unknown, detached
 
 
@@ -109,6 +110,32 @@ class Materials(Unknown):
     def detach(self):
         for key, _ in self.keys.values():
             detached(self.start.params, key)
+
+    @staticmethod
+    def export(asset, state, exp, where):
+        """The glTF metallic and roughness factors, or maps with the state's UVs, of the recovered
+        values (a principled roughness as it is, a rough conductor's or dielectric's α as √α; the
+        defaults, 0 and 1, for those not recovered); every recovered value in ``export.json``."""
+        values = state.values
+        if any(np.ndim(values.get(k)) == 3 for k in PBR_PNG) and asset.uv is None:
+            if state.uv is None:
+                raise PsdrError(f"{where}: the run recovered a material texture but its state has no UV coordinates")
+            asset.uv = np.asarray(state.uv, np.float64)
+        obj = run_object(exp)
+        principled = obj is None or obj.bsdf.type == "principled"
+        for name in ("roughness", "metallic"):
+            if values.get(name) is None:
+                continue
+            v = np.clip(np.asarray(values[name], np.float64), 0, 1)
+            v = v if name == "metallic" or principled else np.sqrt(v)  # glTF roughness of an α
+            if v.ndim == 3:
+                asset.maps[name] = v[..., 0]
+                asset.record[name] = PBR_PNG[name]
+            else:
+                setattr(asset, name, float(v.ravel()[0]))
+                asset.record[name] = float(np.ravel(values[name])[0])
+        if values.get("specular") is not None:
+            asset.record["specular"] = float(np.ravel(values["specular"])[0])
 
 
 def initial_texels(exp, m, saved) -> np.ndarray:

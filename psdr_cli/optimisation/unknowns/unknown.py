@@ -161,10 +161,11 @@ class Unknown:
         """Write its scene parameters without AD (the end of a run; ``params.update()`` follows)."""
 
     @staticmethod
-    def export(asset, values: dict, exp):
-        """Put what the run recovered of it (``values``: the saved state's) into ``asset``
-        (:class:`psdr_cli.run_folder.export_asset.Asset`) for ``psdr export``; ``exp``: the run's
-        experiment, or None."""
+    def export(asset, state, exp, where):
+        """Put what a finished run recovered of it (``state``: its saved
+        :class:`~psdr_cli.run_folder.state.State`, read from ``where``) into ``asset``
+        (:class:`~.asset.Asset`) for ``psdr export``; ``exp``: the run's experiment, or None. Called
+        for every registered unknown, recovered by the run or not."""
 
 
 def detached(params, key: str):
