@@ -174,7 +174,7 @@ def environment_key(exp) -> str:
 
 def environment_texels(path: Path, exp):
     """Mitsuba's ``data`` tensor (H, W + 2, 3) of a lat-long EXR map: one halo column either side
-    (the last and the first column), as :class:`psdr_cli.optimisation.problem.Environment` writes it."""
+    (the last and the first column), as :class:`psdr_cli.optimisation.unknowns.environment_map.Environment` writes it."""
     try:
         texels = np.asarray(fileio.read_rgb_exr(path), np.float32)
     except Exception as exc:  # noqa: BLE001

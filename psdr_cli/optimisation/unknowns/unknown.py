@@ -8,11 +8,13 @@ An unknown is a subclass of :class:`Unknown`. Its class says whether an experime
 (:class:`Start`), holds its optimiser entries and knows
 
 - its initial value (the constructor: the saved value, else the experiment's ``init``),
-- how it writes itself into the scene (:meth:`~Unknown.scene_values`, AD-attached, and
-  :meth:`~Unknown.write_saved`, a saved value without AD),
+- how it writes itself into the scene (:meth:`~Unknown.scene_values`, AD-attached, then
+  :meth:`~Unknown.after_write`; :meth:`~Unknown.write_saved`, a saved value without AD), and
+  when that form changes (:meth:`~Unknown.begin`),
 - its step (:meth:`~Unknown.step`: ranges, normalisation, an optimiser of its own), its prior,
 - its saved values (:meth:`~Unknown.values`, the keys of ``state.npz``'s ``value_*``) and Adam
-  entries (:meth:`~Unknown.entries`, ``adam_*``),
+  entries (:meth:`~Unknown.entries`, ``adam_*``), its textures (:meth:`~Unknown.textures`,
+  carried through a remesh),
 - its checkpoint files (:meth:`~Unknown.checkpoint_files`, written by
   :func:`psdr_cli.run_folder.checkpoints.write_checkpoint`), its lines of ``optimize.json``
   (:meth:`~Unknown.summary`) and its export (:meth:`~Unknown.export`),
@@ -20,8 +22,8 @@ An unknown is a subclass of :class:`Unknown`. Its class says whether an experime
 
 :class:`psdr_cli.optimisation.problem.Problem` holds the unknowns the experiment asks for, in
 :data:`psdr_cli.optimisation.unknowns.registry.NAMES` order, and calls them; no module outside
-the optimisation package writes their state. Every method has a default that does nothing, so
-an unknown implements what concerns it only.
+the optimisation package writes their state. Every method has a default (nothing to write, give
+or do), so an unknown implements what concerns it only.
 """
 from __future__ import annotations
 
