@@ -48,7 +48,7 @@ FD_STEP = (1e-6, 0.1)
 def check_fd_step(h: float, scene, parameter: Parameter):
     """Refuse a step ``h`` that is not small against the scene: in scene units for a translation
     (against the diagonal of the scene's bounding box), radians for a rotation, a rate for a scale
-    (against 1 / the largest axis rate)."""
+    (against 1 / the largest axis rate), the log of the focal scale for a camera's focal length."""
     kind = parameter.config.kind
     if kind == "translate":
         box = scene.mi_scene.bbox()
@@ -57,6 +57,8 @@ def check_fd_step(h: float, scene, parameter: Parameter):
     elif kind == "scale":
         size = 1.0 / max(float(np.max(np.abs(parameter.config.axis))), 1e-30)
         what = f"{size:.3g} (1 / the largest axis rate)"
+    elif kind == "focal":
+        size, what = 1.0, "1 (θ = log of the focal scale)"
     else:
         size, what = 1.0, "1 radian"
     lo, hi = FD_STEP[0] * size, FD_STEP[1] * size

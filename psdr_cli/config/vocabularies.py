@@ -38,7 +38,7 @@ COMMAND_FOLDERS = ("render", "grad", "compare", "guide_stats")
 EMITTER_TYPES = ("area", "envmap", "sky", "constant")
 
 #: Kinds of the scalar parameter θ (``parameter.kind``).
-PARAMETER_KINDS = ("translate", "rotate", "scale", "envmap_rotate")
+PARAMETER_KINDS = ("translate", "rotate", "scale", "envmap_rotate", "focal")
 
 #: Camera-dataset formats (``optimize.target.dataset.format``; ``auto``: found from the files).
 DATASET_FORMATS = ("auto", "blender", "transforms", "colmap")

@@ -9,6 +9,11 @@ horizontal field of view f, aspect a = W/H and principal point offset (o_x, o_y)
 (docs/theory.md §4): the principal point is the pixel (W (½ − o_x), H (½ − o_y)). The camera
 connection W_e · f_s · |n·d0| of the direct and indirect terms is in §3.
 
+A focal scale s (f' = s·f: tan(f/2) → tan(f/2)/s, :mod:`.focal`) that a sensor carries as an AD
+factor σ reaches every camera path here: the camera rays are re-aimed (:func:`.focal.refocus`),
+the projection divides tan(f/2) by σ, a camera connection's film position moves about the
+principal point by σ (:func:`.focal.film_scale`) and its importance is multiplied by σ².
+
 Parameters (experiment keys)
 ----------------------------
 None: the film size, the field of view and the principal point come from the scene
@@ -24,6 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..support.jitarray import jit_array
+from . import focal
 from .shading_frame import bend_shading_normal
 
 
@@ -35,7 +41,15 @@ def camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, width: int, height: int,
     pos = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
     film_uv = pos / mi.ScalarVector2f(width, height)
     ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), film_uv, mi.Point2f(0.5))
-    return ray, weight
+    return focused(sensor, ray), weight
+
+
+def focused(sensor: mi.Sensor, ray: mi.Ray3f) -> mi.Ray3f:
+    """``ray`` of ``sensor`` re-aimed for the focal factor the sensor carries (:mod:`.focal`;
+    the ray as it is without one). The box-filter weight is unchanged: the film integral is over
+    film coordinates."""
+    sigma = focal.factor(sensor)
+    return ray if sigma is None else focal.refocus(sensor, ray, sigma)
 
 
 def views_camera_rays(sensors, sampler: mi.Sampler, width: int, height: int, spp: int):
@@ -52,11 +66,13 @@ def views_camera_rays(sensors, sampler: mi.Sampler, width: int, height: int, spp
     wavelength = sampler.next_1d()
     first, *others = sensor_groups(sensors)
     ray, weight = sensors[first[0]].sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5))
+    ray = focused(sensors[first[0]], ray)
     for group in others:
         mine = view == group[0]
         for k in group[1:]:
             mine |= view == k
         ray_k, weight_k = sensors[group[0]].sample_ray(0.0, wavelength, film_uv, mi.Point2f(0.5), mine)
+        ray_k = focused(sensors[group[0]], ray_k)
         ray, weight = dr.select(mine, ray_k, ray), dr.select(mine, weight_k, weight)
     return ray, weight
 
@@ -77,8 +93,9 @@ def principal_point_offset(sensor: mi.Sensor, params=None) -> tuple:
 
 
 class Projection:
-    """World → film (pixels) projection of one perspective sensor, differentiable in the point
-    (module docstring: the principal point offset shifts the film centre ½ to ½ − o)."""
+    """World → film (pixels) projection of one perspective sensor, differentiable in the point,
+    the pose and the focal factor σ the sensor carries (module docstring: the principal point
+    offset shifts the film centre ½ to ½ − o; tan(f/2) becomes tan(f/2)/σ)."""
 
     def __init__(self, sensor: mi.Sensor):
         params = mi.traverse(sensor)
@@ -90,6 +107,7 @@ class Projection:
         self.offset = principal_point_offset(sensor, params)
         # ½ − o as Python floats: exactly 0.5 for a centred camera (then its kernel has no offset in it)
         self.centre = (0.5 - self.offset[0], 0.5 - self.offset[1])
+        self.sigma = focal.factor(sensor)  # the focal factor σ (AD, value 1) or None
 
     def __call__(self, p):
         """(film position in pixels, camera-space depth z) of world points ``p`` (any 3-vector
@@ -99,6 +117,8 @@ class Projection:
         aspect = self.width / self.height
         x = local.x / (z * self.tan_half)
         y = local.y / (z * self.tan_half)
+        if self.sigma is not None:
+            x, y = x * self.sigma, y * self.sigma
         cx, cy = self.centre
         return mi.Point2f(self.width * (cx - 0.5 * x), self.height * (cy - 0.5 * aspect * y)), z
 
@@ -115,6 +135,8 @@ class Projection:
         dist2 = dr.squared_norm(local)
         cos = local.z * dr.rsqrt(dist2)
         area = (2 * self.tan_half) ** 2 * self.height / self.width
+        if self.sigma is not None:
+            area = area / (self.sigma * self.sigma)
         return dr.select(cos > 0, dr.rcp(area * cos * cos * cos * dist2), 0.0)
 
 
@@ -124,9 +146,10 @@ def film_pixel(uv, width: int):
 
 
 def camera_ray(sensor: mi.Sensor, uv, width: int, height: int, active=True):
-    """The (detached) camera ray through film position ``uv`` (pixels)."""
+    """The camera ray through film position ``uv`` (pixels): detached unless the camera moves
+    (its pose, or the focal factor it carries: :func:`focused`)."""
     ray, _ = sensor.sample_ray(0.0, 0.5, uv / mi.ScalarVector2f(width, height), mi.Point2f(0.5), active)
-    return ray
+    return focused(sensor, ray)
 
 
 class SensorCamera:
@@ -136,7 +159,9 @@ class SensorCamera:
     (importance W_e, unit direction d0 from x to the camera, film position, valid, distance).
     With a principal point offset, W_e is :meth:`Projection.importance` (Mitsuba 3.9 zeroes its
     own outside the *centred* film rectangle, whatever the offset; inside the shifted film it
-    has the same value: it depends on the angle and the distance only)."""
+    has the same value: it depends on the angle and the distance only). With a focal factor σ
+    (:mod:`.focal`) the film position moves about the principal point by σ and W_e is
+    multiplied by σ² (values unchanged: σ = 1)."""
 
     def __init__(self, sensor: mi.Sensor, width: int, height: int):
         self.sensor, self.width, self.height = sensor, width, height
@@ -148,9 +173,15 @@ class SensorCamera:
         it = dr.zeros(mi.Interaction3f)
         it.p = x
         ds, importance = self.sensor.sample_direction(it, mi.Point2f(0.5), active)
-        if any(principal_point_offset(self.sensor)):
+        uv, sigma = ds.uv, focal.factor(self.sensor)
+        if any(principal_point_offset(self.sensor)):  # Projection's importance holds σ² already
             importance = mi.Spectrum(dr.select(ds.pdf > 0, Projection(self.sensor).importance(x), 0.0))
-        return importance, ds.d, ds.uv, ds.pdf > 0, ds.dist
+        elif sigma is not None:
+            importance = importance * (sigma * sigma)
+        if sigma is not None:
+            cx, cy = Projection(self.sensor).centre
+            uv = focal.film_scale(uv, (self.width * cx, self.height * cy), sigma)
+        return importance, ds.d, uv, ds.pdf > 0, ds.dist
 
 
 @dataclass

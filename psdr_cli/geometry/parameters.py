@@ -8,6 +8,11 @@ With c the centre of the object's bounding box at θ = 0 and a the (unit) axis:
 - ``envmap_rotate``: to_world(θ) = R(a, θ) · to_world(0) of every environment emitter.
 - a camera (``camera: i``): ``translate``: to_world(θ) = T(θ a) · to_world(0); ``rotate``:
   to_world(θ) = T(o) R(a, θ) T(−o) · to_world(0) about the camera's own origin o.
+- a camera's ``focal`` length: s = e^θ (θ = log s, dimensionless), f'(θ) = s·f, principal point
+  kept: the sensor's field of view becomes 2 atan(tan(φ0/2) / e^θ) (its value, which finite
+  differences render through Mitsuba's own camera) and the sensor carries the factor
+  σ = e^(θ − detach θ) (value 1) whose derivative psdr's camera paths take
+  (:mod:`psdr_cli.estimators.focal`).
 
 R(a, θ) v = v cosθ + (a × v) sinθ + a (a·v)(1 − cosθ) (Rodrigues).
 """
@@ -22,6 +27,8 @@ import numpy as np
 from ..config.parameter import ParameterConfig
 from ..config.scene_ids import INTERNAL_PREFIX, sensor_id
 from ..errors import PsdrError
+from ..estimators import focal
+from ..estimators.camera import is_perspective
 
 
 def rodrigues(axis, theta, v):
@@ -43,6 +50,8 @@ class Parameter:
                 raise PsdrError(f"parameter.camera: no camera {config.camera} in the scene")
             self.keys = [key]
             self.initial = {key: mi.AffineTransform4f(self.params[key])}
+            if config.kind == "focal":
+                self.init_focal(scene, config.camera)
         elif config.kind == "envmap_rotate":
             prefix = f"{INTERNAL_PREFIX}emitter_"
             self.keys = [k for k in self.params.keys() if k.startswith(prefix) and k.endswith(".to_world")]
@@ -58,9 +67,20 @@ class Parameter:
             self.initial = {key: mi.Float(self.params[key])}
             self.center = mi.Point3f(*(float(x) for x in (V0.min(0) + V0.max(0)) / 2))
 
+    def init_focal(self, scene, camera: int):
+        """The camera's field of view at θ = 0 (its ``x_fov`` key, a perspective camera's only)."""
+        self.sensor = scene.mi_scene.sensors()[camera]
+        if not is_perspective(self.sensor):
+            raise PsdrError(f"parameter.camera: camera {camera} is not a perspective camera; kind 'focal' scales a "
+                            f"perspective camera's focal length")
+        self.keys = [f"{sensor_id(camera)}.x_fov"]
+        self.initial = {self.keys[0]: float(dr.ravel(self.params[self.keys[0]])[0])}
+
     @property
     def name(self) -> str:
         c = self.config
+        if c.kind == "focal":
+            return f"focal camera {c.camera} (log scale)"
         what = "environment" if c.kind == "envmap_rotate" else \
             (f"camera {c.camera}" if c.camera is not None else c.object)
         return f"{c.kind} {what} axis ({', '.join(f'{a:g}' for a in c.axis)})"
@@ -92,9 +112,18 @@ class Parameter:
         """Whether θ moves a camera (``parameter.camera``)."""
         return self.config.camera is not None
 
+    def apply_focal(self, theta: mi.Float):
+        """The focal scale e^θ: its value into the sensor's field of view, its derivative into
+        the factor the sensor carries (none when θ carries no derivative; module docstring)."""
+        value = float(dr.ravel(dr.detach(theta))[0])
+        self.params[self.keys[0]] = focal.scaled_fov(self.initial[self.keys[0]], math.exp(value))
+        focal.attach(self.sensor, dr.exp(theta - value) if dr.grad_enabled(theta) else None)
+
     def apply(self, theta):
         theta = mi.Float(theta)
-        if self.config.camera is not None:
+        if self.config.kind == "focal":
+            self.apply_focal(theta)
+        elif self.config.camera is not None:
             self.params[self.keys[0]] = self.camera_to_world(theta)
         elif self.config.kind == "envmap_rotate":
             rot = mi.Transform4f().rotate(list(self.config.axis), theta * (180.0 / math.pi))
