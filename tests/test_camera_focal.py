@@ -90,13 +90,15 @@ def test_bad_focal_parameters_are_one_line(tmp_path, parameter, message):
     assert "\n" not in str(info.value) and "camera.yaml" in str(info.value)
 
 
-def test_each_camera_path_has_the_derivative_of_mitsubas_changed_field_of_view():
-    """For a camera with its principal point off centre: the forward derivative in θ = log s of
-    the camera ray through film points, of the film projection and of the importance towards
-    world points, against central differences of Mitsuba's own camera with its field of view
-    changed to 2 atan(tan(φ/2) e^−θ) (the principal point kept)."""
-    sensor = mi.load_dict({"type": "perspective", "fov": 40, "principal_point_offset_x": 0.06,
-                           "principal_point_offset_y": -0.04, "to_world": look_at((0.3, -2.0, 1.0), (0, 0, 0.3), (0, 0, 1)),
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.06, -0.04)])
+def test_each_camera_path_has_the_derivative_of_mitsubas_changed_field_of_view(offset):
+    """For a centred camera and one with its principal point off centre: the forward derivative
+    in θ = log s of the camera ray through film points, of the film projection and of the camera
+    connection (film position, importance) towards world points, against central differences of
+    Mitsuba's own camera with its field of view changed to 2 atan(tan(φ/2) e^−θ)."""
+    sensor = mi.load_dict({"type": "perspective", "fov": 40, "principal_point_offset_x": offset[0],
+                           "principal_point_offset_y": offset[1],
+                           "to_world": look_at((0.3, -2.0, 1.0), (0, 0, 0.3), (0, 0, 1)),
                            "film": {"type": "hdrfilm", "width": 32, "height": 24}})
     params = mi.traverse(sensor)
     fov0 = float(dr.ravel(params["x_fov"])[0])
