@@ -19,12 +19,19 @@ import numpy as np
 import pytest
 
 from psdr_cli import api
+from psdr_cli.config.parameter import ParameterConfig
+from psdr_cli.config.unknowns import CamerasUnknown
+from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators import focal
 from psdr_cli.estimators.camera import Projection, SensorCamera, camera_ray
-from psdr_cli.rendering.estimate import prepare
+from psdr_cli.geometry.parameters import Parameter
+from psdr_cli.optimisation.camera_refinement import CameraCorrections
+from psdr_cli.rendering.camera_motion import with_all_edges
+from psdr_cli.rendering.estimate import Settings, forward_gradient, prepare, term_image, term_passes, term_seed
 from psdr_cli.rendering.reference import agreement, fd_resolution, finite_difference
 from psdr_cli.rendering.render import render_view
-from psdr_cli.scene.build import look_at
+from psdr_cli.scene.build import build_scene, look_at
+from psdr_cli.support.jitarray import jit_array
 from psdr_cli.support import backend
 from psdr_cli.support.verdict import agrees, describe
 from standins import camera_cfg, load
@@ -134,3 +141,63 @@ def test_each_camera_path_has_the_derivative_of_mitsubas_changed_field_of_view(o
         step = 1e-2 * np.abs(fd).max()  # the O(h²) truncation of central differences, and then some
         assert np.allclose(g, fd, rtol=0, atol=rounding + step), (g, fd)
         assert np.abs(fd).max() > rounding + step  # a derivative that is there
+
+
+# The loop's unknown: optimize.cameras.focal (psdr_cli/optimisation/focal_refinement.py)
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def two_views(tmp_path_factory):
+    """The camera stand-in seen by two cameras of one camera model (one focal scale), 16 spp."""
+    cfg = camera_cfg()
+    second = copy.deepcopy(cfg["scene"]["cameras"][0])
+    second.update(origin=[-1.9, -1.5, 1.6], target=[0.05, 0.0, 0.3])
+    cfg["scene"]["cameras"].append(second)
+    cfg["estimator"].update(spp=16, primary_spp=64, boundary_spp=64)
+    exp = load(cfg, tmp_path_factory.mktemp("focal"))
+    scene = with_all_edges(build_scene(exp))
+    edges = edge_list(scene, exp.estimator, Settings.from_experiment(exp).edge_sort)
+    return scene, edges, Settings.from_experiment(exp)
+
+
+def tile_weights(height: int, width: int) -> list:
+    """Per-pixel weights: the whole image, then each quarter."""
+    out = [np.ones((height, width, 3))]
+    for i in range(2):
+        for j in range(2):
+            w = np.zeros((height, width, 3))
+            w[i * height // 2:(i + 1) * height // 2, j * width // 2:(j + 1) * width // 2] = 1
+            out.append(w)
+    return out
+
+
+@pytest.mark.parametrize("view", [0, 1])
+@pytest.mark.parametrize("term", ("interior", "primary", "direct"))
+def test_reverse_focal_gradient_is_the_checked_forward_one(two_views, view, term):
+    """Per view and term, whole image and quarters: the reverse-mode gradient of the loop's shared
+    focal scale x = log s against the forward mode of ``parameter: {camera: view, kind: focal}``
+    (checked against finite differences above) on the same samples: one camera model, so
+    ∂(Σ w·I_v)/∂x is view v's own forward derivative."""
+    scene, edges, settings = two_views
+    width, height = scene.resolution
+    spp = term_passes(term, settings, width * height)[0]
+    params = mi.traverse(scene.mi_scene)
+    forward = forward_gradient(scene, edges, Parameter(scene, ParameterConfig(kind="focal", camera=view)), view, term,
+                               settings).passes[0]
+    checked = 0
+    for weights in tile_weights(height, width):
+        cams = CameraCorrections(CamerasUnknown(mode="on", focal=True), params, len(scene.sensors), {})
+        assert cams.focal.models == 1
+        cams.attached = True
+        cams.write(params)
+        params.update()
+        image = term_image(scene, edges, view, term, spp, term_seed(settings, view, 0, term), settings)
+        dr.backward(dr.sum(image * jit_array(mi.Float, weights.ravel())))
+        got = float(np.asarray(dr.grad(cams.opt["focal"]))[0])
+        cams.detach(params)
+        params.update()
+        expected = float((forward * weights).sum())
+        bound = 2e-3 * max(abs(expected), 1e-3 * float(np.abs(forward).sum()), 1e-6)
+        assert abs(got - expected) <= bound, (got, expected)
+        checked += abs(expected) > 1e-4
+    assert checked >= 4  # not all zeros

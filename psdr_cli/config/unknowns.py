@@ -128,11 +128,15 @@ class CamerasUnknown:
     warmup: int = 20                       # iterations over which the step ramps up from 0
     max_rotation_deg: float = 3.0          # a view whose correction goes beyond stops (runaway)
     max_translation: float = 0.05          # the same for the translation (camera distances)
+    focal: bool = False                    # refine the focal length, one scale per camera model
+    focal_learning_rate: float = 2e-3      # Adam step of log s (focal_refinement.py)
+    max_focal: float = 0.1                 # a model whose |log s| passes log(1 + max_focal) stops
 
 
 def parse_cameras(value, where) -> CamerasUnknown:
-    """``optimize.cameras: auto | on | off | {rotation, translation, learning_rate, start, warmup,
-    max_rotation_deg, max_translation}`` (a mapping turns refinement on)."""
+    """``optimize.cameras: auto | on | off | {rotation, translation, focal, learning_rate,
+    focal_learning_rate, start, warmup, max_rotation_deg, max_translation, max_focal}`` (a mapping
+    turns refinement on)."""
     if isinstance(value, bool):
         return CamerasUnknown(mode="on" if value else "off")
     if isinstance(value, str):
@@ -147,6 +151,9 @@ def parse_cameras(value, where) -> CamerasUnknown:
     c.warmup = sec.get("warmup", integer(0), c.warmup)
     c.max_rotation_deg = sec.get("max_rotation_deg", number(positive=True, maximum=45), c.max_rotation_deg)
     c.max_translation = sec.get("max_translation", number(positive=True, maximum=1), c.max_translation)
+    c.focal = sec.get("focal", boolean, c.focal)
+    c.focal_learning_rate = sec.get("focal_learning_rate", number(positive=True, maximum=0.1), c.focal_learning_rate)
+    c.max_focal = sec.get("max_focal", number(positive=True, maximum=0.5), c.max_focal)
     sec.done()
     if not (c.rotation or c.translation):
         raise where.fail("expected rotation or translation (or both) to be refined (or cameras: off)")

@@ -25,6 +25,9 @@ Schedule: nothing moves before iteration ``start`` (default: a fifth of the run,
 has settled); the step then ramps linearly over ``warmup`` iterations to ``learning_rate``. A
 view whose gradient is not finite, or whose correction leaves ``max_rotation_deg`` or
 ``max_translation``, stops: its correction goes back to its value before that step and stays.
+
+``focal: true`` adds a focal scale per camera model (:mod:`.focal_refinement`), an entry of the
+same Adam optimiser with its own rate and bound; it adds no gauge direction.
 """
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ from ..config.scene_ids import sensor_id
 from ..errors import PsdrError
 from ..experiment.dataset_frame import look_at_point
 from ..support.jitarray import jit_array
+from .focal_refinement import FocalCorrections
 
 #: The unknowns' names (Adam entries, and ``camera_<name>`` in a run's saved values).
 PARTS = ("rotation", "translation")
@@ -149,6 +153,7 @@ class CameraCorrections:
         self.G = gauge_basis(self.axes, self.origins, self.centre, self.distances, "rotation" in self.parts,
                              "translation" in self.parts) if gauge else np.zeros((3 * views * len(self.parts), 0))
         self.M0 = [mi.Matrix4f(m) for m in self.initial]
+        self.focal = FocalCorrections(cfg, params, views, values, self.opt) if getattr(cfg, "focal", False) else None
         self.attached = False  # whether the transforms written carry the corrections' AD graph
 
     @property
@@ -158,7 +163,7 @@ class CameraCorrections:
     @property
     def moved(self) -> bool:
         """Whether any correction is non-zero (the cameras are no longer the dataset's)."""
-        return bool(np.any(self.array() != 0))
+        return bool(np.any(self.array() != 0)) or (self.focal is not None and bool(np.any(self.focal.logs() != 0)))
 
     def start(self, total: int) -> int:
         """The first iteration refined: ``start``, or a fifth of a ``total``-iteration run."""
@@ -210,6 +215,8 @@ class CameraCorrections:
         ``params.update()``)."""
         for key, value in self.transforms(values).items():
             params[key] = value
+        if self.focal is not None:
+            self.focal.write(params, self.attached, values)
 
     def detach(self, params):
         """Write the transforms without AD (the end of a run)."""
@@ -228,8 +235,14 @@ class CameraCorrections:
         for k, p in enumerate(self.parts):
             g = np.where(self.stopped[:, None], 0.0, np.nan_to_num(grads[:, 3 * k:3 * k + 3]))
             dr.set_grad(self.opt[p], jit_array(mi.Float, g.ravel()))
-        self.opt.set_learning_rate(self.learning_rate(iteration, total))
+        focal_before = None
+        if self.focal is not None:
+            self.focal.set_gradient(iteration, warn)
+            focal_before = self.focal.logs()
+        self.opt.set_learning_rate(self.rates(iteration, total))
         self.opt.step()
+        if self.focal is not None:
+            self.focal.settle(focal_before, iteration, warn)
         after = self.array()
         runaway = self.beyond_bounds(after) & ~self.stopped
         for v in np.flatnonzero(runaway):
@@ -241,6 +254,19 @@ class CameraCorrections:
         x = np.concatenate([after[:, 3 * k:3 * k + 3].ravel() for k in range(len(self.parts))])
         x = without_gauge(x, self.G, np.tile(free, len(self.parts)))
         self.assign(x.reshape(len(self.parts), -1, 3))
+
+    def rates(self, iteration: int, total: int) -> dict:
+        """Each Adam entry's step: the schedule's, the focal scale's in proportion
+        (``focal_learning_rate`` / ``learning_rate``)."""
+        lr = self.learning_rate(iteration, total)
+        out = {p: lr for p in self.parts}
+        if self.focal is not None:
+            out["focal"] = lr * self.cfg.focal_learning_rate / self.cfg.learning_rate
+        return out
+
+    def focal_scales(self, values: dict | None = None) -> np.ndarray:
+        """The focal scale s_v of every view (ones without ``focal``)."""
+        return np.ones(self.views) if self.focal is None else self.focal.scales(values)
 
     def array(self) -> np.ndarray:
         """(views, 3 · parts) the corrections, rotation first."""
@@ -264,6 +290,8 @@ class CameraCorrections:
         """``camera_<part>`` (views × 3) and ``camera_stopped`` (views,) for the saved state."""
         out = {f"camera_{p}": np.asarray(self.opt[p], np.float64).reshape(-1, 3) for p in self.parts}
         out["camera_stopped"] = self.stopped.astype(np.float64)
+        if self.focal is not None:
+            out.update(self.focal.values())
         return out
 
     def matrices(self) -> np.ndarray:

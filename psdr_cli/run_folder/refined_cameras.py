@@ -2,8 +2,9 @@
 
 - ``cameras.json``: every training view's name, image, camera-to-world matrix (OpenCV axes:
   x right, y down, z forward; in the dataset's coordinates, or the scene's without a dataset),
-  its intrinsics as the dataset gave them, and the correction applied (degrees, camera
-  distances) and whether its refinement stopped;
+  its intrinsics (the dataset's, with ``optimize.cameras.focal`` its focal lengths f_x, f_y
+  times the refined scale s: the principal point is kept), and the correction applied
+  (degrees, camera distances, the focal scale) and whether its refinement stopped;
 - ``refined_cameras/``: the same poses in the input's own format, with the images named as the
   input names them (relative paths from this folder, or the original image folder for COLMAP):
   ``transforms_train.json`` (Blender / NeRF-synthetic), ``transforms.json`` (instant-ngp,
@@ -19,6 +20,7 @@ Every file is written atomically.
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -54,13 +56,21 @@ def refined_poses(poses, initial, corrected, frame) -> list:
     return out
 
 
-def camera_records(frames, poses, rotation_deg, translation, stopped) -> list:
-    """The ``views`` entries of cameras.json."""
+def refocused(frames, scales) -> list:
+    """``frames`` with their focal lengths f_x, f_y times the refined focal scales (principal
+    points kept)."""
+    return [replace(f, fx=f.fx * float(s), fy=f.fy * float(s)) for f, s in zip(frames, scales)]
+
+
+def camera_records(frames, poses, rotation_deg, translation, stopped, focal_scale=None) -> list:
+    """The ``views`` entries of cameras.json (``focal_scale``: each view's refined s, or None)."""
+    scales = [None] * len(frames) if focal_scale is None else focal_scale
     return [{"name": f.name, "image": str(f.image), "split": f.split,
              "cam_to_world": np.round(P, 12).tolist(), "fx": f.fx, "fy": f.fy, "cx": f.cx, "cy": f.cy,
              "width": f.width, "height": f.height, "distortion": list(f.distortion),
-             "correction": {"rotation_deg": float(r), "translation": float(t), "stopped": bool(s)}}
-            for f, P, r, t, s in zip(frames, poses, rotation_deg, translation, stopped)]
+             "correction": {"rotation_deg": float(r), "translation": float(t), "stopped": bool(s),
+                            **({} if k is None else {"focal_scale": float(k)})}}
+            for f, P, r, t, s, k in zip(frames, poses, rotation_deg, translation, stopped, scales)]
 
 
 def write_cameras(root: Path, frames, poses, corrections: dict, iteration: int, frame_kind: str,

@@ -16,7 +16,7 @@ from ...estimators.camera import Projection
 from ...experiment.dataset_frame import dataset_frames
 from ...rendering.camera_motion import check_camera_motion, with_all_edges
 from ...run_folder.checkpoints import CameraPoses
-from ...run_folder.refined_cameras import input_format, refined_poses
+from ...run_folder.refined_cameras import input_format, refined_poses, refocused
 from ..camera_refinement import OPENCV_FLIP, CameraCorrections
 from .unknown import At, Saved, Start, Unknown
 
@@ -43,7 +43,10 @@ class Cameras(Unknown):
             except PsdrError as exc:
                 raise PsdrError(f"{start.file}: optimize.cameras: {str(exc).split(': ', 1)[-1]}; set "
                                 f"optimize.cameras: off") from None
-        self.corrections = CameraCorrections(start.cfg.cameras, start.params, len(scene.sensors), start.values)
+        try:
+            self.corrections = CameraCorrections(start.cfg.cameras, start.params, len(scene.sensors), start.values)
+        except PsdrError as exc:  # optimize.cameras.focal on a camera it cannot scale
+            raise PsdrError(f"{start.file}: {exc}") from None
 
     def entries(self) -> dict:
         opt = self.corrections.opt
@@ -79,13 +82,15 @@ class Cameras(Unknown):
                 frames = dataset_frames(dataset, "train")[1]
             poses = refined_poses([f.cam_to_world for f in frames], cams.initial, cams.matrices(), dataset.frame)
             kind, fmt = "dataset", input_format(frames)
+            frames = refocused(frames, cams.focal_scales())  # optimize.cameras.focal
         else:
             frames = [scene_frame(self.start.scene.sensors[v], v) for v in range(cams.views)]
             poses = [M @ OPENCV_FLIP for M in cams.matrices()]
             kind, fmt = "scene", None
         rotation, translation = cams.errors()
         return [CameraPoses(frames, poses, {"rotation": rotation, "translation": translation,
-                                            "stopped": cams.stopped}, kind, fmt)]
+                                            "stopped": cams.stopped,
+                                            "focal": cams.focal_scales() if cams.focal else None}, kind, fmt)]
 
     def summary(self, files) -> dict:
         return {"cameras": str(files.root / "cameras.json")}
