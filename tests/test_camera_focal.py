@@ -201,3 +201,4 @@ def test_reverse_focal_gradient_is_the_checked_forward_one(two_views, view, term
         assert abs(got - expected) <= bound, (got, expected)
         checked += abs(expected) > 1e-4
     assert checked >= 4  # not all zeros
+

@@ -325,10 +325,10 @@ def test_refined_poses_are_the_dataset_poses_of_the_corrected_cameras():
 
 @pytest.fixture(scope="module")
 def refined_run(tmp_path_factory):
-    """6 iterations of the example with its poses refined from iteration 2 on (a run, and the
-    same run stopped after 3 iterations and resumed)."""
+    """6 iterations of the example with its poses (and focal length) refined from iteration 2 on
+    (a run, and the same run stopped after 3 iterations and resumed)."""
     tmp = tmp_path_factory.mktemp("refined")
-    cams = {"start": 2, "warmup": 0, "learning_rate": 0.01}
+    cams = {"start": 2, "warmup": 0, "learning_rate": 0.01, "focal": True, "focal_learning_rate": 0.01}
     full = load_experiment(dataset_experiment(tmp, cameras=cams))
     api.optimize(full, warn=lambda m: None)
     part = load_experiment(dataset_experiment(tmp, name="cams_resumed", cameras=cams))
@@ -368,6 +368,26 @@ def test_a_resumed_refinement_continues_exactly(refined_run):
         assert a.adam[key][0] == b.adam[key][0]
         np.testing.assert_array_equal(a.adam[key][1], b.adam[key][1])
     np.testing.assert_array_equal(a.V, b.V)
+
+
+def test_a_refined_run_writes_and_resumes_its_focal_length(refined_run):
+    """optimize.cameras.focal: the refined focal scale is saved (camera_focal, one camera model),
+    resumed exactly with its Adam moments, and carried into cameras.json (f_x·s, focal_scale) and
+    into the Blender split written back (camera_angle_x of f_x·s)."""
+    full, part = refined_run
+    a, b = State.load(full.run_dir / "state.npz"), State.load(part.run_dir / "state.npz")
+    np.testing.assert_array_equal(a.values["camera_focal"], b.values["camera_focal"])
+    assert a.adam["camera_focal"][0] == b.adam["camera_focal"][0]
+    np.testing.assert_array_equal(a.adam["camera_focal"][1], b.adam["camera_focal"][1])
+    s = math.exp(float(np.ravel(a.values["camera_focal"])[0]))
+    assert np.ravel(a.values["camera_focal"]).shape == (1,) and s != 1.0
+    doc = json.loads((full.run_dir / "cameras.json").read_text())
+    train = [f for f in read_frames({"path": DATA / "blender"}) if f.split == "train"]
+    for view, frame in zip(doc["views"], train):
+        assert view["correction"]["focal_scale"] == pytest.approx(s, rel=1e-12)
+        assert view["fx"] == pytest.approx(frame.fx * s, rel=1e-9)
+    back = read_frames({"path": full.run_dir / "refined_cameras" / "transforms_train.json"})
+    assert back[0].fx == pytest.approx(train[0].fx * s, rel=1e-6)
 
 
 def test_the_colmap_form_of_the_refined_cameras_reads_back(tmp_path, refined_run):
