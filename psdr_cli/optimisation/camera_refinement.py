@@ -210,6 +210,19 @@ class CameraCorrections:
         return {key: mi.AffineTransform4f(dr.gather(mi.Matrix4f, A, v) @ self.M0[v])
                 for v, key in enumerate(self.keys)}
 
+    def scene_values(self) -> dict:
+        """{sensor parameter: value}: every view's transform (:meth:`transforms`) and, with
+        ``focal``, its field of view; :meth:`attach_focal` follows once they are written."""
+        out = self.transforms()
+        if self.focal is not None:
+            out.update(self.focal.fields_of_view())
+        return out
+
+    def attach_focal(self):
+        """With ``focal``: the sensors carry their focal factors while :attr:`attached`."""
+        if self.focal is not None:
+            self.focal.attach(self.attached)
+
     def write(self, params, values: dict | None = None):
         """Write every view's transform into ``params`` (of the saved ``values`` when given; no
         ``params.update()``)."""

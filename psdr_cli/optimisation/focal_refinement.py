@@ -79,8 +79,16 @@ class FocalCorrections:
 
     def write(self, params, attached: bool, values: dict | None = None):
         """Every view's field of view (the value) and, while ``attached``, its focal factor σ_v."""
-        for key, fov0, s in zip(self.keys, self.fov0, self.scales(values)):
-            params[key] = focal.scaled_fov(fov0, float(s))
+        for key, fov in self.fields_of_view(values).items():
+            params[key] = fov
+        self.attach(attached, values)
+
+    def fields_of_view(self, values: dict | None = None) -> dict:
+        """{sensor ``x_fov`` key: 2 atan(tan(φ_v/2) / s_v)} (of the saved ``values`` when given)."""
+        return {key: focal.scaled_fov(fov0, float(s)) for key, fov0, s in zip(self.keys, self.fov0, self.scales(values))}
+
+    def attach(self, attached: bool, values: dict | None = None):
+        """Let every view's sensor carry its focal factor σ_v while ``attached`` (none otherwise)."""
         x = self.opt["focal"]
         sigma = dr.exp(x - dr.detach(x)) if attached and values is None else None
         for v, sensor in enumerate(self.sensors):

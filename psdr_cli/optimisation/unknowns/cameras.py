@@ -60,7 +60,11 @@ class Cameras(Unknown):
         return changed
 
     def scene_values(self) -> dict:
-        return self.corrections.transforms()
+        return self.corrections.scene_values()
+
+    def after_write(self, scene):
+        """The focal factors ride on the sensors, not in their parameters."""
+        self.corrections.attach_focal()
 
     def write_saved(self, saved: Saved):
         """The poses the saved ``values`` hold."""
