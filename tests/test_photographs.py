@@ -24,7 +24,7 @@ from psdr_cli.experiment.dataset_frame import look_at_point, to_dataset, to_norm
 from psdr_cli.experiment.load import load_experiment, parse_experiment
 from psdr_cli.support import backend
 from psdr_cli.target_sources import visual_hull as visual_hull_module
-from psdr_cli.target_sources.visual_hull import mask_distance, visual_hull
+from psdr_cli.target_sources.visual_hull import MAX_RESOLUTION, grid_resolution, mask_distance, visual_hull
 from conftest import run_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -165,6 +165,12 @@ def ray_hits(mesh, origin, directions) -> np.ndarray:
 def torus_views(count=12, size=40):
     """Views of a torus (major radius 0.6, minor 0.2) on a ring above it, masks by ray casting."""
     torus = trimesh.creation.torus(major_radius=0.6, minor_radius=0.2, major_sections=48, minor_sections=16)
+    return mesh_views(torus, count, size)
+
+
+def mesh_views(mesh, count=12, size=40):
+    """Views of ``mesh`` from a ring of cameras 3 units from the origin, alternately 35° and 70°
+    above it (a 40° field of view), masks by ray casting."""
     views = []
     f = size / (2 * np.tan(np.radians(20)))
     for i in range(count):
@@ -177,7 +183,7 @@ def torus_views(count=12, size=40):
         M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = right, np.cross(forward, right), forward, origin
         u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
         d = np.stack([(u - size / 2) / f, (v - size / 2) / f, np.ones_like(u)], -1).reshape(-1, 3) @ M[:3, :3].T
-        hit = ray_hits(torus, origin, d)
+        hit = ray_hits(mesh, origin, d)
         views.append(View(f"v{i}", np.zeros((size, size, 3)), hit.reshape(size, size).astype(float), M,
                           f, f, size / 2, size / 2, size, size, "train"))
     return views
@@ -191,6 +197,20 @@ def test_the_visual_hull_of_a_torus_keeps_its_hole():
     assert mesh.is_watertight
     assert mesh.euler_number == 0, mesh.euler_number
     assert 0.7 < np.ptp(V[:, 0]) < 1.8 and np.ptp(V[:, 2]) < 0.9
+
+
+def test_the_visual_hull_keeps_a_part_two_pixels_wide():
+    """A ball on a rod 2.6 pixels wide seen from 16 views of 96²: the carving grid's cell is about
+    a pixel (72 points a side would be two pixels a cell and lose the rod), so the hull reaches
+    down to the rod's end."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4)
+    ball.apply_translation([0, 0, 0.3])
+    rod = trimesh.creation.cylinder(radius=0.03, height=0.9, sections=24)
+    rod.apply_translation([0, 0, -0.4])
+    views = mesh_views(trimesh.util.concatenate([ball, rod]), count=16, size=96)
+    assert grid_resolution(views, 1.5) == MAX_RESOLUTION
+    V, _ = visual_hull(views)
+    assert V[:, 2].min() < -0.7, V[:, 2].min()
 
 
 def silhouette(V, F, view) -> np.ndarray:

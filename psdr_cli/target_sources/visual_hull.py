@@ -6,7 +6,10 @@ of the camera and projected inside the image) has it inside its mask:
 
     H = { x : ∀ v with π_v(x) ∈ image_v,  m_v(π_v(x)) ≥ ½ },   π_v(x) = K_v R_vᵀ (x − o_v) (pinhole),
 
-sampled on a regular grid over the cube [−b, b]³ and turned into a surface by marching cubes
+sampled on a regular grid over the cube [−b, b]³ whose cell is about one pixel of the masks at
+the object (:func:`grid_resolution`: the median over views of |o_v|/f_v, the footprint of a pixel
+at the look-at point, the origin; between :data:`MIN_RESOLUTION` and :data:`MAX_RESOLUTION` cells
+a side), so that a part a few pixels wide survives, and turned into a surface by marching cubes
 (scikit-image) at the level ½ of the occupancy; the largest connected part is kept and the
 voxel staircase smoothed by Taubin's λ|μ filter (volume-preserving, 10 passes). Points that no
 view sees are outside.
@@ -38,6 +41,9 @@ MARGINS = (0, 1, 2, 3, 4, 6, 8)
 
 #: The mean width (pixels) of the band of a mask the hull may leave uncovered (in 90 % of the views).
 LOST_WIDTH = 0.1
+
+#: Fewest and most grid points a side of the carving grid (:func:`grid_resolution`).
+MIN_RESOLUTION, MAX_RESOLUTION = 72, 128
 
 #: Views checked for coverage (evenly spread; all of them when there are fewer).
 COVERAGE_VIEWS = 24
@@ -110,10 +116,20 @@ def hull_margin(grid: np.ndarray, distance: np.ndarray, step: float, views) -> t
     return MARGINS[-1], False
 
 
-def visual_hull(views, bound: float = 1.5, resolution: int = 72, margin: float | None = None):
+def grid_resolution(views, bound: float) -> int:
+    """Grid points a side over [−bound, bound] for cells of one pixel at the origin: 2·bound / h + 1
+    with h the median of |o_v| / f_v over the views (camera centre o_v, focal length f_v in
+    pixels), clamped to [:data:`MIN_RESOLUTION`, :data:`MAX_RESOLUTION`]."""
+    footprint = float(np.median([np.linalg.norm(v.cam_to_world[:3, 3]) / v.fx for v in views]))
+    wanted = int(np.ceil(2 * bound / max(footprint, 1e-9))) + 1
+    return int(np.clip(wanted, MIN_RESOLUTION, MAX_RESOLUTION))
+
+
+def visual_hull(views, bound: float = 1.5, resolution: int | None = None, margin: float | None = None):
     """(V, F) of the hull surface H_m of ``views`` over [−bound, bound]³ on a ``resolution``³
-    grid; ``margin`` m in pixels, or None: the smallest that explains the masks (module
-    docstring; a warning says when it is not 0)."""
+    grid (None: :func:`grid_resolution`); ``margin`` m in pixels, or None: the smallest that
+    explains the masks (module docstring; a warning says when it is not 0)."""
+    resolution = grid_resolution(views, bound) if resolution is None else resolution
     axis = np.linspace(-bound, bound, resolution)
     grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     distance = mask_distance(grid, views)
