@@ -559,7 +559,7 @@ def stratified(u: mi.Float, n_samples: int, view=None) -> mi.Float:
     cumulative mass at stratified points is unbiased like independent draws (each stratum is
     drawn once with probability 1/N) and leaves less variance; consecutive lanes then draw
     neighbouring points of the curve list, so their rays stay coherent (docs/theory.md §4;
-    measured in docs/benchmarks/iteration_time.md, stop 46)."""
+    measured in docs/benchmarks/iteration_time.md)."""
     lane = dr.arange(mi.UInt32, dr.width(u))
     if view is not None:
         lane -= view * dr.opaque(mi.UInt32, n_samples)

@@ -109,7 +109,7 @@ def dense_pairs(rows, lo, hi):
 def sorted_unique(a) -> np.ndarray:
     """The distinct values of the 1-D array ``a`` in ascending order (``np.unique(a)``): sorted,
     then each value kept where it differs from its predecessor (faster than ``np.unique`` on the
-    broad phase's pair keys: docs/benchmarks/iteration_time.md, stop 47)."""
+    broad phase's pair keys: docs/benchmarks/iteration_time.md)."""
     a = np.sort(a)
     return a[np.r_[True, a[1:] != a[:-1]]] if len(a) else a
 
