@@ -12,7 +12,14 @@ every view's given focal length is 2 % too long, and what it costs per iteration
    s·(1 + error) − 1 (0: the true focal length; ``cameras.json``'s ``focal_scale``), the seconds
    per iteration, and the machine's 10⁷-step Python loop time.
 
+5. **Ambiguity** (``--ambiguity``, no optimisation): how much of a focal scale's effect on the
+   masks the object scaled by the same factor about the cameras' look-at point reproduces, with
+   the cameras fixed: the pixels where the mask of focal s and the true mask differ, against
+   those where the masks of focal s and of the scaled object differ (Mitsuba's ``aov``
+   shape index, 64 spp, box filter; the first ``--ambiguity-views`` training views).
+
     .venv/bin/python benchmarks/focal_refinement.py --meshes bunny --iterations 60 --size 64
+    .venv/bin/python benchmarks/focal_refinement.py --meshes bunny cow --ambiguity
 """
 from __future__ import annotations
 
@@ -22,6 +29,8 @@ import math
 import shutil
 import sys
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pose_refinement as pose  # noqa: E402
@@ -71,6 +80,47 @@ def run(mesh: str, focal: bool, dataset: Path, args) -> dict:
     return out
 
 
+def coverage(V, F, fov_deg: float, cam_to_world, size: int) -> np.ndarray:
+    """(size, size) coverage of the mesh (V, F) through a Blender camera (OpenGL axes,
+    horizontal field of view ``fov_deg``): Mitsuba's ``aov`` shape index is 0 on the mesh."""
+    import mitsuba as mi
+    mesh = mi.Mesh("object", len(V), len(F))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(V, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.ascontiguousarray(F, np.uint32).ravel())
+    params.update()
+    opengl_to_mitsuba = np.diag([-1.0, 1.0, -1.0, 1.0])
+    scene = mi.load_dict({"type": "scene", "object": mesh, "integrator": {"type": "aov", "aovs": "s:shape_index"},
+                          "camera": {"type": "perspective", "fov": fov_deg, "fov_axis": "x",
+                                     "to_world": mi.ScalarTransform4f(np.asarray(cam_to_world) @ opengl_to_mitsuba),
+                                     "film": {"type": "hdrfilm", "width": size, "height": size,
+                                              "rfilter": {"type": "box"}}}})
+    return np.asarray(mi.render(scene, spp=64))[..., 0]
+
+
+def ambiguity(folder: Path, scale: float, views: int) -> dict:
+    """{"focal_px", "residual_px", "share"}: mask pixels changed by a focal scale ``scale``, and
+    those where it differs from the object scaled by ``scale`` about the look-at point."""
+    import mitsuba as mi
+    import trimesh
+    mi.set_variant("llvm_ad_rgb")
+    doc = json.loads((folder / "blender" / "transforms_train.json").read_text())
+    mesh = trimesh.load(folder / "ground_truth.ply", process=False)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    poses = [np.asarray(f["transform_matrix"], np.float64) for f in doc["frames"]][:views]
+    made = json.loads((folder / "dataset.json").read_text())
+    centre, size = np.asarray(made["look_at"], np.float64), int(made["settings"]["size"])
+    fov = math.degrees(doc["camera_angle_x"])
+    zoomed = math.degrees(2 * math.atan(math.tan(math.radians(fov) / 2) / scale))
+    focal_px = residual_px = 0.0
+    for M in poses:
+        truth, zoom = coverage(V, F, fov, M, size), coverage(V, F, zoomed, M, size)
+        grown = coverage(centre + scale * (V - centre), F, fov, M, size)
+        focal_px += float(np.abs(zoom - truth).sum())
+        residual_px += float(np.abs(zoom - grown).sum())
+    return {"focal_px": focal_px, "residual_px": residual_px, "share": residual_px / max(focal_px, 1e-30)}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=pose.ROOT / "docs" / "benchmarks")
@@ -84,7 +134,15 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=96)
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--ambiguity", action="store_true", help="only the focal / object-size ambiguity of the masks")
+    ap.add_argument("--ambiguity-views", type=int, default=12)
     args = ap.parse_args(argv)
+    if args.ambiguity:
+        for mesh in args.meshes:
+            folder = args.work / "datasets" / mesh
+            pose.make_dataset(folder, mesh, args)
+            print(mesh, json.dumps(ambiguity(folder, 1 + args.error, args.ambiguity_views)), flush=True)
+        return
     reference_s = reference_loop_seconds()
     rows = []
     for mesh in args.meshes:
