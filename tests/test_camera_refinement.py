@@ -34,6 +34,8 @@ from psdr_cli.errors import PsdrError
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.scoring import held_out_alignment
 from psdr_cli.scoring.held_out import score_mesh
+from psdr_cli.scoring.held_out_focal import refocused_held_out
+from psdr_cli.experiment.dataset_frame import dataset_scene
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.geometry.parameters import Parameter
 from psdr_cli.optimisation.camera_refinement import CameraCorrections, gauge_basis, rotation_matrices, with_camera_mode, without_gauge
@@ -466,6 +468,14 @@ def test_evaluate_aligns_the_held_out_cameras_of_a_refined_run(refined_run, monk
     assert "poses as given" in (full.run_dir / "held_out" / "held_out.md").read_text()
     plain = score_mesh(full, Path(last["mesh"]), values=json.loads((full.run_dir / "optimize.json").read_text())["values"])
     assert plain.mean("psnr") == pytest.approx(last["as_given"]["psnr"]) and not plain.aligned
+    # the held-out photographs were taken with the training views' camera: its refined focal length
+    s = math.exp(float(np.ravel(State.load(full.run_dir / "state.npz").values["camera_focal"])[0]))
+    assert s != 1.0 and last["focal_scales"] == pytest.approx([s] * last["views"], rel=1e-9)
+    assert "refined focal length" in (full.run_dir / "held_out" / "held_out.md").read_text()
+    test = dataset_scene(full, split="test")
+    refocused, _ = refocused_held_out(test, full.run_dir / "cameras.json")
+    tan = lambda c: math.tan(math.radians(c.fov) / 2)  # noqa: E731
+    assert all(tan(a) / tan(b) == pytest.approx(s, rel=1e-9) for a, b in zip(test.scene.cameras, refocused.scene.cameras))
 
 
 def test_auto_refines_datasets_only(tmp_path):

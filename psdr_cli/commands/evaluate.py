@@ -229,6 +229,8 @@ def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples:
     if align:
         row["as_given"] = {k: scores.mean(k) for k in keys}
         row["alignment_deg"] = [float(r) for r, _ in scores.alignment]
+    if any(s != 1.0 for s in scores.focal_scales):
+        row["focal_scales"] = [float(s) for s in scores.focal_scales]
     if reference is not None:
         row.update(asdict(distance(load(mesh), reference, samples)))
         row.update({k: scores.geometry_mean(k) for k in ("depth_error", "normal_deg", "normal_cosine")})
@@ -359,7 +361,10 @@ def held_out_table(rows: list) -> str:
     notes = ("", "Rows with poses 'aligned': each held-out camera was fitted to its photograph with the recovered "
              "scene fixed before scoring (the run refined its training cameras); the column 'poses as given' "
              "scores the cameras as the dataset gives them.")
-    return "\n".join(lines + (list(notes) if any(r.get("poses") == "aligned" for r in rows) else [])) + "\n"
+    focal = ("", "Held-out cameras of a camera model whose focal length the run refined were scored at the "
+             "refined focal length (scales in held_out.json, 'focal_scales').")
+    lines += list(notes) if any(r.get("poses") == "aligned" for r in rows) else []
+    return "\n".join(lines + (list(focal) if any("focal_scales" in r for r in rows) else [])) + "\n"
 
 
 def evaluate_inputs(paths, reference: Path | None = None, samples: int | None = None,

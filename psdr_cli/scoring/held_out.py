@@ -17,6 +17,8 @@ Each view also gets a target | render | |error| strip (PNG, sRGB).
 With ``align`` (a run that refined its training cameras), every held-out camera is first scored
 as given, then aligned to the recovered scene (a pose-only fit against its photograph:
 :mod:`psdr_cli.scoring.held_out_alignment`) and scored again; the strips show the aligned renders.
+A run that refined its focal lengths has each held-out camera at the refined focal length of its
+camera model (:mod:`psdr_cli.scoring.held_out_focal`), as given and aligned.
 """
 from __future__ import annotations
 
@@ -41,6 +43,7 @@ from ..scene.material_params import material_key, material_texture_experiment, t
 from ..support import fileio
 from ..target_sources.camera_dataset import dataset_views, target_image
 from .held_out_alignment import align_views
+from .held_out_focal import refocused_held_out
 from .held_out_geometry import held_out_geometry
 
 
@@ -61,6 +64,7 @@ class HeldOutResult:
     strips: list = field(default_factory=list)
     aligned: list = field(default_factory=list)  # of ViewScore, from the aligned cameras (align)
     alignment: list = field(default_factory=list)  # (degrees, camera distances) each camera was moved
+    focal_scales: list = field(default_factory=list)  # the refined focal scale each camera got (1: none)
     geometry: list = field(default_factory=list)   # of held_out_geometry.ViewGeometry (with a reference)
 
     def geometry_mean(self, key: str) -> float | None:
@@ -190,15 +194,15 @@ def score_mesh(exp, mesh: Path, out: Path | None = None, spp: int = 256, values:
     the photographs; strips go to ``out`` when given; with ``align``, scored again from the
     aligned cameras (module docstring); with a ``reference`` (V, F), depth and normals against it
     (:mod:`psdr_cli.scoring.held_out_geometry`, from the aligned cameras when aligned)."""
-    test = dataset_scene(exp, split="test")
+    values = values or {}
+    test, scales = refocused_held_out(dataset_scene(exp, split="test"), values.get("cameras"))
     views = dataset_views(test)
     V, F, uv = meshes.read_mesh_file_uv(mesh)
-    values = values or {}
     plain, test = test, textured_experiment(test, values, uv)
     shape = (to_normalised(V, test.optimize.target_dataset.frame), F) + ((uv,) if uv is not None else ())
     scene = build_scene(test, objects={test.optimize.object: shape})
     apply_values(scene, test, values)
-    result = HeldOutResult(Path(mesh))
+    result = HeldOutResult(Path(mesh), focal_scales=scales)
     if out is not None:
         fileio.writable_folder(out)
     targets = [target_image(view, test.scene.hide_background) for view in views]
