@@ -153,7 +153,7 @@ class CameraCorrections:
         self.G = gauge_basis(self.axes, self.origins, self.centre, self.distances, "rotation" in self.parts,
                              "translation" in self.parts) if gauge else np.zeros((3 * views * len(self.parts), 0))
         self.M0 = [mi.Matrix4f(m) for m in self.initial]
-        self.focal = FocalCorrections(cfg, params, views, values, self.opt) if getattr(cfg, "focal", False) else None
+        self.focal = FocalCorrections(cfg, params, views, values, self.opt) if cfg.focal else None
         self.attached = False  # whether the transforms written carry the corrections' AD graph
 
     @property
