@@ -60,12 +60,13 @@ def test_the_indirect_part_replays_the_traced_term_for_new_batches_and_edge_tabl
     each replay of the recorded part gives the gradient of the term's traced pass and of the same
     part traced (a stale replay would give the first batch's), with one recording for all of them;
     then a remesh (a new scene, about 4× the edges: more slots) is recorded again and gives the
-    traced gradient too."""
+    traced gradient too. A guided pass is left to the traced term."""
     counts, norms = [], []
     for problem, engine, frozen, traced, trial, _, edges, views, delta in perturbed_shapes(5, **SCENE):
         recorded, part, term = part_gradients(problem, engine, (frozen, traced, None), edges, views, trial, delta)
         assert_same_gradient(recorded, term)
         assert_same_gradient(part, term)
+        assert not frozen.serves(INDIRECT, problem, views, engine.settings, edges, {INDIRECT: object()})  # guided
         counts.append(edges.count)
         norms.append(np.abs(term).sum())
     assert len(set(counts)) > 1 and len(set(norms)) == len(norms), (counts, norms)
