@@ -144,3 +144,13 @@ def test_a_frozen_loop_at_depth_3_is_the_same_loop_traced():
         assert np.allclose(a, b, rtol=1e-4) and np.abs(Va - Vb).max() < 1e-4
     else:
         assert np.array_equal(a, b) and np.array_equal(Va, Vb)
+
+
+def test_below_depth_3_the_indirect_part_records_nothing():
+    """At max_depth 2 (every term listed, as by default) the indirect term is 0: its part runs no
+    pass, records nothing and leaves the leaves' gradient at 0."""
+    shapes = perturbed_shapes(6, 1, **{**SCENE, "max_depth": 2})
+    for problem, engine, frozen, _, trial, V, edges, views, delta in shapes:
+        leaf = vertex_leaf_written(problem, V)
+        assert frozen.record(INDIRECT, problem, views, trial, engine.settings, edges=edges, delta=delta) == 0
+        assert frozen.parts[INDIRECT].n_recordings == 0 and not np.any(np.asarray(dr.grad(leaf)))
