@@ -17,6 +17,12 @@ run in a later phase's kernel). ``reference`` is the time of a fixed Python loop
 the same process: compare runs through their ratio to it.
 
     .venv/bin/python benchmarks/iteration_time.py [--scales 1,2] [--iterations 10] [--out docs/benchmarks]
+
+``--max-depth`` and ``--terms`` change the experiment's path depth and terms (at depth ≥ 3 the
+indirect term runs when listed); ``--compare-part NAME`` runs the recorded iteration twice per
+scale, first with term NAME's recorded part left out (its passes traced, as before it had one),
+then with it: the two side by side in one process, between the same reference loops; ``--rounds``
+repeats the modes in turn (on a shared machine the load drifts: the rounds show by how much).
 """
 from __future__ import annotations
 
@@ -158,12 +164,16 @@ def timed_geometry(phases: Phases, cls):
     return Timed
 
 
-def setup(scale: int, tmp: Path, initial: int | None = None):
+def setup(scale: int, tmp: Path, initial: int | None = None, depth: int | None = None, terms: tuple | None = None):
     """The demo's experiment at 64·scale pixels square, its initial shape remeshed to ``initial``
-    vertices (None: the experiment's ``remesh.initial``)."""
+    vertices (None: the experiment's ``remesh.initial``), paths of ``depth`` segments and the
+    estimator terms ``terms`` (None: the experiment's)."""
     exp = psdr_cli.load_experiment(CONFIG)
     remesh = exp.optimize.remesh if initial is None else replace(exp.optimize.remesh, initial=initial)
-    exp = replace(exp, output=tmp, scene=replace(exp.scene, width=64 * scale, height=64 * scale),
+    scene = replace(exp.scene, width=64 * scale, height=64 * scale)
+    scene = scene if depth is None else replace(scene, max_depth=depth)
+    estimator = exp.estimator if terms is None else replace(exp.estimator, terms=terms)
+    exp = replace(exp, output=tmp, scene=scene, estimator=estimator,
                   optimize=replace(exp.optimize, target_spp=16, remesh=remesh))
     backend.activate(exp)
     files = RunFiles(exp.run_dir)
@@ -178,9 +188,12 @@ def setup(scale: int, tmp: Path, initial: int | None = None):
 
 
 def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial: int | None = None,
-              freeze: bool = False) -> dict:
+              freeze: bool = False, *, depth: int | None = None, terms: tuple | None = None,
+              traced_parts: tuple = ()) -> dict:
+    """The breakdown at 64·scale pixels (module docstring); ``freeze``: with the recorded parts,
+    but for those of ``traced_parts`` (their terms' passes traced)."""
     with tempfile.TemporaryDirectory() as tmp:
-        exp, files, problem, settings, engine, stage = setup(scale, Path(tmp), initial)
+        exp, files, problem, settings, engine, stage = setup(scale, Path(tmp), initial, depth, terms)
         guides = GuideCache()
         problem.apply = phases.wrap("apply", problem.apply)
         problem.apply_leaves = phases.wrap("apply", problem.apply_leaves)
@@ -189,6 +202,8 @@ def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial:
         total = warmup + iterations
         seconds = 0.0
         loop = iteration.Loop(exp.optimize, engine, total, print, frozen=FrozenBatch() if freeze else None)
+        for name in traced_parts if freeze else ():
+            del loop.frozen.parts[name]  # the term's passes traced in the recorded iteration
         body = phases.wrap("step", lambda it: iteration.iterate(problem, loop, stage, guides, it))
         save = phases.wrap("save", lambda it, s: save_state(problem, files, it + 1, s, guides))
         with backend.optimization_threads():
@@ -196,6 +211,7 @@ def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial:
                 if it == warmup:
                     phases.reset()
                     t0, c0 = time.perf_counter(), time.process_time()
+                    recorded = loop.frozen.n_recordings if freeze else 0
                 t_start = time.perf_counter()
                 step = body(it)
                 seconds += step.t_end - t_start
@@ -211,11 +227,12 @@ def run_scale(scale: int, warmup: int, iterations: int, phases: Phases, initial:
         out["iteration"]["cpu"] = cpu  # every thread's CPU time (the geometry worker's included)
         out["vertices"] = int(len(problem.vertices()))
         out["recordings"] = loop.frozen.n_recordings if freeze else 0
+        out["recordings_measured"] = out["recordings"] - recorded  # recorded again in the measured iterations
         return out
 
 
-ORDER = ("edges", "frozen", "frozen direct", "frozen primary", "interior", "primary", "direct", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other",
-         "iteration")
+ORDER = ("edges", "frozen", "frozen direct", "frozen primary", "frozen indirect", "interior", "primary", "direct",
+         "indirect", "adjoint", "loss", "backward", "update", "step", "apply", "save", "other", "iteration")
 
 
 def table(res: dict) -> list:
@@ -244,6 +261,13 @@ def main(argv=None):
                          "remeshes to 1500 and 2500 later)")
     ap.add_argument("--freeze", choices=("off", "on", "both"), default="both",
                     help="the recorded part of the iteration (psdr_cli/optimisation/frozen_batch.py): off, on, or both in turn")
+    ap.add_argument("--max-depth", type=int, default=None, help="the scene's path depth (default: the experiment's, 2)")
+    ap.add_argument("--terms", default=None,
+                    help="estimator terms, comma-separated (default: the experiment's: interior,primary,direct)")
+    ap.add_argument("--compare-part", default=None,
+                    help="a term with a recorded part: the recorded iteration with that part traced, then recorded "
+                         "(overrides --freeze)")
+    ap.add_argument("--rounds", type=int, default=1, help="run the modes this many times in turn")
     ap.add_argument("--no-blocking", action="store_true",
                     help="asynchronous launches (the loop's mode): kernel times then overlap and include queueing")
     args = ap.parse_args(argv)
@@ -253,13 +277,20 @@ def main(argv=None):
     dr.set_flag(dr.JitFlag.LaunchBlocking, not args.no_blocking)
     results = {"label": args.label, "python": platform.python_version(), "drjit": dr.__version__,
                "reference_before": reference_loop(), "scales": {}}
-    modes = {"off": (False,), "on": (True,), "both": (False, True)}[args.freeze]
+    modes = [(freeze, ()) for freeze in {"off": (False,), "on": (True,), "both": (False, True)}[args.freeze]]
+    if args.compare_part:
+        modes = [(True, (args.compare_part,)), (True, ())]
+    terms = tuple(args.terms.split(",")) if args.terms else None
+    results.update(max_depth=args.max_depth, terms=terms, compare_part=args.compare_part)
     for s in (int(x) for x in args.scales.split(",")):
-        for freeze in modes:
-            res = run_scale(s, args.warmup, args.iterations, phases, args.initial, freeze)
-            key = f"{64 * s}x{64 * s}" + (" frozen" if freeze else "")
+        for (freeze, traced), round_ in [(m, r) for r in range(args.rounds) for m in modes]:
+            res = run_scale(s, args.warmup, args.iterations, phases, args.initial, freeze, depth=args.max_depth,
+                            terms=terms, traced_parts=traced)
+            key = f"{64 * s}x{64 * s}" + (" frozen" if freeze else "") + "".join(f", {t} traced" for t in traced) \
+                + (f" (round {round_ + 1})" if args.rounds > 1 else "")
             results["scales"][key] = res
-            print(f"\n{args.label} {key} ({res['vertices']} vertices, {res['recordings']} recordings), per iteration "
+            print(f"\n{args.label} {key} ({res['vertices']} vertices, {res['recordings']} recordings, "
+                  f"{res['recordings_measured']} of them measured), per iteration "
                   f"over {args.iterations}:")
             print("\n".join(table(res)))
             print(f"CPU time of the process (every thread): {res['iteration']['cpu'] * 1e3:.1f} ms per iteration")

@@ -22,7 +22,7 @@ from psdr_cli import api
 from psdr_cli.config.parameter import ParameterConfig
 from psdr_cli.config.unknowns import CamerasUnknown
 from psdr_cli.estimators.boundary_sampling import edge_list
-from psdr_cli.estimators import focal
+from psdr_cli.scene import sensors
 from psdr_cli.estimators.camera import Projection, SensorCamera, camera_ray
 from psdr_cli.geometry.parameters import Parameter
 from psdr_cli.optimisation.camera_refinement import CameraCorrections
@@ -120,17 +120,17 @@ def test_each_camera_path_has_the_derivative_of_mitsubas_changed_field_of_view(o
 
     theta = mi.Float(0.0)
     dr.enable_grad(theta)
-    focal.attach(sensor, dr.exp(theta - 0.0))
+    sensors.attach(sensor, dr.exp(theta - 0.0))
     try:
         values = paths()
         dr.forward(theta, flags=dr.ADFlag.ClearNone)  # a ray's direction is also its origin's input
         grads = [np.array(dr.grad(v)) for v in values]
     finally:
-        focal.attach(sensor, None)
+        sensors.attach(sensor, None)
     h = 1e-3
     sides = []
     for sign in (1, -1):
-        params["x_fov"] = focal.scaled_fov(fov0, math.exp(sign * h))
+        params["x_fov"] = sensors.scaled_fov(fov0, math.exp(sign * h))
         params.update()
         sides.append([np.array(v) for v in paths()])
     params["x_fov"] = fov0

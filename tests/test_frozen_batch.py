@@ -18,6 +18,7 @@ import yaml
 import psdr_cli
 from conftest import bit_reproducible
 from psdr_cli import api
+from psdr_cli.config.estimator_section import EstimatorConfig
 from psdr_cli.estimators.boundary_sampling import edge_list
 from psdr_cli.estimators.recording import Recording
 from psdr_cli.optimisation import iteration
@@ -34,15 +35,20 @@ from psdr_cli.support.jitarray import jit_array
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reconstruct_bunny.yaml"
 
 
-def setup(subdivisions: int = 2, width: int | None = None, shadowed: bool = False, jitter: int | None = None):
+def setup(subdivisions: int = 2, width: int | None = None, shadowed: bool = False, jitter: int | None = None,
+          max_depth: int | None = None):
     """The demo's experiment on a sphere, or (``shadowed``) on two spheres, one in the other's
     shadow under the sun (a convex shape casts no shadow: the direct term is 0 there); ``jitter``
     (a seed): every vertex coordinate moved by one float32 step (ulp) up or down at random, a
-    change of the size of the rays' rounding."""
+    change of the size of the rays' rounding; ``max_depth``: paths that long, with every term
+    (the indirect one too, from depth 3: light between the two spheres)."""
     exp = psdr_cli.load_experiment(CONFIG)
     backend.activate(exp)
     if width is not None:
         exp = replace(exp, scene=replace(exp.scene, width=width, height=width))
+    if max_depth is not None:
+        exp = replace(exp, scene=replace(exp.scene, max_depth=max_depth),
+                      estimator=replace(exp.estimator, terms=EstimatorConfig().terms))
     V, F = meshes.sphere(0.4, subdivisions)
     V = V + [0, 0, 0.42]
     if shadowed:
@@ -359,11 +365,12 @@ def test_a_frozen_run_resumes_exactly_across_a_remesh(tmp_path, monkeypatch):
     assert (runs["whole"][1] / "final.ply").read_bytes() == (runs["stopped"][1] / "final.ply").read_bytes()
 
 
-def perturbed_shapes(seed: int, trials: int = 4, deform=None):
+def perturbed_shapes(seed: int, trials: int = 4, deform=None, **scene):
     """The part tests' set-up: yields (problem, engine, a recorded and a traced FrozenBatch, the
     trial, the sphere's vertices jittered (and ``deform(trial, V)`` when given), their edge table,
-    a batch, a fixed δ) on a prepared problem, in the optimisation's thread setting."""
-    exp, problem, engine, stage = setup()
+    a batch, a fixed δ) on a prepared problem (``scene``: :func:`setup`'s options), in the
+    optimisation's thread setting."""
+    exp, problem, engine, stage = setup(**scene)
     frozen, traced = FrozenBatch(), FrozenBatch(enabled=False)
     V0 = np.asarray(problem.vertices())
     rng = np.random.default_rng(seed)

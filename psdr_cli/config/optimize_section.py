@@ -41,7 +41,7 @@ class OptimizeConfig:
     guide_every: int = 10
     adjoint_spp: int = 0                   # samples of the separate primal render the L1 sign comes from (0: the AD image's own)
     checkpoint_every: int = 50
-    freeze: bool = True                    # record and replay the adjoint render, interior and direct terms (frozen_batch.py)
+    freeze: bool = True                    # record and replay the adjoint render and the recorded parts (frozen_batch.py)
     preview_views: tuple = (0,)
     albedo: bool = False
     albedo_init: tuple | None = None       # default: the object's BSDF value

@@ -29,6 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..support.jitarray import jit_array
+from ..scene.sensors import factor as focal_factor
 from . import focal
 from .shading_frame import bend_shading_normal
 
@@ -48,7 +49,7 @@ def focused(sensor: mi.Sensor, ray: mi.Ray3f) -> mi.Ray3f:
     """``ray`` of ``sensor`` re-aimed for the focal factor the sensor carries (:mod:`.focal`;
     the ray as it is without one). The box-filter weight is unchanged: the film integral is over
     film coordinates."""
-    sigma = focal.factor(sensor)
+    sigma = focal_factor(sensor)
     return ray if sigma is None else focal.refocus(sensor, ray, sigma)
 
 
@@ -107,7 +108,7 @@ class Projection:
         self.offset = principal_point_offset(sensor, params)
         # ½ − o as Python floats: exactly 0.5 for a centred camera (then its kernel has no offset in it)
         self.centre = (0.5 - self.offset[0], 0.5 - self.offset[1])
-        self.sigma = focal.factor(sensor)  # the focal factor σ (AD, value 1) or None
+        self.sigma = focal_factor(sensor)  # the focal factor σ (AD, value 1) or None
 
     def __call__(self, p):
         """(film position in pixels, camera-space depth z) of world points ``p`` (any 3-vector
@@ -173,7 +174,7 @@ class SensorCamera:
         it = dr.zeros(mi.Interaction3f)
         it.p = x
         ds, importance = self.sensor.sample_direction(it, mi.Point2f(0.5), active)
-        uv, sigma = ds.uv, focal.factor(self.sensor)
+        uv, sigma = ds.uv, focal_factor(self.sensor)
         if any(principal_point_offset(self.sensor)):  # Projection's importance holds σ² already
             importance = mi.Spectrum(dr.select(ds.pdf > 0, Projection(self.sensor).importance(x), 0.0))
         elif sigma is not None:
@@ -293,11 +294,6 @@ class CameraTable:
             proj = Projection(sensor)
             intrinsics.append((proj.tan_half, *proj.centre, float(params["near_clip"]), float(params["far_clip"])))
         return cls(*(jit_array(mi.Float, np.ravel(a)) for a in (frames, inverses, intrinsics)), width, height)
-
-
-def is_perspective(sensor: mi.Sensor) -> bool:
-    """Whether ``sensor`` is Mitsuba's ``perspective`` camera (the rays of :class:`LaneCameras`)."""
-    return sensor.class_name() == "PerspectiveCamera"
 
 
 def table_camera_rays(table: CameraTable, views: mi.UInt32, sampler: mi.Sampler, spp: int) -> mi.Ray3f:

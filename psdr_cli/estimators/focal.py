@@ -26,32 +26,8 @@ constants (:class:`.camera.LaneCameras`) hold the value only, like a moving pose
 """
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
-
-#: id(sensor) -> (the sensor, σ): the sensor is held so that its id is not reused meanwhile
-_FACTORS: dict = {}
-
-
-def attach(sensor, sigma) -> None:
-    """Let ``sensor`` carry the focal factor σ (an AD Float of value 1), or none (``sigma`` None)."""
-    if sigma is None:
-        _FACTORS.pop(id(sensor), None)
-    else:
-        _FACTORS[id(sensor)] = (sensor, mi.Float(sigma))
-
-
-def factor(sensor):
-    """The focal factor σ that ``sensor`` carries (:func:`attach`), or None."""
-    entry = _FACTORS.get(id(sensor))
-    return None if entry is None or entry[0] is not sensor else entry[1]
-
-
-def scaled_fov(fov_deg: float, s: float) -> float:
-    """The horizontal field of view (degrees) of focal scale ``s``: 2 atan(tan(φ/2) / s)."""
-    return math.degrees(2.0 * math.atan(math.tan(math.radians(fov_deg) / 2.0) / s))
 
 
 def refocus(sensor, ray: mi.Ray3f, sigma) -> mi.Ray3f:

@@ -49,6 +49,8 @@ from .camera import SensorCamera, ViewLanes, connect_camera, lane_views
 from .term import GuideTarget, Term, boundary_pass
 
 FOLLOW = mi.RayFlags.All | mi.RayFlags.FollowShape
+#: Shortest path (segments) with an indirect boundary segment: the term is 0 below it.
+MIN_DEPTH = 3
 
 
 def detector_walk(scene, camera, siD, w, depth: int, sampler, active):
@@ -171,14 +173,29 @@ def views_indirect_boundary(scene: mi.Scene, sensors, edges: BoundaryEdges, P, n
 def indirect_image(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n_samples: int,
                    sampler: mi.Sampler, max_depth: int, *, guide=None) -> mi.Float:
     """The indirect boundary contributions of ``lanes.count`` views as one flat image, view-major
-    (count·W·H·3), each lane's segment added to its view's part (``lanes.view``: each lane's view,
-    None for one view), from ``n_samples`` segments per view."""
+    (count·W·H·3), each lane's segment added to its view's part (:func:`indirect_samples`), from
+    ``n_samples`` segments per view."""
+    camera = lanes.camera
+    img = dr.zeros(mi.Float, camera.width * camera.height * 3 * lanes.count)
+    for v, pixel, live in indirect_samples(scene, lanes, edges, P, n_samples, sampler, max_depth, guide=guide):
+        for c in range(3):
+            dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, live)
+    return img
+
+
+def indirect_samples(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n_samples: int,
+                     sampler: mi.Sampler, max_depth: int, *, guide=None, distr=None) -> list:
+    """Per detector length j = 1…max_depth − 2, each lane's (v − detach(v), pixel, mask): v of the
+    module docstring with weight W·H / (N·g(u)) (``n_samples`` = N segments per view, g the
+    guide's density, 1 unguided), the pixel in its view's part of the views' joined image
+    (``lanes.view``: each lane's view, None for one view); none without edges or below depth 3
+    (a path with a boundary segment and ≥ 3 segments is needed). ``distr``: the edges' length
+    distribution (default: :func:`.boundary_sampling.edge_distribution`)."""
     camera, view = lanes.camera, lanes.view
     width, height = camera.width, camera.height
-    img = dr.zeros(mi.Float, width * height * 3 * lanes.count)
-    if edges.count == 0 or max_depth < 3:
-        return img  # paths with a boundary segment and ≥ 3 segments are needed
-    draw = edge_draw(edges, P)
+    if edges.count == 0 or max_depth < MIN_DEPTH:
+        return []
+    draw = edge_draw(edges, P) if distr is None else EdgeDraw(edges, P, distr)
     u1, u2, g = primary_sample(sampler, guide)
     edge, w, geometry, mhat, S, walk, siS, siD, ok = indirect_segments(scene, camera, draw, (u1, u2), sampler,
                                                                        max_depth)
@@ -191,6 +208,7 @@ def indirect_image(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n
     siD_ad = scene.ray_intersect(mi.Ray3f(origin, -w), FOLLOW, False, ok)
     surface = siS.is_valid()
     env_motion = environment_motion(scene)
+    out = []
     for j, (D, uv, pixel, ok_j) in enumerate(walk, start=1):
         if max_depth - 1 - j < 0:
             break
@@ -205,9 +223,8 @@ def indirect_image(scene: mi.Scene, lanes: ViewLanes, edges: BoundaryEdges, P, n
         v = dr.select(live, v - dr.detach(v), 0.0)
         if view is not None:
             pixel = pixel + view * (width * height)
-        for c in range(3):
-            dr.scatter_reduce(dr.ReduceOp.Add, img, v[c], pixel * 3 + c, live)
-    return img
+        out.append((v, pixel, live))
+    return out
 
 
 def estimate(scene, edges: BoundaryEdges, view: int, spp: int, seed: int, estimator, max_depth: int, *,
@@ -239,6 +256,6 @@ def guide_target(scene: mi.Scene, sensors, draw: EdgeDraw, technique: str, u, sa
 
 
 TERM = Term("indirect", samples_key="boundary_spp", stream=4, estimate=estimate,
-            guide=GuideTarget(guide_techniques, guide_target, seed_offset=2, min_depth=3, random=True,
+            guide=GuideTarget(guide_techniques, guide_target, seed_offset=2, min_depth=MIN_DEPTH, random=True,
                               per_technique=False),
             estimate_views=estimate_views)

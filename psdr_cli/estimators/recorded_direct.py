@@ -2,7 +2,7 @@
 :class:`.recording.RecordedPart`): its pass over a batch (the samples of its ``estimate_views``,
 the cameras from the run's table) and the backward pass of Σ δ·I_direct into the scene's leaves,
 recorded per :class:`DirectShape` and replayed. The edges enter as arrays padded to a power of
-two (:func:`padded_edges`) and are drawn ∝ length by
+two (:func:`.recording.padded_edges`) and are drawn ∝ length by
 :class:`.boundary_sampling.LengthDistribution`, whose kernels do not depend on their number.
 """
 from __future__ import annotations
@@ -12,15 +12,11 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
+from .boundary_sampling import BoundaryEdges, length_distribution
 from .camera import CameraTable, LaneCameras, ViewLanes
 from .direct import direct_samples
 from .passes import AD_LANES, make_sampler
-from .recording import PaddedRecording, PassInputs, RecordedScene, adjoint_sum, opaque
-
-#: Most edges the part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
-MAX_EDGES = 1 << SEARCH_STEPS
-
+from .recording import MAX_EDGES, PaddedRecording, PassInputs, RecordedScene, adjoint_sum, opaque, padded_edges
 
 @dataclass(frozen=True)
 class DirectShape:
@@ -37,27 +33,13 @@ class DirectShape:
     slots: int
 
 
-def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
-    """(ids, flip, open) of ``edges`` padded to ``slots`` entries with edges of length 0 (both
-    ends vertex 0: never drawn, :class:`.boundary_sampling.LengthDistribution`)."""
-    index = dr.arange(mi.UInt32, slots)
-    count = opaque(edges.count)  # (a constant would compile this kernel anew for every count)
-    real = index < count
-    at = dr.minimum(index, count - 1)
-    ids = [dr.select(real, dr.gather(mi.UInt32, a, at), 0) for a in edges.ids]
-    flip = real & dr.gather(mi.Bool, edges.flip, at)
-    open_ = real & dr.gather(mi.Bool, edges.open, at)
-    dr.eval(ids, flip, open_)
-    return ids, flip, open_
-
-
 def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
                     padded: tuple, delta: mi.Float):
     """The direct term's pass over the batch (the samples of its ``estimate_views``, the cameras
     from ``table``) and the backward pass of Σ δ·I_direct into the scene's leaves. The edges
     ``padded`` = (ids: their six vertex-id columns, flip, open, count; ``shape.slots`` entries, of
-    which ``count`` real ones, at least one, and the rest of length 0: :func:`padded_edges`) index
-    the concatenated vertex buffers of ``shape.names``."""
+    which ``count`` real ones, at least one, and the rest of length 0:
+    :func:`.recording.padded_edges`) index the concatenated vertex buffers of ``shape.names``."""
     ids, flip, open_, count = padded
     edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
     P = edges.positions(mi.traverse(mi_scene))
@@ -80,7 +62,7 @@ class DirectPart(PaddedRecording):
 
     def serves(self, scene, views, spp: int, edges) -> bool:
         """Whether the part can run on ``edges`` (the batch in one AD pass, 1 to
-        :data:`MAX_EDGES` edges)."""
+        :data:`.recording.MAX_EDGES` edges)."""
         width, height = scene.resolution
         return edges is not None and 0 < edges.count < MAX_EDGES and len(views) * width * height * spp <= AD_LANES
 

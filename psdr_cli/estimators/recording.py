@@ -16,10 +16,13 @@ from typing import Protocol
 import drjit as dr
 import mitsuba as mi
 
+from .boundary_sampling import SEARCH_STEPS, BoundaryEdges
 from .camera import CameraTable
 
 #: Fewest slots of a recorded part's padded arrays (:func:`edge_slots`).
 MIN_EDGE_SLOTS = 256
+#: Most edges a part's draw serves (boundary_sampling.SEARCH_STEPS bisection steps).
+MAX_EDGES = 1 << SEARCH_STEPS
 
 
 @dataclass
@@ -72,6 +75,20 @@ def edge_slots(count: int) -> int:
     recording serves every count up to it with inputs of one length (a part keeps the largest a
     scene needed)."""
     return max(MIN_EDGE_SLOTS, 1 << (count - 1).bit_length())
+
+
+def padded_edges(edges: BoundaryEdges, slots: int) -> tuple:
+    """(ids, flip, open) of ``edges`` padded to ``slots`` entries with edges of length 0 (both
+    ends vertex 0: never drawn, :class:`.boundary_sampling.LengthDistribution`)."""
+    index = dr.arange(mi.UInt32, slots)
+    count = opaque(edges.count)  # (a constant would compile this kernel anew for every count)
+    real = index < count
+    at = dr.minimum(index, count - 1)
+    ids = [dr.select(real, dr.gather(mi.UInt32, a, at), 0) for a in edges.ids]
+    flip = real & dr.gather(mi.Bool, edges.flip, at)
+    open_ = real & dr.gather(mi.Bool, edges.open, at)
+    dr.eval(ids, flip, open_)
+    return ids, flip, open_
 
 
 class PaddedRecording:

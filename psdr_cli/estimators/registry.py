@@ -35,7 +35,7 @@ GUIDED = tuple(t.name for t in TERMS if t.guided)
 #: The term whose primal value is the rendered image (the recorded iteration's batch renders it).
 RENDERING = next(t.name for t in TERMS if t.renders)
 #: The terms with a recorded part, in the order their backward passes run.
-RECORDED = ("direct", "primary")
+RECORDED = ("direct", "primary", "indirect")
 #: {term name: the class of its recorded part} (module ``recorded_<name>.py``), in :data:`RECORDED` order.
 RECORDED_PARTS = {name: import_module(f"{__package__}.recorded_{name}").PART for name in RECORDED}
 

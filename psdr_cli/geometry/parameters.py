@@ -12,7 +12,7 @@ With c the centre of the object's bounding box at θ = 0 and a the (unit) axis:
   kept: the sensor's field of view becomes 2 atan(tan(φ0/2) / e^θ) (its value, which finite
   differences render through Mitsuba's own camera) and the sensor carries the factor
   σ = e^(θ − detach θ) (value 1) whose derivative psdr's camera paths take
-  (:mod:`psdr_cli.estimators.focal`).
+  (:mod:`psdr_cli.scene.sensors`, applied by :mod:`psdr_cli.estimators.focal`).
 
 R(a, θ) v = v cosθ + (a × v) sinθ + a (a·v)(1 − cosθ) (Rodrigues).
 """
@@ -27,8 +27,7 @@ import numpy as np
 from ..config.parameter import ParameterConfig
 from ..config.scene_ids import INTERNAL_PREFIX, sensor_id
 from ..errors import PsdrError
-from ..estimators import focal
-from ..estimators.camera import is_perspective
+from ..scene.sensors import attach as attach_focal, is_perspective, scaled_fov
 
 
 def rodrigues(axis, theta, v):
@@ -116,8 +115,8 @@ class Parameter:
         """The focal scale e^θ: its value into the sensor's field of view, its derivative into
         the factor the sensor carries (none when θ carries no derivative; module docstring)."""
         value = float(dr.ravel(dr.detach(theta))[0])
-        self.params[self.keys[0]] = focal.scaled_fov(self.initial[self.keys[0]], math.exp(value))
-        focal.attach(self.sensor, dr.exp(theta - value) if dr.grad_enabled(theta) else None)
+        self.params[self.keys[0]] = scaled_fov(self.initial[self.keys[0]], math.exp(value))
+        attach_focal(self.sensor, dr.exp(theta - value) if dr.grad_enabled(theta) else None)
 
     def apply(self, theta):
         theta = mi.Float(theta)

@@ -30,9 +30,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..config.scene_ids import sensor_id
-from ..estimators import focal
-from ..estimators.camera import is_perspective
 from ..errors import PsdrError
+from ..scene.sensors import attach as attach_focal, is_perspective, scaled_fov
 from ..support.jitarray import jit_array
 
 
@@ -87,14 +86,14 @@ class FocalCorrections:
 
     def fields_of_view(self, values: dict | None = None) -> dict:
         """{sensor ``x_fov`` key: 2 atan(tan(φ_v/2) / s_v)} (of the saved ``values`` when given)."""
-        return {key: focal.scaled_fov(fov0, float(s)) for key, fov0, s in zip(self.keys, self.fov0, self.scales(values))}
+        return {key: scaled_fov(fov0, float(s)) for key, fov0, s in zip(self.keys, self.fov0, self.scales(values))}
 
     def attach(self, attached: bool, values: dict | None = None):
         """Let every view's sensor carry its focal factor σ_v while ``attached`` (none otherwise)."""
         x = self.opt["focal"]
         sigma = dr.exp(x - dr.detach(x)) if attached and values is None else None
         for v, sensor in enumerate(self.sensors):
-            focal.attach(sensor, None if sigma is None else dr.gather(mi.Float, sigma, int(self.model[v])))
+            attach_focal(sensor, None if sigma is None else dr.gather(mi.Float, sigma, int(self.model[v])))
 
     def set_gradient(self, iteration: int, warn) -> None:
         """The gradient Adam steps with: zero for stopped models; a non-finite one stops its model."""

@@ -46,13 +46,14 @@ import numpy as np
 
 from ..estimators import registry
 from ..estimators.boundary_sampling import sensor_origins
-from ..estimators.camera import CameraTable, is_perspective, table_camera_rays
+from ..estimators.camera import CameraTable, table_camera_rays
 from ..estimators.interior import radiance
 from ..estimators.passes import AD_LANES, make_sampler, passes_for, views_seed
 from ..estimators.recording import PassInputs, RecordedScene, Recording, opaque
 from ..estimators.registry import ADJOINT_STREAM, RENDER_STREAM
 from ..losses.registry import recorded_names, recorded_sum, recording_refusal
 from ..rendering.estimate import has_guide, term_passes
+from ..scene.sensors import is_perspective
 from ..support.jitarray import jit_array
 
 

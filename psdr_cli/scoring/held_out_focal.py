@@ -13,8 +13,8 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from ..estimators.focal import scaled_fov
 from ..experiment.dataset_frame import dataset_frames
+from ..scene.sensors import scaled_fov
 
 #: Relative tolerance within which two cameras' intrinsics are the same camera model.
 SAME_MODEL = 1e-6
