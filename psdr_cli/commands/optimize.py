@@ -51,6 +51,7 @@ from ..run_folder.record import run_record
 from ..run_folder.state import resumable_state
 from ..run_folder.variant_folders import variant_experiments
 from ..support import backend, fileio
+from ..support.interrupts import InterruptLatch
 
 
 @dataclass
@@ -120,34 +121,36 @@ def _optimize(exp, files: RunFiles, total: int, resume: bool, progress, warn, ob
     write_log(files.log, read_log(files.log, it))  # rows of unsaved iterations dropped
     if progress:
         progress.start(total, it)
-    try:
-        for it in range(start.state.iteration, total):
-            if cfg.seconds is not None and seconds >= cfg.seconds:
-                total = it  # the time budget is spent (a resumed run that had finished)
-                break
-            t_start = time.perf_counter()
-            if it in cfg.remesh.at and it > 0:
-                remesh(now, start, loop, it)
-            step = iterate(now.problem, loop, now.stage, now.guides, it)
-            seconds += step.t_end - t_start
-            record_step(result, files, step, it, t_start, seconds, now)
-            if cfg.seconds is not None and seconds >= cfg.seconds:
-                total = it + 1  # time budget spent: this is the last iteration
-            save_iteration(now, files, exp, it + 1, seconds, result, last=it + 1 == total)
-            if progress:
-                progress.advance(1, step.loss)
-            if observer:
-                observer.iteration(exp, now, it + 1, total, seconds, step.loss)
-            if it + 1 == total:
-                break
-        it = total
-    except KeyboardInterrupt:
-        result.interrupted = True
-        warn(f"interrupted during iteration {it}: {it} completed iterations are saved in {files.state}; "
-             f"continue with --resume")
-        return result
-    finally:
-        now.problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
+    with InterruptLatch() as latch:  # a Ctrl-C that a finaliser dropped is raised again between iterations
+        try:
+            for it in range(start.state.iteration, total):
+                latch.check()
+                if cfg.seconds is not None and seconds >= cfg.seconds:
+                    total = it  # the time budget is spent (a resumed run that had finished)
+                    break
+                t_start = time.perf_counter()
+                if it in cfg.remesh.at and it > 0:
+                    remesh(now, start, loop, it)
+                step = iterate(now.problem, loop, now.stage, now.guides, it)
+                seconds += step.t_end - t_start
+                record_step(result, files, step, it, t_start, seconds, now)
+                if cfg.seconds is not None and seconds >= cfg.seconds:
+                    total = it + 1  # time budget spent: this is the last iteration
+                save_iteration(now, files, exp, it + 1, seconds, result, last=it + 1 == total)
+                if progress:
+                    progress.advance(1, step.loss)
+                if observer:
+                    observer.iteration(exp, now, it + 1, total, seconds, step.loss)
+                if it + 1 == total:
+                    break
+            it = total
+        except KeyboardInterrupt:
+            result.interrupted = True
+            warn(f"interrupted during iteration {it}: {it} completed iterations are saved in {files.state}; "
+                 f"continue with --resume")
+            return result
+        finally:
+            now.problem.release()  # nothing of this run may linger in Dr.Jit's global AD graph
     return finish(exp, files, now.problem, result, RunEnd(total, requested, seconds, len(start.targets)), warn)
 
 
