@@ -48,7 +48,7 @@ from psdr_cli.estimators.boundary_sampling import (BoundaryEdges, EdgeDraw, Leng
 from psdr_cli.estimators.camera import CameraTable, LaneCameras  # noqa: E402
 from psdr_cli.estimators.direct import direct_motion, segment_weight  # noqa: E402
 from psdr_cli.estimators.passes import make_sampler  # noqa: E402
-from psdr_cli.estimators.recorded_direct import padded_edges  # noqa: E402
+from psdr_cli.estimators.recording import padded_edges  # noqa: E402
 
 SLOTS, SIZE, VIEWS = 512, 64, 4
 

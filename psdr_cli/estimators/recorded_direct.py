@@ -12,11 +12,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .boundary_sampling import BoundaryEdges, length_distribution
-from .camera import CameraTable, LaneCameras, ViewLanes
+from .camera import CameraTable
 from .direct import direct_samples
-from .passes import AD_LANES, make_sampler
-from .recording import MAX_EDGES, PaddedRecording, PassInputs, RecordedScene, adjoint_sum, opaque, padded_edges
+from .recording import EdgePart, PassInputs, RecordedScene, adjoint_sum, edge_batch
 
 @dataclass(frozen=True)
 class DirectShape:
@@ -36,35 +34,20 @@ class DirectShape:
 def direct_backward(shape: DirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
                     padded: tuple, delta: mi.Float):
     """The direct term's pass over the batch (the samples of its ``estimate_views``, the cameras
-    from ``table``) and the backward pass of Σ δ·I_direct into the scene's leaves. The edges
-    ``padded`` = (ids: their six vertex-id columns, flip, open, count; ``shape.slots`` entries, of
-    which ``count`` real ones, at least one, and the rest of length 0:
-    :func:`.recording.padded_edges`) index the concatenated vertex buffers of ``shape.names``."""
-    ids, flip, open_, count = padded
-    edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
-    P = edges.positions(mi.traverse(mi_scene))
-    n = shape.spp * shape.width * shape.height
-    sampler = make_sampler(seed, n * shape.views)
-    k = dr.arange(mi.UInt32, n * shape.views) // n
-    lanes = ViewLanes(LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k)), k, shape.views)
-    samples = direct_samples(mi_scene, lanes, edges, P, n, sampler, shape.sampling,
-                             distr=length_distribution(edges, P, count))
+    from ``table``: :func:`.recording.edge_batch`) and the backward pass of Σ δ·I_direct into the
+    scene's leaves."""
+    b = edge_batch(shape, mi_scene, table, views, seed, padded)
+    samples = direct_samples(mi_scene, b.lanes, b.edges, b.P, b.n, b.sampler, shape.sampling, distr=b.distr)
     dr.backward(adjoint_sum(delta, samples))
-    return count  # (a frozen function returns something)
+    return padded[3]  # (a frozen function returns something)
 
 
-class DirectPart(PaddedRecording):
+class DirectPart(EdgePart):
     """The direct term's recorded part (:class:`.recording.RecordedPart`); ``enabled`` false runs
     the same function traced every call."""
 
     def __init__(self, enabled: bool = True):
         super().__init__(direct_backward, enabled)
-
-    def serves(self, scene, views, spp: int, edges) -> bool:
-        """Whether the part can run on ``edges`` (the batch in one AD pass, 1 to
-        :data:`.recording.MAX_EDGES` edges)."""
-        width, height = scene.resolution
-        return edges is not None and 0 < edges.count < MAX_EDGES and len(views) * width * height * spp <= AD_LANES
 
     def run(self, recorded: RecordedScene, inputs: PassInputs, scene, *, edges, delta: mi.Float) -> int:
         """The backward pass of Σ δ·I_direct over the batch (into the scene's leaves), replayed;
@@ -72,10 +55,7 @@ class DirectPart(PaddedRecording):
         width, height = scene.resolution
         shape = DirectShape(recorded.scene_id, width, height, len(inputs.views), inputs.spp,
                             inputs.estimator.sampling, tuple(edges.names), self.grown_slots(edges.count))
-        ids, flip, open_ = padded_edges(edges, shape.slots)
-        self.recording(shape, scene.mi_scene, recorded.table, mi.UInt32(inputs.views), opaque(inputs.seed),
-                       (ids, flip, open_, opaque(edges.count)), delta)
-        return edges.count
+        return self.replay(shape, recorded, inputs, scene, edges, delta)
 
 
 PART = DirectPart

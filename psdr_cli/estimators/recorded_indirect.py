@@ -15,11 +15,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .boundary_sampling import BoundaryEdges, length_distribution
-from .camera import CameraTable, LaneCameras, ViewLanes
+from .camera import CameraTable
 from .indirect import MIN_DEPTH, indirect_samples
-from .passes import AD_LANES, make_sampler
-from .recording import MAX_EDGES, PaddedRecording, PassInputs, RecordedScene, adjoint_sum, opaque, padded_edges
+from .recording import EdgePart, PassInputs, RecordedScene, adjoint_sum, edge_batch
 
 
 @dataclass(frozen=True)
@@ -40,37 +38,21 @@ class IndirectShape:
 
 def indirect_backward(shape: IndirectShape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32,
                       padded: tuple, delta: mi.Float):
-    """The indirect term's pass over the batch (the samples of its ``estimate_views``, lane i of
-    view ``views[i // N]``, N = spp·W·H, its detector walk connected to that view's row of
-    ``table``) and the backward pass of Σ δ·I_indirect into the scene's leaves. The edges
-    ``padded`` = (ids: their six vertex-id columns, flip, open, count; ``shape.slots`` entries, of
-    which ``count`` real ones, at least one, and the rest of length 0:
-    :func:`.recording.padded_edges`) index the concatenated vertex buffers of ``shape.names``."""
-    ids, flip, open_, count = padded
-    edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
-    P = edges.positions(mi.traverse(mi_scene))
-    n = shape.spp * shape.width * shape.height
-    sampler = make_sampler(seed, n * shape.views)
-    k = dr.arange(mi.UInt32, n * shape.views) // n
-    lanes = ViewLanes(LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k)), k, shape.views)
-    samples = indirect_samples(mi_scene, lanes, edges, P, n, sampler, shape.max_depth,
-                               distr=length_distribution(edges, P, count))
+    """The indirect term's pass over the batch (the samples of its ``estimate_views``, each
+    detector walk connected to its view's row of ``table``: :func:`.recording.edge_batch`) and the
+    backward pass of Σ δ·I_indirect into the scene's leaves."""
+    b = edge_batch(shape, mi_scene, table, views, seed, padded)
+    samples = indirect_samples(mi_scene, b.lanes, b.edges, b.P, b.n, b.sampler, shape.max_depth, distr=b.distr)
     dr.backward(adjoint_sum(delta, samples))
-    return count  # (a frozen function returns something)
+    return padded[3]  # (a frozen function returns something)
 
 
-class IndirectPart(PaddedRecording):
+class IndirectPart(EdgePart):
     """The indirect term's recorded part (:class:`.recording.RecordedPart`); ``enabled`` false runs
     the same function traced every call."""
 
     def __init__(self, enabled: bool = True):
         super().__init__(indirect_backward, enabled)
-
-    def serves(self, scene, views, spp: int, edges) -> bool:
-        """Whether the part can run on ``edges`` (the batch in one AD pass, 1 to
-        :data:`.recording.MAX_EDGES` edges)."""
-        width, height = scene.resolution
-        return edges is not None and 0 < edges.count < MAX_EDGES and len(views) * width * height * spp <= AD_LANES
 
     def run(self, recorded: RecordedScene, inputs: PassInputs, scene, *, edges, delta: mi.Float) -> int:
         """The backward pass of Σ δ·I_indirect over the batch (into the scene's leaves), replayed;
@@ -81,10 +63,7 @@ class IndirectPart(PaddedRecording):
         width, height = scene.resolution
         shape = IndirectShape(recorded.scene_id, width, height, len(inputs.views), inputs.spp, inputs.max_depth,
                               tuple(edges.names), self.grown_slots(edges.count))
-        ids, flip, open_ = padded_edges(edges, shape.slots)
-        self.recording(shape, scene.mi_scene, recorded.table, mi.UInt32(inputs.views), opaque(inputs.seed),
-                       (ids, flip, open_, opaque(edges.count)), delta)
-        return edges.count
+        return self.replay(shape, recorded, inputs, scene, edges, delta)
 
 
 PART = IndirectPart

@@ -16,8 +16,9 @@ from typing import Protocol
 import drjit as dr
 import mitsuba as mi
 
-from .boundary_sampling import SEARCH_STEPS, BoundaryEdges
-from .camera import CameraTable
+from .boundary_sampling import SEARCH_STEPS, BoundaryEdges, length_distribution
+from .camera import CameraTable, LaneCameras, ViewLanes
+from .passes import AD_LANES, make_sampler
 
 #: Fewest slots of a recorded part's padded arrays (:func:`edge_slots`).
 MIN_EDGE_SLOTS = 256
@@ -114,6 +115,54 @@ class PaddedRecording:
         """The slots for ``count`` entries (:func:`edge_slots`), kept if more than before."""
         self.slots = max(self.slots, edge_slots(count))
         return self.slots
+
+
+class EdgePart(PaddedRecording):
+    """A boundary term's recorded part over padded edge arrays (the direct and indirect terms'):
+    it serves a batch in one AD pass with 1 to :data:`MAX_EDGES` edges, and replays its body on a
+    record of what the recording is valid for (with ``names`` and ``slots`` among its fields)."""
+
+    def serves(self, scene, views, spp: int, edges) -> bool:
+        """Whether the part can run on ``edges`` (the batch in one AD pass, 1 to
+        :data:`MAX_EDGES` edges)."""
+        width, height = scene.resolution
+        return edges is not None and 0 < edges.count < MAX_EDGES and len(views) * width * height * spp <= AD_LANES
+
+    def replay(self, shape, recorded: RecordedScene, inputs: PassInputs, scene, edges, delta: mi.Float) -> int:
+        """Run the body, recorded for ``shape``, on the batch's views and seed and ``edges`` padded
+        to ``shape.slots``; returns the number of edges."""
+        ids, flip, open_ = padded_edges(edges, shape.slots)
+        self.recording(shape, scene.mi_scene, recorded.table, mi.UInt32(inputs.views), opaque(inputs.seed),
+                       (ids, flip, open_, opaque(edges.count)), delta)
+        return edges.count
+
+
+@dataclass
+class EdgeBatch:
+    """What a recorded boundary pass draws from: the padded ``edges`` and their AD vertex
+    positions ``P``, the ``n`` = spp·W·H lanes per view, the ``sampler``, the ``lanes``' cameras
+    (lane i of view ``views[i // n]``, from the run's table) and the edges' length distribution
+    ``distr`` over the real ``count`` of them."""
+    edges: BoundaryEdges
+    P: object
+    n: int
+    sampler: mi.Sampler
+    lanes: ViewLanes
+    distr: object
+
+
+def edge_batch(shape, mi_scene, table: CameraTable, views: mi.UInt32, seed: mi.UInt32, padded: tuple) -> EdgeBatch:
+    """The :class:`EdgeBatch` of a recorded boundary pass. ``padded`` = (ids: the edges' six
+    vertex-id columns, flip, open, count; ``shape.slots`` entries, of which ``count`` real ones,
+    at least one, and the rest of length 0: :func:`padded_edges`) index the concatenated vertex
+    buffers of ``shape.names``; ``shape`` also gives the film, the batch size and the samples."""
+    ids, flip, open_, count = padded
+    edges = BoundaryEdges(list(shape.names), ids, open_, shape.slots, flip=flip)  # (the real count: ``count``)
+    P = edges.positions(mi.traverse(mi_scene))
+    n = shape.spp * shape.width * shape.height
+    k = dr.arange(mi.UInt32, n * shape.views) // n
+    lanes = ViewLanes(LaneCameras.from_table(table, dr.gather(mi.UInt32, views, k)), k, shape.views)
+    return EdgeBatch(edges, P, n, make_sampler(seed, n * shape.views), lanes, length_distribution(edges, P, count))
 
 
 def adjoint_sum(delta: mi.Float, samples) -> mi.Float:
