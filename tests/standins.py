@@ -236,6 +236,27 @@ def camera_cfg(kind: str = "translate") -> dict:
         {"camera": 0, "kind": kind, "axis": [1, 0, 0] if kind == "translate" else [0, 0, 1]}, spp=(256, 256, 256))
 
 
+def two_camera_cfg() -> dict:
+    """The box, ball and floor of the camera stand-in seen by two cameras, 16 spp per term."""
+    cfg = camera_cfg()
+    second = copy.deepcopy(cfg["scene"]["cameras"][0])
+    second.update(origin=[-1.9, -1.5, 1.6], target=[0.05, 0.0, 0.3])
+    cfg["scene"]["cameras"].append(second)
+    cfg["estimator"].update(spp=16, primary_spp=64, boundary_spp=64)
+    return cfg
+
+
+def tile_weights(height: int, width: int) -> list:
+    """Per-pixel weights: the whole image, then each quarter."""
+    out = [np.ones((height, width, 3))]
+    for i in range(2):
+        for j in range(2):
+            w = np.zeros((height, width, 3))
+            w[i * height // 2:(i + 1) * height // 2, j * width // 2:(j + 1) * width // 2] = 1
+            out.append(w)
+    return out
+
+
 def off_axis(cfg: dict, dx: float = 0.031) -> dict:
     """``cfg`` with its camera moved sideways (origin and target) by ``dx``, out of the plane x = 0
     that holds icosphere edges: seen from x = 0 such an edge projects exactly onto the boundary

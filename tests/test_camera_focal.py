@@ -34,7 +34,7 @@ from psdr_cli.scene.build import build_scene, look_at
 from psdr_cli.support.jitarray import jit_array
 from psdr_cli.support import backend
 from psdr_cli.support.verdict import agrees, describe
-from standins import camera_cfg, load
+from standins import camera_cfg, load, tile_weights, two_camera_cfg
 
 #: the finite-difference step (θ = log s) and samples, those of the camera's pose checks
 H, FD_SPP = 0.003, 16384
@@ -149,26 +149,10 @@ def test_each_camera_path_has_the_derivative_of_mitsubas_changed_field_of_view(o
 @pytest.fixture(scope="module")
 def two_views(tmp_path_factory):
     """The camera stand-in seen by two cameras of one camera model (one focal scale), 16 spp."""
-    cfg = camera_cfg()
-    second = copy.deepcopy(cfg["scene"]["cameras"][0])
-    second.update(origin=[-1.9, -1.5, 1.6], target=[0.05, 0.0, 0.3])
-    cfg["scene"]["cameras"].append(second)
-    cfg["estimator"].update(spp=16, primary_spp=64, boundary_spp=64)
-    exp = load(cfg, tmp_path_factory.mktemp("focal"))
+    exp = load(two_camera_cfg(), tmp_path_factory.mktemp("focal"))
     scene = with_all_edges(build_scene(exp))
     edges = edge_list(scene, exp.estimator, Settings.from_experiment(exp).edge_sort)
     return scene, edges, Settings.from_experiment(exp)
-
-
-def tile_weights(height: int, width: int) -> list:
-    """Per-pixel weights: the whole image, then each quarter."""
-    out = [np.ones((height, width, 3))]
-    for i in range(2):
-        for j in range(2):
-            w = np.zeros((height, width, 3))
-            w[i * height // 2:(i + 1) * height // 2, j * width // 2:(j + 1) * width // 2] = 1
-            out.append(w)
-    return out
 
 
 @pytest.mark.parametrize("view", [0, 1])

@@ -12,7 +12,6 @@ through o and a translation along a:
 """
 from __future__ import annotations
 
-import copy
 import json
 import shutil
 import math
@@ -49,7 +48,7 @@ from psdr_cli.scene.build import build_scene
 from psdr_cli.support import backend
 from psdr_cli.support.jitarray import jit_array
 from psdr_cli.support.verdict import agrees, describe
-from standins import camera_cfg, load
+from standins import load, tile_weights, two_camera_cfg
 
 TERMS = ("interior", "primary", "direct")
 
@@ -59,33 +58,12 @@ def variant():
     backend.select_variant("auto")
 
 
-def two_camera_cfg() -> dict:
-    """The box, ball and floor of the camera stand-in seen by two cameras, 16 spp per term."""
-    cfg = camera_cfg()
-    second = copy.deepcopy(cfg["scene"]["cameras"][0])
-    second.update(origin=[-1.9, -1.5, 1.6], target=[0.05, 0.0, 0.3])
-    cfg["scene"]["cameras"].append(second)
-    cfg["estimator"].update(spp=16, primary_spp=64, boundary_spp=64)
-    return cfg
-
-
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     exp = load(two_camera_cfg(), tmp_path_factory.mktemp("cams"))
     scene = with_all_edges(build_scene(exp))
     edges = edge_list(scene, exp.estimator, Settings.from_experiment(exp).edge_sort)
     return exp, scene, edges, Settings.from_experiment(exp)
-
-
-def tile_weights(height: int, width: int) -> list:
-    """Per-pixel weights: the whole image, then each quarter."""
-    out = [np.ones((height, width, 3))]
-    for i in range(2):
-        for j in range(2):
-            w = np.zeros((height, width, 3))
-            w[i * height // 2:(i + 1) * height // 2, j * width // 2:(j + 1) * width // 2] = 1
-            out.append(w)
-    return out
 
 
 def reverse_gradients(scene, edges, settings, view: int, term: str, weights: list, image_view: int | None = None):
