@@ -13,9 +13,10 @@ length, so the focal scale adds no gauge direction (the poses' projection,
 :mod:`.camera_refinement`, leaves x alone). It is nearly ambiguous with a move along the optical
 axis when the object is shallow against its distance (both scale its image about the principal
 point; only the perspective differs), and so with the object's size once the cameras' mean
-distance is pinned: such a run needs views at different distances from the object
-(docs/benchmarks/focal_refinement.md); the translation's own runaway bound keeps the pair from
-drifting far.
+distance is pinned: a focal scale k and the object scaled by k give the same image size f·size/d
+at every distance d, and only the perspective (the object's depth against d) tells them apart, so
+such a run needs views close to the object (docs/benchmarks/focal_refinement.md); the
+translation's own runaway bound keeps the pair from drifting far.
 
 Schedule and stops: the poses' (start, warm-up, fall), at the rate ``focal_learning_rate``; a
 model whose gradient is not finite or whose |x_g| passes log(1 + ``max_focal``) stops (one line
