@@ -25,7 +25,7 @@ from .commands import gradient
 from .commands import optimize as optimization
 from .commands import sweep
 from .config.experiment_file import Experiment
-from .config.limits import MAX_ITERATIONS
+from .config.limits import MAX_DEPTH, MAX_ITERATIONS
 from .config.options import option_count
 from .errors import PsdrError
 from .experiment import load
@@ -113,16 +113,20 @@ def optimize_variants(exp: Experiment, labels=None, iterations: int | None = Non
 
 
 def evaluate(paths, reference: Path | None = None, *, samples: int | None = None, json_out: Path | None = None,
-             report: Path | None = None, progress=None, align: str = "auto", relight=None):
+             report: Path | None = None, progress=None, align: str = "auto", relight=None, max_depth: int | None = None):
     """``psdr evaluate``: distances of meshes / run checkpoints to the reference; an EvaluateResult
     (for an experiment with a camera dataset: held-out view scores, a HeldOutReport; ``align``:
     whether the held-out cameras are fitted first: auto (when the run refined its cameras), on, off;
+    ``max_depth``: the held-out renders' path depth, default each run's;
     ``relight``: an :class:`psdr_cli.commands.evaluate.Relight`, to score the runs under other light instead)."""
+    option_count("--max-depth", max_depth, 1, MAX_DEPTH)
     dataset = evaluation.dataset_experiment(paths)
+    if max_depth is not None and (dataset is None or relight is not None):
+        raise PsdrError("--max-depth: only for the held-out views of a camera-dataset experiment (psdr evaluate cfg.yaml)")
     if relight is not None:
         return evaluation.evaluate_relit(dataset, relight, json_out, progress)
     if dataset is not None:
-        return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress, align)
+        return evaluation.evaluate_held_out(dataset, reference, samples, json_out, progress, align, max_depth)
     inputs = evaluation.evaluate_inputs(paths, reference, samples, report)
     return evaluation.evaluate_meshes(inputs, json_out, progress)
 

@@ -364,7 +364,8 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
              align: str = typer.Option("auto", "--align", help="Held-out views: fit each held-out camera's pose to its photograph before scoring (auto: when the run refined its cameras; on; off)."),
              relight: Optional[Path] = typer.Option(None, "--relight", help="A camera dataset of the object under other light (the training capture's world frame): score the runs relit by --envmap from its cameras."),
              envmap: Optional[Path] = typer.Option(None, "--envmap", help="With --relight: the lat-long EXR environment map of that light."),
-             envmap_scale: float = typer.Option(1.0, "--envmap-scale", help="With --relight: the map's radiance scale.")):
+             envmap_scale: float = typer.Option(1.0, "--envmap-scale", help="With --relight: the map's radiance scale."),
+             max_depth: Optional[int] = typer.Option(None, "--max-depth", help="Held-out views: render paths of this many segments (default: the run's scene.max_depth; e.g. the depth the photographs' light needs)")):
     """Normalised Chamfer and Hausdorff distances to a reference mesh (tables, JSON, plots)."""
     if align not in ("auto", "on", "off"):
         raise PsdrError(f"--align: expected auto, on or off, got '{align}'")
@@ -375,7 +376,7 @@ def evaluate(paths: list[str] = typer.Argument(None, help="Experiment file, mesh
     light = api.Relight(relight, envmap, envmap_scale) if relight is not None else None
     with Bar("evaluate") as bar:
         res = api.evaluate(paths, reference, samples=samples, json_out=json_out, report=report, progress=bar,
-                           align=align, relight=light)
+                           align=align, relight=light, max_depth=max_depth)
     if light is not None:
         print_relit(res)
         return
@@ -416,13 +417,14 @@ def print_relit(res):
 def print_held_out(res):
     """The table of ``psdr evaluate`` on a dataset experiment (held-out views)."""
     table = Table(title=f"psdr evaluate: held-out views of {res.experiment.name}")
-    cols = ("mesh", "iteration", "views", "poses", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU",
+    cols = ("mesh", "iteration", "views", "depth", "poses", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU",
             "PSNR as given", "Chamfer-L1", "depth err", "normal °")
     for col in cols:
         table.add_column(col, justify="left" if col in ("mesh", "poses") else "right")
     fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
     for r in res.rows:
-        table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), r.get("poses", "as given"),
+        table.add_row(Path(r["mesh"]).name, str(r["iteration"]), str(r["views"]), str(r.get("max_depth", "—")),
+                      r.get("poses", "as given"),
                       fmt(r["psnr"], ".2f"), fmt(r["psnr_mask"], ".2f"), fmt(r["ssim"], ".4f"),
                       fmt(r["ssim_mask"], ".4f"), fmt(r["iou"], ".4f"), fmt(r.get("as_given", r)["psnr"], ".2f"),
                       fmt(r.get("chamfer_l1"), ".5f"), fmt(r.get("depth_error"), ".2e"), fmt(r.get("normal_deg"), ".2f"))

@@ -19,6 +19,8 @@ import trimesh
 import yaml
 
 from psdr_cli import api
+from psdr_cli.commands import evaluate as evaluation
+from psdr_cli.errors import PsdrError
 from psdr_cli.scoring.held_out import score_mesh
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.scene import meshes
@@ -227,3 +229,34 @@ def test_held_out_geometry_against_a_reference(tmp_path, textured_run, run_psdr)
     r = run_psdr("evaluate", exp.file, "--reference", centimetres)
     errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
     assert r.returncode == 2 and len(errors) == 1 and "in other units" in errors[0] and "cm.ply" in errors[0], r.stderr
+
+
+def test_held_out_views_render_at_the_depth_asked(textured_run, monkeypatch):
+    """``psdr evaluate --max-depth 4`` renders the held-out views with paths of 4 segments (the
+    scorer gets the experiment at that depth) and says so in its rows and table; without it they
+    render at the run's own depth."""
+    seen = []
+    real = evaluation.score_mesh
+
+    def scoring(exp, mesh, **kwargs):
+        seen.append(exp.scene.max_depth)
+        return real(exp, mesh, **kwargs)
+
+    monkeypatch.setattr(evaluation, "score_mesh", scoring)
+    deep = api.evaluate([str(textured_run.file)], max_depth=4)
+    assert seen and set(seen) == {4}
+    assert [r["max_depth"] for r in deep.rows] == [4] * len(deep.rows)
+    table = (deep.folders[0] / "held_out.md").read_text()
+    assert "| max_depth |" in table and "| 4 |" in table
+    seen.clear()
+    own = api.evaluate([str(textured_run.file)])
+    assert set(seen) == {textured_run.scene.max_depth} and own.rows[-1]["max_depth"] == textured_run.scene.max_depth
+
+
+def test_max_depth_is_refused_without_held_out_views(tmp_path, textured_run):
+    """``--max-depth`` only means something for a dataset's held-out views: a mesh comparison
+    refuses it in one line, as does a depth out of range."""
+    with pytest.raises(PsdrError, match="--max-depth: only for the held-out views"):
+        api.evaluate([str(textured_run.run_dir / "final.ply")], reference=textured_run.run_dir / "final.ply", max_depth=3)
+    with pytest.raises(PsdrError, match=r"--max-depth: expected an integer in \[1, 64\]"):
+        api.evaluate([str(textured_run.file)], max_depth=0)

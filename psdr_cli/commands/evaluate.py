@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import mitsuba as mi
@@ -216,15 +216,18 @@ def dataset_experiment(paths):
     return load_experiment(configs[0]) if exp.optimize and exp.optimize.target_dataset else None
 
 
-def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples: int, align: str = "auto") -> dict:
+def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples: int, align: str = "auto",
+                 max_depth: int | None = None) -> dict:
     """One mesh of a run scored on the held-out views (means over the views), and against
     ``reference`` (V, F) when given; the held-out cameras fitted first with ``align`` ``on``, or
-    ``auto`` when the run refined its cameras (the initial mesh is scored as given)."""
+    ``auto`` when the run refined its cameras (the initial mesh is scored as given); rendered
+    with paths of ``max_depth`` segments (default: the run's ``scene.max_depth``)."""
+    exp = with_depth(exp, max_depth)
     values = run_values(exp.run_dir) if iteration > 0 else {}
     align = iteration > 0 and (align == "on" or (align == "auto" and "cameras" in values))
     scores = score_mesh(exp, mesh, out=out, values=values, align=align, reference=reference)
     keys = ("psnr", "psnr_mask", "ssim", "ssim_mask", "iou")
-    row = {"mesh": str(mesh), "iteration": iteration, "views": len(scores.views),
+    row = {"mesh": str(mesh), "iteration": iteration, "views": len(scores.views), "max_depth": exp.scene.max_depth,
            "poses": "aligned" if align else "as given", **{k: scores.mean(k, aligned=align) for k in keys}}
     if align:
         row["as_given"] = {k: scores.mean(k) for k in keys}
@@ -237,6 +240,13 @@ def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples:
     return row
 
 
+def with_depth(exp, max_depth: int | None):
+    """``exp`` rendering paths of ``max_depth`` segments (``exp`` itself when None)."""
+    if max_depth is None:
+        return exp
+    return replace(exp, scene=replace(exp.scene, max_depth=max_depth))
+
+
 def run_values(folder: Path) -> dict:
     """The unknowns a finished run recovered (``optimize.json`` ``values``), or {} without them."""
     try:
@@ -246,9 +256,10 @@ def run_values(folder: Path) -> dict:
 
 
 def evaluate_held_out(exp, reference: Path | None = None, samples: int | None = None, json_out: Path | None = None,
-                      progress=None, align: str = "auto") -> HeldOutReport:
+                      progress=None, align: str = "auto", max_depth: int | None = None) -> HeldOutReport:
     """``psdr evaluate`` of a dataset experiment: each run's initial and last checkpoint
-    rendered from the held-out cameras and scored (PSNR, SSIM, mask IoU), with a
+    rendered from the held-out cameras (paths of ``max_depth`` segments, default each run's
+    ``scene.max_depth``) and scored (PSNR, SSIM, mask IoU), with a
     target | render | error strip per view in ``<run>/held_out/``, ``held_out.json`` and
     ``held_out.md`` there; Chamfer and Hausdorff too with ``reference`` (or ``evaluate.reference``)."""
     reference = reference or (exp.evaluate.reference if exp.evaluate else None)
@@ -273,7 +284,7 @@ def evaluate_held_out(exp, reference: Path | None = None, samples: int | None = 
         progress.start(len(jobs))
     for run, iteration, path in jobs:
         folder = fileio.writable_folder(run.run_dir / "held_out")
-        result.rows.append(held_out_row(run, path, iteration, folder, ref, samples, align))
+        result.rows.append(held_out_row(run, path, iteration, folder, ref, samples, align, max_depth))
         if folder not in result.folders:
             result.folders.append(folder)
         if progress:
@@ -348,12 +359,13 @@ def relight_table(rows: list) -> str:
 def held_out_table(rows: list) -> str:
     """A markdown table of held-out scores (:func:`evaluate_held_out`)."""
     fmt = lambda v, f: "—" if v is None else format(v, f)  # noqa: E731
-    lines = ["| mesh | iteration | views | poses | PSNR | PSNR in mask | SSIM | SSIM in mask | mask IoU | "
+    lines = ["| mesh | iteration | views | max_depth | poses | PSNR | PSNR in mask | SSIM | SSIM in mask | mask IoU | "
              "PSNR, poses as given | Chamfer-L1 | depth error | normal angle (°) |",
-             "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         given = r.get("as_given", r)
-        lines.append(f"| {Path(r['mesh']).name} | {r['iteration']} | {r['views']} | {r.get('poses', 'as given')} | "
+        lines.append(f"| {Path(r['mesh']).name} | {r['iteration']} | {r['views']} | {r.get('max_depth', '—')} | "
+                     f"{r.get('poses', 'as given')} | "
                      f"{fmt(r['psnr'], '.2f')} | {fmt(r['psnr_mask'], '.2f')} | {fmt(r['ssim'], '.4f')} | "
                      f"{fmt(r['ssim_mask'], '.4f')} | {fmt(r['iou'], '.4f')} | {fmt(given['psnr'], '.2f')} | "
                      f"{fmt(r.get('chamfer_l1'), '.5f')} | {fmt(r.get('depth_error'), '.2e')} | "
