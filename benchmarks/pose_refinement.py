@@ -405,7 +405,8 @@ def experiment(path: Path, name: str, dataset: Path, output: Path, mode: str, it
     opt["albedo"] = {"texture": [64, 64]}
     opt["material"] = {"roughness": {"init": 0.5}}
     opt["envmap"] = {"resolution": [32, 16]}
-    opt["cameras"] = mode                                         # written quoted: YAML would read off as false
+    # written quoted (YAML would read off as false); "lr<x>": refinement on at learning rate x
+    opt["cameras"] = {"learning_rate": float(mode[2:])} if mode.startswith("lr") else mode
     opt["iterations"] = iterations
     at = iterations * 2 // 3                                      # the example: 1000 → 2000 vertices half-way
     opt["remesh"] = {"method": "instant", "initial": 1000, **({"at": [at], "vertices": [2000]} if at >= 1 else {})}
@@ -661,7 +662,8 @@ def main(argv=None):
                     help="datasets, experiments, run folders and logs")
     ap.add_argument("--meshes", nargs="+", default=list(MESHES), choices=MESHES)
     ap.add_argument("--levels", nargs="+", type=float, default=list(LEVELS), help="pose perturbations (degrees)")
-    ap.add_argument("--modes", nargs="+", default=list(MODES), help="values of optimize.cameras")
+    ap.add_argument("--modes", nargs="+", default=list(MODES),
+                    help="values of optimize.cameras (off, auto, or lr<x>: on at learning_rate x)")
     ap.add_argument("--iterations", type=int, default=150)
     ap.add_argument("--views", type=int, default=24, help="training views (held-out ones come on top)")
     ap.add_argument("--holdout", type=int, default=8, help="every k-th camera (index mod k = 0) is held out")
