@@ -216,7 +216,7 @@ def dataset_experiment(paths):
     return load_experiment(configs[0]) if exp.optimize and exp.optimize.target_dataset else None
 
 
-def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples: int, align: str = "auto",
+def held_out_row(exp, mesh: Path, iteration: int, out: Path, reference, samples: int, *, align: str = "auto",
                  max_depth: int | None = None) -> dict:
     """One mesh of a run scored on the held-out views (means over the views), and against
     ``reference`` (V, F) when given; the held-out cameras fitted first with ``align`` ``on``, or
@@ -284,7 +284,7 @@ def evaluate_held_out(exp, reference: Path | None = None, samples: int | None = 
         progress.start(len(jobs))
     for run, iteration, path in jobs:
         folder = fileio.writable_folder(run.run_dir / "held_out")
-        result.rows.append(held_out_row(run, path, iteration, folder, ref, samples, align, max_depth))
+        result.rows.append(held_out_row(run, path, iteration, folder, ref, samples, align=align, max_depth=max_depth))
         if folder not in result.folders:
             result.folders.append(folder)
         if progress:
