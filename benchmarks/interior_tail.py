@@ -75,7 +75,7 @@ def summary(images: list, seconds: list) -> dict:
             "p999_median": float(np.median(p999)), "max_median": float(np.median(top)),
             "seeds_above_20": int((top > 20).sum()), "seeds_above_100": int((top > 100).sum()),
             "largest": np.sort(top)[-4:][::-1].tolist(), "sum_mean": float(sums.mean()),
-            "sum_error": float(sums.std(ddof=1) / np.sqrt(len(sums))), "sum_median": float(np.median(sums))}
+            "sum_error": float(sums.std(ddof=1) / np.sqrt(len(sums))) if len(sums) > 1 else float("nan"), "sum_median": float(np.median(sums))}
 
 
 def write_report(args, result: dict, reference_s: float):
@@ -106,6 +106,7 @@ def main(argv=None):
     ap.add_argument("--depth", type=int, default=4)
     args = ap.parse_args(argv)
     args.out, args.work = args.out.resolve(), args.work.resolve()
+    args.out.mkdir(parents=True, exist_ok=True)
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
     reference_s = reference_loop_seconds()

@@ -12,9 +12,12 @@ given size carries, with nothing else unknown:
 1. **Datasets.** ``pose_refinement.make_dataset`` (Mitsuba's own ``path`` integrator, the
    textured principled object under ``scenes/studio.exr``) at each size of ``--sizes``, ``--views``
    training views, every pose perturbed by ``--level`` degrees and ``--level``/100 of its distance
-   (``pose_refinement.perturbed_copy``, the same draws as the joint benchmark).
+   (``pose_refinement.perturbed_copy``: the joint benchmark's draws per camera index; with
+   another ``--views`` the cameras themselves are placed differently).
 2. **Fit.** The true mesh with its true albedo (the per-vertex colours the dataset was rendered
-   with) and roughness under the experiment's light; every training view's pose correction is
+   with) and roughness under the experiment's light, rendered as the joint runs render (their
+   experiment's ``scene.max_depth`` 2, against photographs rendered at depth 3: the one modelling
+   difference left); every training view's pose correction is
    fitted alone to its photograph (``psdr_cli.scoring.held_out_alignment.align_views``, the
    fit ``psdr evaluate`` aligns held-out views with: no gauge, the fixed scene pins each pose),
    for ``--fit-iterations`` Adam steps (the first ``--fit-views`` training views, or all).

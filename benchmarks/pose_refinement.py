@@ -17,7 +17,8 @@ and what it costs per iteration.
    axis and moved by ℓ/100 × their distance to the look-at point in a random direction (0.2° and
    0.2 % of the distance, ...), seeded per view, the same directions at every level. The images are
    the same files (symlinked folders); ``true_poses.json`` beside it keeps the true cameras.
-3. **Runs.** For each mesh × level × mode of ``--modes`` (``optimize.cameras: off | auto``) one
+3. **Runs.** For each mesh × level × mode of ``--modes`` (``optimize.cameras: off | auto``, or
+   ``lr<x>``: refinement on at learning rate x) one
    ``psdr optimize`` (a subprocess, one after another) of an experiment written beside it: the
    envmap ``studio.exr`` (scale 0.8) as the initial light, a principled object, the shape from the
    masks' visual hull, with the albedo texture (64²), the roughness and the environment map
@@ -647,6 +648,13 @@ def verdict(results: list) -> list:
 
 # ----------------------------------------------------------------------------- main
 
+def is_number(text: str) -> bool:
+    try:
+        return float(text) > 0
+    except ValueError:
+        return False
+
+
 def seed_count(level: float, args) -> int:
     """How many experiment seeds a level is run with: ``--exact-seeds`` for exact poses,
     ``--level-seeds`` for the levels of ``--seeded-levels`` (all by default), else one."""
@@ -680,6 +688,9 @@ def main(argv=None):
     ap.add_argument("--no-evaluate", action="store_true", help="skip the held-out scores (psdr evaluate)")
     ap.add_argument("--check", action="store_true", help="only the pose-error self-test")
     args = ap.parse_args(argv)
+    for mode in args.modes:
+        if mode not in ("off", "auto", "on") and not (mode.startswith("lr") and is_number(mode[2:])):
+            ap.error(f"--modes: expected off, auto, on or lr<x> (x a number), got {mode!r}")
     if args.check:
         check_pose_errors(args.seed)
         return

@@ -121,7 +121,9 @@ def evaluate(paths, reference: Path | None = None, *, samples: int | None = None
     ``relight``: an :class:`psdr_cli.commands.evaluate.Relight`, to score the runs under other light instead)."""
     option_count("--max-depth", max_depth, 1, MAX_DEPTH)
     dataset = evaluation.dataset_experiment(paths)
-    if max_depth is not None and (dataset is None or relight is not None):
+    if max_depth is not None and relight is not None:
+        raise PsdrError("--max-depth: not with --relight (it sets the depth of the held-out views' renders)")
+    if max_depth is not None and dataset is None:
         raise PsdrError("--max-depth: only for the held-out views of a camera-dataset experiment (psdr evaluate cfg.yaml)")
     if relight is not None:
         return evaluation.evaluate_relit(dataset, relight, json_out, progress)

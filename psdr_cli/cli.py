@@ -417,7 +417,7 @@ def print_relit(res):
 def print_held_out(res):
     """The table of ``psdr evaluate`` on a dataset experiment (held-out views)."""
     table = Table(title=f"psdr evaluate: held-out views of {res.experiment.name}")
-    cols = ("mesh", "iteration", "views", "depth", "poses", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU",
+    cols = ("mesh", "iteration", "views", "max depth", "poses", "PSNR", "PSNR mask", "SSIM", "SSIM mask", "mask IoU",
             "PSNR as given", "Chamfer-L1", "depth err", "normal °")
     for col in cols:
         table.add_column(col, justify="left" if col in ("mesh", "poses") else "right")

@@ -246,17 +246,20 @@ def test_held_out_views_render_at_the_depth_asked(textured_run, monkeypatch):
     deep = api.evaluate([str(textured_run.file)], max_depth=4)
     assert seen and set(seen) == {4}
     assert [r["max_depth"] for r in deep.rows] == [4] * len(deep.rows)
-    table = (deep.folders[0] / "held_out.md").read_text()
-    assert "| max_depth |" in table and "| 4 |" in table
+    lines = (deep.folders[0] / "held_out.md").read_text().splitlines()
+    column = [c.strip() for c in lines[0].split("|")].index("max_depth")
+    assert [[c.strip() for c in line.split("|")][column] for line in lines[2:2 + len(deep.rows)]] == ["4"] * len(deep.rows)
     seen.clear()
     own = api.evaluate([str(textured_run.file)])
     assert set(seen) == {textured_run.scene.max_depth} and own.rows[-1]["max_depth"] == textured_run.scene.max_depth
 
 
 def test_max_depth_is_refused_without_held_out_views(tmp_path, textured_run):
-    """``--max-depth`` only means something for a dataset's held-out views: a mesh comparison
-    refuses it in one line, as does a depth out of range."""
+    """``--max-depth`` only means something for a dataset's held-out views: a mesh comparison and
+    a relit score refuse it in one line, as does a depth out of range."""
     with pytest.raises(PsdrError, match="--max-depth: only for the held-out views"):
         api.evaluate([str(textured_run.run_dir / "final.ply")], reference=textured_run.run_dir / "final.ply", max_depth=3)
+    with pytest.raises(PsdrError, match="--max-depth: not with --relight"):
+        api.evaluate([str(textured_run.file)], relight=api.Relight(tmp_path, tmp_path / "sky.exr"), max_depth=3)
     with pytest.raises(PsdrError, match=r"--max-depth: expected an integer in \[1, 64\]"):
         api.evaluate([str(textured_run.file)], max_depth=0)
