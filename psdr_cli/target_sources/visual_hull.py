@@ -23,7 +23,9 @@ reconstruction does not grow back. The hull is therefore carved with a margin m 
 with the smallest m of :data:`MARGINS` whose hull explains the masks: in 90 % of the views the
 mask's pixels farther than 1.5 voxel footprints from the hull's projection (the grid's own
 resolution forgives the rest) number at most :data:`LOST_WIDTH` times the mask's perimeter (a
-band that thin on average). Consistent masks give m = 0, H_0 = H.
+band that thin on average). Consistent masks give m = 0, H_0 = H. A run that refines its cameras
+registers their poses to the masks first (:mod:`psdr_cli.optimisation.silhouette_alignment`), so
+that its hull usually needs no margin.
 """
 from __future__ import annotations
 
@@ -70,17 +72,29 @@ def mask_distance(points: np.ndarray, views) -> np.ndarray:
     distance in pixels from its pixel to the view's mask (0 inside); +∞ where no view sees it.
     ``views``: each with ``mask`` (H, W) in [0, 1], ``cam_to_world`` in the normalised frame and
     pinhole intrinsics at the mask's resolution."""
-    far = np.zeros(len(points))
-    seen = np.zeros(len(points), bool)
-    for view in views:
+    first, owner, _ = mask_distances(points, views)
+    return np.where(owner >= 0, first, np.inf)
+
+
+def mask_distances(points: np.ndarray, views) -> tuple:
+    """(δ₁, v₁, δ₂) per point: the largest distance (pixels) to a mask over the views that see it
+    (:func:`mask_distance`), the index of that view, and the second largest; v₁ = −1 and
+    δ₁ = δ₂ = −∞ where no view sees the point, δ₂ = −∞ where one view does."""
+    first = np.full(len(points), -np.inf)
+    second = np.full(len(points), -np.inf)
+    owner = np.full(len(points), -1, np.int64)
+    for i, view in enumerate(views):
         u, v, z = project(points, view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
         h, w = view.mask.shape
         visible = (z > 1e-9) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         outside = view.mask < 0.5
         distance = ndimage.distance_transform_edt(outside) if not outside.all() else np.full(outside.shape, np.inf)
-        far = np.where(visible, np.maximum(far, distance[pixel(u, v, (h, w))]), far)
-        seen |= visible
-    return np.where(seen, far, np.inf)
+        d = np.where(visible, distance[pixel(u, v, (h, w))], -np.inf)
+        bigger = d > first
+        second = np.where(bigger, first, np.maximum(second, d))
+        owner = np.where(bigger, i, owner)
+        first = np.where(bigger, d, first)
+    return first, owner, second
 
 
 def lost_width(points: np.ndarray, step: float, view) -> float:
