@@ -404,18 +404,18 @@ def test_the_transforms_form_of_the_refined_cameras_reads_back(tmp_path):
         np.testing.assert_allclose(f.cam_to_world, P, atol=1e-9)
 
 
-def perturbed_test_split(src: Path, dst: Path, degrees: float) -> Path:
-    """A copy of a Blender dataset whose held-out cameras are each turned by ``degrees`` about a
-    random axis through their centre (the training cameras exact)."""
+def perturbed_test_split(src: Path, dst: Path, degrees: float, split: str = "test", seed: int = 11) -> Path:
+    """A copy of a Blender dataset whose ``split`` cameras (default the held-out ones) are each
+    turned by ``degrees`` about a random axis through their centre (the others exact)."""
     shutil.copytree(src, dst)
-    rng = np.random.default_rng(11)
-    data = json.loads((dst / "transforms_test.json").read_text())
+    rng = np.random.default_rng(seed)
+    data = json.loads((dst / f"transforms_{split}.json").read_text())
     for frame in data["frames"]:
         M = np.array(frame["transform_matrix"])
         axis = rng.normal(size=3)
         M[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis / np.linalg.norm(axis)).as_matrix() @ M[:3, :3]
         frame["transform_matrix"] = M.tolist()
-    (dst / "transforms_test.json").write_text(json.dumps(data))
+    (dst / f"transforms_{split}.json").write_text(json.dumps(data))
     return dst
 
 

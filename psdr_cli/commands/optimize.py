@@ -164,7 +164,7 @@ def run_start(exp, files: RunFiles, total: int, resume: bool, warn) -> RunStart:
         keep_previous_run(files, warn)
     targets, cameras, reference = load_targets(exp, files, inputs)
     if state is None:
-        state = initial_state(exp, files, inputs.initial, warn)
+        state = initial_state(exp, files, inputs.initial, warn, inputs.initial_values)
     fileio.write_json(files.run, run_record(exp))  # a fresh run, or the resumed one in the current version
     return RunStart(state, inputs, targets, cameras)
 

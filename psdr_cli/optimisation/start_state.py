@@ -4,8 +4,12 @@ EXR files from ``psdr render``, or the photographs of a camera dataset) and the 
 Reads the experiment and the sources; writes the initial shape as the run's checkpoint 0."""
 from __future__ import annotations
 
+import warnings
+
+import numpy as np
+
 from ..config.optimize_section import needs_uv, unwrap_size
-from ..errors import PsdrError
+from ..errors import PsdrError, PsdrWarning
 from ..experiment.dataset_frame import to_dataset, to_normalised
 from ..geometry import atlas
 from ..geometry.remesh import remesh
@@ -15,6 +19,8 @@ from ..run_folder.state import State
 from ..scene import meshes
 from ..target_sources.registry import target_source
 from ..target_sources.source import TargetInputs
+from .camera_refinement import refines_cameras
+from .silhouette_alignment import aligned_corrections, aligned_views
 
 
 def read_targets(exp, fresh: bool = False) -> TargetInputs:
@@ -30,8 +36,29 @@ def read_targets(exp, fresh: bool = False) -> TargetInputs:
         raise PsdrError(f"{exp.file}: optimize.preview_views: view {bad[0]} does not exist (0..{views - 1})")
     if not fresh:
         return inputs
+    values = None
+    if aligns_poses(exp, inputs):  # the hull is carved, and the loop starts, with poses the masks agree on
+        values = aligned_corrections(inputs.views, exp.optimize.cameras.rotation, exp.optimize.cameras.translation)
+        inputs = inputs._replace(views=aligned_views(inputs.views, values))
+        turned = np.degrees(np.linalg.norm(values["camera_rotation"], axis=1))
+        if turned.max() > 0:
+            warnings.warn(f"optimize.cameras: {int((turned > 0).sum())} of {len(turned)} views turned by up to "
+                          f"{turned.max():.2f}° (median {np.median(turned):.2f}°) so that their masks agree before "
+                          f"the visual hull is carved; the loop refines them from there", PsdrWarning, stacklevel=2)
     initial = source.initial(exp, inputs)
-    return inputs._replace(initial=initial if initial is not None else initial_shape_uv(exp, inputs.reference))
+    return inputs._replace(initial=initial if initial is not None else initial_shape_uv(exp, inputs.reference),
+                           initial_values=values)
+
+
+def aligns_poses(exp, inputs: TargetInputs) -> bool:
+    """Whether a fresh run's poses are registered to its masks before the hull is carved: the
+    cameras are refined (``optimize.cameras``), the shape starts as the hull (no ``init``) and
+    every view has a mask."""
+    cfg = exp.optimize
+    views = inputs.views or []
+    return (cfg.init is None and len(views) > 1 and all(v.mask is not None for v in views)
+            and refines_cameras(cfg.cameras, len(views), cfg.target_dataset is not None, exp.estimator.engine,
+                                exp.file))
 
 
 def load_targets(exp, files: RunFiles, inputs: TargetInputs):
@@ -40,9 +67,10 @@ def load_targets(exp, files: RunFiles, inputs: TargetInputs):
     return target_source(exp.optimize).load(exp, files, inputs), inputs.cameras, inputs.reference
 
 
-def initial_state(exp, files: RunFiles, shape, warn) -> State:
+def initial_state(exp, files: RunFiles, shape, warn, values: dict | None = None) -> State:
     """The state of a fresh run from its initial shape (V, F, UV or None: :func:`initial_shape_uv`),
-    remeshed (``remesh.initial``) unless ``remesh.method: none``, written as checkpoint 0."""
+    remeshed (``remesh.initial``) unless ``remesh.method: none``, written as checkpoint 0, with the
+    starting ``values`` of other unknowns (:attr:`TargetInputs.initial_values`)."""
     cfg = exp.optimize
     V, F, uv = shape
     if cfg.remesh.method != "none":
@@ -57,7 +85,7 @@ def initial_state(exp, files: RunFiles, shape, warn) -> State:
                 raise PsdrError(f"{exp.file}: optimize: no UV atlas for the textures on the remeshed initial shape "
                                 f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     write_mesh(files.checkpoint(0), dataset_coordinates(exp, V), F, uv)
-    return State(0, V, F, uv=uv)
+    return State(0, V, F, uv=uv, values=dict(values or {}))
 
 
 def dataset_coordinates(exp, V):

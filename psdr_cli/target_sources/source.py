@@ -39,13 +39,16 @@ class TargetInputs(NamedTuple):
     them), or the ground truth (V, F) the targets are rendered from; for a fresh run, its initial
     shape (V, F, UV or None: :func:`psdr_cli.optimisation.start_state.initial_shape_uv`); the targets' (H, W) masks
     when every photograph of a dataset has one (else None); and what the source read that its
-    initial shape needs (a dataset's views)."""
+    initial shape needs (a dataset's views); for a fresh run, the starting values of unknowns
+    other than the shape that were found with it (the pose corrections that make a dataset's
+    masks agree: :mod:`psdr_cli.optimisation.silhouette_alignment`)."""
     images: list | None
     cameras: list | None
     reference: tuple | None
     initial: tuple | None = None
     masks: TargetMasks | None = None
     views: list | None = None
+    initial_values: dict | None = None
 
 
 def no_initial(exp, inputs: TargetInputs):

@@ -1,0 +1,198 @@
+"""Camera poses registered to the masks before the visual hull is carved (a run that refines its
+cameras: ``optimize.cameras``).
+
+Poses off by a fraction of a degree make the masks disagree: the hull, carved with the margin
+the disagreement needs (:mod:`psdr_cli.target_sources.visual_hull`), is fat by that margin on
+every side, and the loop starts from it and from the wrong poses. Before carving, each view is
+therefore turned until its mask fits inside the silhouette of the hull of the other views
+(silhouette coherence):
+
+1. carve exactly (no margin) at the current poses, keeping for each grid point x its largest
+   mask distance δ₁(x) over the views that see it, the view v₁(x) it comes from and the second
+   largest δ₂(x); the exact hull of the views other than v is then
+   H₋ᵥ = { x : (δ₂(x) if v₁(x) = v else δ₁(x)) ≤ 0 };
+2. draw H₋ᵥ in view v (each voxel as its centre and its eight corners) and find the image shift
+   s = (Δu, Δv) that puts v's mask inside that silhouette: the least mean of min(D(x − s),
+   :data:`TRUNCATE_PX`) over the pixels x of the mask's outline that lie within
+   :data:`TRUNCATE_PX` of it as given (D: the distance to the silhouette; a thin part the others'
+   wrong poses carved away neither pulls nor weighs), the smallest |s| among the shifts within
+   :data:`TIE_PX` of the least (H₋ᵥ holds the object, so with exact poses s = 0 fits and nothing
+   moves); searched on a grid of :data:`COARSE_STEP` pixels within ±:data:`MAX_SHIFT_PX`, then of
+   :data:`SEARCH_STEP` around the best;
+3. turn view v about its own centre so that its image moves by s: a tilt of Δv/f_y and a pan of
+   −Δu/f_x in OpenCV's camera axes (x right, y down), i.e. the correction r_v += (−Δv/f_y, Δu/f_x, 0)
+   of :mod:`psdr_cli.optimisation.camera_refinement` (Mitsuba's camera axes: x left, y up);
+4. project the corrections onto the complement of the gauge (the seven similarity motions of
+   the whole capture, as the loop does after every step), so the capture keeps its mean pose.
+
+At most :data:`ROUNDS` rounds, fewer once every shift is below :data:`SETTLED_PX`; of the
+poses passed through (the given ones first) the result is those whose masks disagree least (the
+mean width of the band of each mask that the exact hull of all views leaves uncovered), so a
+registration that does not help leaves the poses as given. A view whose best shift is at the
+search's edge, or whose others' hull does not reach its image, is not moved in that round. The
+corrections are the loop's starting corrections (its Adam entries start there), so the hull, the
+loop and ``cameras.json`` see the same poses. A shift across the image is the part of a pose
+error a silhouette shows best; the turn about the optical axis, the distance and the split
+between a turn and a sideways move are left to the loop, and so are disagreements below about a
+voxel of the carving grid (about a pixel), which the drawn silhouettes do not resolve.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from ..experiment.dataset_frame import look_at_point
+from ..target_sources.visual_hull import grid_resolution, mask_distances, pixel, project
+from .camera_refinement import gauge_basis, without_gauge
+
+#: Rounds of registration and carving at most.
+ROUNDS = 4
+
+#: Shift (pixels) below which every view is taken as registered.
+SETTLED_PX = 0.05
+
+#: The largest shift searched (pixels): a view whose best shift is at this edge is not moved.
+MAX_SHIFT_PX = 4.0
+
+#: Steps (pixels) of the coarse search and of the fine one around its best.
+COARSE_STEP, SEARCH_STEP = 0.5, 0.1
+
+#: Distance (pixels) at which an outline pixel's cost stops growing: a part of the mask that the
+#: other views' hull lost (a thin part cut by their wrong poses) weighs alike at every shift.
+TRUNCATE_PX = 2.0
+
+#: Mean outline distance (pixels) within which two shifts fit a mask alike.
+TIE_PX = 0.02
+
+#: Mitsuba's camera axes (x left, y up, z forward) from OpenCV's (x right, y down, z forward).
+FLIP = np.diag([-1.0, -1.0, 1.0])
+
+
+def camera_frames(views):
+    """(origins o_v, Mitsuba camera axes Q_v, look-at point c, distances d_v) of ``views``
+    (OpenCV ``cam_to_world`` in the normalised frame), as :class:`CameraCorrections` has them."""
+    M = np.stack([np.asarray(v.cam_to_world, np.float64) for v in views])
+    origins = M[:, :3, 3]
+    axes = M[:, :3, :3] / np.linalg.norm(M[:, :3, :3], axis=1, keepdims=True) @ FLIP
+    centre = look_at_point(origins, axes[:, :, 2])
+    centre = origins.mean(0) if centre is None else centre
+    return origins, axes, centre, np.maximum(np.linalg.norm(origins - centre, axis=1), 1e-6)
+
+
+def corrected(cam_to_world: np.ndarray, axes: np.ndarray, distance: float, r: np.ndarray, tau: np.ndarray):
+    """The OpenCV camera-to-world of the loop's correction (r, τ) of one view:
+    [R(Q r) R⁰ | o + d Q τ] (:mod:`.camera_refinement`)."""
+    M = np.array(cam_to_world, np.float64)
+    out = M.copy()
+    out[:3, :3] = Rotation.from_rotvec(axes @ r).as_matrix() @ M[:3, :3]
+    out[:3, 3] = M[:3, 3] + distance * (axes @ tau)
+    return out
+
+
+def silhouette(points: np.ndarray, step: float, view) -> np.ndarray:
+    """(H, W) bool: the pixels of ``view`` that voxels centred at ``points`` (``step`` wide) cover,
+    each voxel drawn as its eight corners and its centre."""
+    corners = 0.5 * step * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)] + [[0, 0, 0]])
+    samples = (points[:, None, :] + corners).reshape(-1, 3)
+    u, v, z = project(samples, view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
+    shape = view.mask.shape
+    ok = (z > 1e-9) & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
+    drawn = np.zeros(shape, bool)
+    drawn[pixel(u[ok], v[ok], shape)] = True
+    return drawn
+
+
+def fitting_shift(mask: np.ndarray, outline: np.ndarray, drawn: np.ndarray) -> np.ndarray:
+    """(Δu, Δv): the smallest image shift of the silhouette ``drawn`` that puts ``mask``'s
+    ``outline`` inside it, or leaves it least outside (module docstring, step 2); NaN when the
+    best is at the search's edge."""
+    distance = np.minimum(ndimage.distance_transform_edt(~drawn), TRUNCATE_PX)
+    rows, cols = np.nonzero(outline & (distance < TRUNCATE_PX))  # parts the others' hull lost do not pull
+    if len(rows) == 0:
+        return np.full(2, np.nan)
+    coarse = np.arange(-MAX_SHIFT_PX, MAX_SHIFT_PX + 1e-9, COARSE_STEP)
+    best = smallest_fit(distance, rows, cols, *np.meshgrid(coarse, coarse))
+    if np.abs(best).max() >= MAX_SHIFT_PX:
+        return np.full(2, np.nan)
+    fine = np.arange(-COARSE_STEP, COARSE_STEP + 1e-9, SEARCH_STEP)
+    du, dv = np.meshgrid(fine, fine)
+    return smallest_fit(distance, rows, cols, du + best[0], dv + best[1])
+
+
+def smallest_fit(distance: np.ndarray, rows, cols, du, dv) -> np.ndarray:
+    """Among the shifts (``du``, ``dv``), the smallest whose mean ``distance`` over the outline
+    pixels (``rows``, ``cols``) moved back by it is within :data:`TIE_PX` of the least."""
+    du, dv = du.ravel(), dv.ravel()
+    at = [(rows[None, :] - dv[:, None]).ravel(), (cols[None, :] - du[:, None]).ravel()]
+    cost = ndimage.map_coordinates(distance, at, order=1, mode="nearest").reshape(len(du), len(rows)).mean(1)
+    near = cost <= cost.min() + TIE_PX
+    k = np.argmin(np.where(near, du ** 2 + dv ** 2, np.inf))
+    return np.array([du[k], dv[k]])
+
+
+def silhouette_shifts(views, bound: float = 1.5) -> tuple:
+    """((n, 2) image shifts (Δu, Δv) in pixels that fit each view's mask inside the silhouette of
+    the exact hull of the other views (module docstring, steps 1–2), NaN where there is none;
+    and the disagreement of the masks: the mean over the views of the width (pixels) of the
+    band of the mask that the exact hull of all views leaves uncovered, |mask ∖ drawn| / |outline|)."""
+    resolution = grid_resolution(views, bound)
+    axis = np.linspace(-bound, bound, resolution)
+    step = axis[1] - axis[0]
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    first, owner, second = mask_distances(grid, views)
+    hull = grid[(owner >= 0) & (first <= 0)]
+    shifts, bands = np.full((len(views), 2), np.nan), []
+    for i, view in enumerate(views):
+        mask = None if view.mask is None else view.mask >= 0.5
+        if mask is None or not mask.any():
+            continue
+        outline = mask & ~ndimage.binary_erosion(mask)
+        bands.append((mask & ~silhouette(hull, step, view)).sum() / outline.sum())
+        others = np.where(owner == i, second, np.where(owner >= 0, first, np.inf))
+        inside = (others <= 0) & (others > -np.inf)
+        drawn = silhouette(grid[inside], step, view) if inside.any() else None
+        if drawn is not None and drawn.any():
+            shifts[i] = fitting_shift(mask, outline, drawn)
+    return shifts, float(np.mean(bands)) if bands else 0.0
+
+
+def aligned_corrections(views, rotation: bool = True, translation: bool = True, rounds: int = ROUNDS) -> dict:
+    """The loop's starting corrections ``{"camera_rotation": (n, 3), "camera_translation": (n, 3)}``
+    (radians; camera distances) that make ``views``' masks agree (module docstring): of the
+    poses the rounds pass through (the given ones first), those whose masks disagree least
+    (:func:`silhouette_shifts`); zeros when ``rotation`` is not refined (a shift is turned into a
+    rotation)."""
+    n = len(views)
+    r, tau = np.zeros((n, 3)), np.zeros((n, 3))
+    best, least = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}, np.inf
+    if not rotation or n < 2:
+        return best
+    origins, axes, centre, distances = camera_frames(views)
+    G = gauge_basis(axes, origins, centre, distances, True, translation)
+    fx, fy = np.array([v.fx for v in views]), np.array([v.fy for v in views])
+    for k in range(rounds + 1):
+        now = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}
+        shifts, band = silhouette_shifts(aligned_views(views, now))
+        if band < least:
+            best, least = now, band
+        usable = np.isfinite(shifts).all(1)
+        if k == rounds or not usable.any() or np.abs(shifts[usable]).max() < SETTLED_PX:
+            break
+        r[usable, 0] -= shifts[usable, 1] / fy[usable]
+        r[usable, 1] += shifts[usable, 0] / fx[usable]
+        x = np.concatenate([r.ravel()] + ([tau.ravel()] if translation else []))
+        x = without_gauge(x, G, np.ones(len(x), bool))
+        r = x[:3 * n].reshape(n, 3)
+        if translation:
+            tau = x[3 * n:].reshape(n, 3)
+    return best
+
+
+def aligned_views(views, values: dict) -> list:
+    """``views`` with the cameras of the corrections ``values`` (:func:`aligned_corrections`)."""
+    _, axes, _, distances = camera_frames(views)
+    return [replace(v, cam_to_world=corrected(v.cam_to_world, axes[i], distances[i], values["camera_rotation"][i],
+                                              values["camera_translation"][i])) for i, v in enumerate(views)]
