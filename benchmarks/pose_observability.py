@@ -27,8 +27,10 @@ given size carries, with nothing else unknown:
    before and after; their medians over the views and the falls (before / after).
 
 Outputs ``<out>/pose_observability.json`` and ``.md`` (with the machine's 10⁷-step loop time).
+``--bound`` prints instead what a split without any parallax allows (:func:`split_bound`).
 
     .venv/bin/python benchmarks/pose_observability.py --sizes 96 192 384 --views 8
+    .venv/bin/python benchmarks/pose_observability.py --bound --level 0.5
 """
 from __future__ import annotations
 
@@ -100,6 +102,7 @@ def fit_size(size: int, args, work: Path) -> dict:
     cfg = bench.experiment(work / "configs" / f"{args.mesh}_{size}.yaml", f"{args.mesh}_{size}", dataset,
                            work / "runs", "off", 1)
     exp = dataset_scene(load_experiment(cfg), split="train")
+    exp.scene.max_depth = args.fit_depth
     V, F = bench.load_mesh(args.mesh)
     scene = true_scene(exp, V, F, bench.patch_colours(V, args.seed + 17))
     views = dataset_views(exp)
@@ -144,8 +147,40 @@ def parallax(points: np.ndarray, truth: dict, focal: float) -> float:
     return float(np.median(out))
 
 
+def split_bound(level: float, draws: int = 200_000, seed: int = 0) -> dict:
+    """The falls (before / after, medians) of the rotation and translation errors when an image
+    pins only each camera's roll and the sums pan + sideways x and tilt + sideways y (no parallax),
+    for the benchmark's draws (a turn of ``level``° about a random axis, a move of ``level`` % of
+    the distance in a random direction): split in proportion to the two parts' prior variances
+    (the least-squares split), or wholly to the turn; the distance along the axis unknown or known."""
+    rng = np.random.default_rng(seed)
+
+    def directions():
+        v = rng.normal(size=(draws, 3))
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    r, t = directions() * math.radians(level), directions() * level / 100
+    sums = np.stack([r[:, 1] + t[:, 0], -r[:, 0] + t[:, 1]], 1)
+    share_prior = (math.radians(level) ** 2) / (math.radians(level) ** 2 + (level / 100) ** 2)
+    out = {}
+    for name, share in (("prior", share_prior), ("turn", 1.0)):
+        for known_depth in (False, True):
+            r_hat, t_hat = np.zeros_like(r), np.zeros_like(t)
+            r_hat[:, 1], r_hat[:, 0], r_hat[:, 2] = share * sums[:, 0], -share * sums[:, 1], r[:, 2]
+            t_hat[:, 0], t_hat[:, 1] = (1 - share) * sums[:, 0], (1 - share) * sums[:, 1]
+            if known_depth:
+                t_hat[:, 2] = t[:, 2]
+            before_r, before_t = np.median(np.linalg.norm(r, axis=1)), np.median(np.linalg.norm(t, axis=1))
+            out[f"{name}{'_depth_known' if known_depth else ''}"] = {
+                "turn_share": share,
+                "rotation_fall": float(before_r / np.median(np.linalg.norm(r - r_hat, axis=1))),
+                "translation_fall": float(before_t / np.median(np.linalg.norm(t - t_hat, axis=1)))}
+    return out
+
+
 def write_report(args, results: list, reference_s: float):
     data = {"mesh": args.mesh, "level_deg": args.level, "views": args.views, "fit_iterations": args.fit_iterations,
+            "fit_depth": args.fit_depth,
             "reference_loop_seconds": reference_s, "results": results}
     (args.out / "pose_observability.json").write_text(json.dumps(data, indent=1))
     lines = ["# What a photograph says about its camera's pose (benchmarks/pose_observability.py)", "",
@@ -153,7 +188,8 @@ def write_report(args, results: list, reference_s: float):
              f"{args.views} training views (the first {args.fit_views or args.views} fitted), every pose turned by {args.level}° about a random axis and moved by "
              f"{args.level / 100:.1%} of its distance (the joint benchmark's draws). Each view's pose fitted alone "
              f"({args.fit_iterations} Adam steps, `psdr evaluate`'s held-out alignment) with the **true** mesh, "
-             f"albedo, roughness and light. Errors against the true camera, medians over the views; reference "
+             f"albedo, roughness and light (rendered with {args.fit_depth} path segments, the photographs with 3). "
+             f"Errors against the true camera, medians over the views; reference "
              f"10⁷-step Python loop: {reference_s:.2f} s.", "",
              "| size | rotation ° before → after (fall) | centre % before → after (fall) | "
              "reprojection px before → after (fall) | parallax px of 1° turn vs shift | fit s |",
@@ -179,8 +215,15 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=256, help="samples per pixel of the dataset renders")
     ap.add_argument("--fit-iterations", type=int, default=100)
     ap.add_argument("--fit-views", type=int, default=None, help="fit only the first K training views (default: all)")
+    ap.add_argument("--fit-depth", type=int, default=2,
+                    help="path segments of the fit's renders (the joint runs' 2; the photographs have 3)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--bound", action="store_true",
+                    help="only the falls a split without parallax allows (split_bound), printed as JSON")
     args = ap.parse_args(argv)
+    if args.bound:
+        print(json.dumps(split_bound(args.level), indent=1))
+        return
     args.out, work = args.out.resolve(), args.work.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
     reference_s = reference_loop_seconds()
