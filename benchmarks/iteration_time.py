@@ -179,7 +179,7 @@ def setup(scale: int, tmp: Path, initial: int | None = None, depth: int | None =
     files = RunFiles(exp.run_dir)
     inputs = read_targets(exp, fresh=True)
     targets, cameras, _ = load_targets(exp, files, inputs)
-    state = initial_state(exp, files, inputs.initial, print)
+    state = initial_state(exp, files, inputs.initial, print, inputs.initial_values)
     problem = Problem.from_state(SceneSource.of(exp), state, cameras)
     settings = Settings.from_experiment(exp, loop=True)
     engine = Engine(settings)

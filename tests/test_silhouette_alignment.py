@@ -5,20 +5,26 @@ from __future__ import annotations
 
 import warnings
 
+import mitsuba as mi
 import numpy as np
 import pytest
 import trimesh
 from scipy import ndimage
 
 from psdr_cli import api
+from psdr_cli.config.scene_ids import sensor_id
+from psdr_cli.config.unknowns import CamerasUnknown
 from psdr_cli.errors import PsdrWarning
 from psdr_cli.experiment.dataset_frame import dataset_scene
 from psdr_cli.experiment.load import load_experiment
-from psdr_cli.optimisation.camera_refinement import gauge_basis
+from psdr_cli.optimisation.camera_refinement import OPENCV_FLIP, CameraCorrections, gauge_basis
 from psdr_cli.optimisation.silhouette_alignment import aligned_corrections, aligned_views, camera_frames, fitting_shift
 from psdr_cli.optimisation.start_state import read_targets
 from psdr_cli.run_folder.state import State
-from psdr_cli.target_sources.visual_hull import visual_hull
+from psdr_cli.scene.build import sensor_dict
+from psdr_cli.scene.pinhole import pinhole_camera
+from psdr_cli.support import backend
+from psdr_cli.target_sources.visual_hull import project, visual_hull
 from test_camera_refinement import DATA, dataset_experiment, perturbed_test_split
 from test_photographs import torus_views, turned_views
 
@@ -80,6 +86,34 @@ def test_turned_cameras_are_registered_until_their_masks_agree():
     G = gauge_basis(axes, origins, centre, distances, True, True)
     x = np.concatenate([values["camera_rotation"].ravel(), values["camera_translation"].ravel()])
     assert np.linalg.norm(G.T @ x) < 1e-9 * np.linalg.norm(G.T) * np.linalg.norm(x)
+
+
+def test_the_registered_cameras_are_the_loops_corrected_cameras():
+    """Corrections (r, τ) give the same cameras in the registration (numpy, OpenCV axes) as in
+    the loop's :class:`CameraCorrections` on Mitsuba sensors (to float32 rounding of coordinates
+    about 3 in size: 3e-6), and the turn r = (−Δv/f_y, Δu/f_x, 0) moves a view's image by (Δu, Δv)
+    (to first order: within 2 % for a move of 2 px)."""
+    backend.select_variant("auto")
+    views = turned_views(torus_views(count=8, size=64), 3.0)
+    scene = {"type": "scene"}
+    for i, v in enumerate(views):
+        camera = pinhole_camera(v.cam_to_world, v.fx, v.fy, v.cx, v.cy, v.width, v.height)
+        scene[sensor_id(i)] = dict(sensor_dict(camera, v.width, v.height), id=sensor_id(i))
+    params = mi.traverse(mi.load_dict(scene))
+    rng = np.random.default_rng(0)
+    values = {"camera_rotation": rng.normal(size=(8, 3)) * 0.02, "camera_translation": rng.normal(size=(8, 3)) * 0.02}
+    loop = CameraCorrections(CamerasUnknown(mode="on"), params, 8, values).matrices()
+    for M, view in zip(loop, aligned_views(views, values)):
+        np.testing.assert_allclose(M, view.cam_to_world @ OPENCV_FLIP, atol=3e-6)
+    du, dv = 1.7, -0.9
+    view = views[0]
+    turn = {"camera_rotation": np.zeros((8, 3)), "camera_translation": np.zeros((8, 3))}
+    turn["camera_rotation"][0] = -dv / view.fy, du / view.fx, 0.0
+    points = np.array([[0.1, 0.2, 0.05], [0.0, 0.0, 0.0], [-0.3, 0.1, 0.2]])
+    u0, v0, _ = project(points, view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
+    moved = aligned_views(views, turn)[0]
+    u1, v1, _ = project(points, moved.cam_to_world, view.fx, view.fy, view.cx, view.cy)
+    np.testing.assert_allclose(np.stack([u1 - u0, v1 - v0], 1), np.tile([du, dv], (3, 1)), rtol=0.02, atol=0.04)
 
 
 def test_a_run_that_refines_its_cameras_starts_from_the_registered_poses(tmp_path):

@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 
 from ..experiment.dataset_frame import look_at_point
 from ..target_sources.visual_hull import grid_resolution, mask_distances, pixel, project
-from .camera_refinement import gauge_basis, without_gauge
+from .camera_refinement import OPENCV_FLIP, gauge_basis, without_gauge
 
 #: Rounds of registration and carving at most.
 ROUNDS = 4
@@ -68,7 +68,7 @@ TRUNCATE_PX = 2.0
 TIE_PX = 0.02
 
 #: Mitsuba's camera axes (x left, y up, z forward) from OpenCV's (x right, y down, z forward).
-FLIP = np.diag([-1.0, -1.0, 1.0])
+FLIP = OPENCV_FLIP[:3, :3]
 
 
 def camera_frames(views):
@@ -133,15 +133,19 @@ def smallest_fit(distance: np.ndarray, rows, cols, du, dv) -> np.ndarray:
     return np.array([du[k], dv[k]])
 
 
-def silhouette_shifts(views, bound: float = 1.5) -> tuple:
-    """((n, 2) image shifts (Δu, Δv) in pixels that fit each view's mask inside the silhouette of
-    the exact hull of the other views (module docstring, steps 1–2), NaN where there is none;
-    and the disagreement of the masks: the mean over the views of the width (pixels) of the
-    band of the mask that the exact hull of all views leaves uncovered, |mask ∖ drawn| / |outline|)."""
-    resolution = grid_resolution(views, bound)
-    axis = np.linspace(-bound, bound, resolution)
-    step = axis[1] - axis[0]
-    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+def carving_grid(views, bound: float = 1.5) -> tuple:
+    """(points (m, 3), cell width): the visual hull's carving grid over [−bound, bound]³
+    (:func:`~psdr_cli.target_sources.visual_hull.grid_resolution` points a side)."""
+    axis = np.linspace(-bound, bound, grid_resolution(views, bound))
+    return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3), axis[1] - axis[0]
+
+
+def silhouette_shifts(views, grid: np.ndarray, step: float) -> tuple:
+    """(shifts, band, δ₂): the (n, 2) image shifts (Δu, Δv) in pixels that fit each view's mask
+    inside the silhouette of the exact hull of the other views (module docstring, steps 1–2), NaN
+    where there is none; the disagreement of the masks, the mean over the views of the width
+    (pixels) of the band of the mask that the exact hull of all views leaves uncovered
+    (|mask ∖ drawn| / |outline|); and each grid point's second largest mask distance."""
     first, owner, second = mask_distances(grid, views)
     hull = grid[(owner >= 0) & (first <= 0)]
     shifts, bands = np.full((len(views), 2), np.nan), []
@@ -156,15 +160,20 @@ def silhouette_shifts(views, bound: float = 1.5) -> tuple:
         drawn = silhouette(grid[inside], step, view) if inside.any() else None
         if drawn is not None and drawn.any():
             shifts[i] = fitting_shift(mask, outline, drawn)
-    return shifts, float(np.mean(bands)) if bands else 0.0
+    return shifts, float(np.mean(bands)) if bands else 0.0, np.where(owner >= 0, second, np.inf)
 
 
-def aligned_corrections(views, rotation: bool = True, translation: bool = True, rounds: int = ROUNDS) -> dict:
+def aligned_corrections(views, rotation: bool = True, translation: bool = True, max_rotation: float = np.inf,
+                        rounds: int = ROUNDS) -> dict:
     """The loop's starting corrections ``{"camera_rotation": (n, 3), "camera_translation": (n, 3)}``
     (radians; camera distances) that make ``views``' masks agree (module docstring): of the
     poses the rounds pass through (the given ones first), those whose masks disagree least
     (:func:`silhouette_shifts`); zeros when ``rotation`` is not refined (a shift is turned into a
-    rotation)."""
+    rotation). A view stops turning before its correction would pass half of ``max_rotation``
+    (radians; the loop's own bound stays clear). After the first round only the grid points
+    that at most one view sees farther than the rounds can move an image
+    (:data:`ROUNDS` · :data:`MAX_SHIFT_PX` + 1 px) are carved again: the others stay outside
+    every hull of the rounds."""
     n = len(views)
     r, tau = np.zeros((n, 3)), np.zeros((n, 3))
     best, least = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}, np.inf
@@ -173,16 +182,21 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
     origins, axes, centre, distances = camera_frames(views)
     G = gauge_basis(axes, origins, centre, distances, True, translation)
     fx, fy = np.array([v.fx for v in views]), np.array([v.fy for v in views])
+    grid, step = carving_grid(views)
     for k in range(rounds + 1):
         now = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}
-        shifts, band = silhouette_shifts(aligned_views(views, now))
+        shifts, band, second = silhouette_shifts(aligned_views(views, now), grid, step)
+        if k == 0:
+            grid = grid[second <= rounds * MAX_SHIFT_PX + 1]
         if band < least:
             best, least = now, band
-        usable = np.isfinite(shifts).all(1)
+        turned = r.copy()
+        turned[:, 0] -= np.nan_to_num(shifts[:, 1]) / fy
+        turned[:, 1] += np.nan_to_num(shifts[:, 0]) / fx
+        usable = np.isfinite(shifts).all(1) & (np.linalg.norm(turned, axis=1) <= 0.5 * max_rotation)
         if k == rounds or not usable.any() or np.abs(shifts[usable]).max() < SETTLED_PX:
             break
-        r[usable, 0] -= shifts[usable, 1] / fy[usable]
-        r[usable, 1] += shifts[usable, 0] / fx[usable]
+        r[usable] = turned[usable]
         x = np.concatenate([r.ravel()] + ([tau.ravel()] if translation else []))
         x = without_gauge(x, G, np.ones(len(x), bool))
         r = x[:3 * n].reshape(n, 3)

@@ -4,6 +4,7 @@ EXR files from ``psdr render``, or the photographs of a camera dataset) and the 
 Reads the experiment and the sources; writes the initial shape as the run's checkpoint 0."""
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -38,13 +39,14 @@ def read_targets(exp, fresh: bool = False) -> TargetInputs:
         return inputs
     values = None
     if aligns_poses(exp, inputs):  # the hull is carved, and the loop starts, with poses the masks agree on
-        values = aligned_corrections(inputs.views, exp.optimize.cameras.rotation, exp.optimize.cameras.translation)
+        cams = exp.optimize.cameras
+        values = aligned_corrections(inputs.views, cams.rotation, cams.translation, math.radians(cams.max_rotation_deg))
         inputs = inputs._replace(views=aligned_views(inputs.views, values))
         turned = np.degrees(np.linalg.norm(values["camera_rotation"], axis=1))
         if turned.max() > 0:
-            warnings.warn(f"optimize.cameras: {int((turned > 0).sum())} of {len(turned)} views turned by up to "
-                          f"{turned.max():.2f}° (median {np.median(turned):.2f}°) so that their masks agree before "
-                          f"the visual hull is carved; the loop refines them from there", PsdrWarning, stacklevel=2)
+            warnings.warn(f"optimize.cameras: the {len(turned)} views turned by up to {turned.max():.2f}° (median "
+                          f"{np.median(turned):.2f}°) so that their masks agree before the visual hull is carved; "
+                          f"the loop refines them from there", PsdrWarning, stacklevel=2)
     initial = source.initial(exp, inputs)
     return inputs._replace(initial=initial if initial is not None else initial_shape_uv(exp, inputs.reference),
                            initial_values=values)
