@@ -18,13 +18,14 @@ from psdr_cli.errors import PsdrWarning
 from psdr_cli.experiment.dataset_frame import dataset_scene
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.optimisation.camera_refinement import OPENCV_FLIP, CameraCorrections, gauge_basis
-from psdr_cli.optimisation.silhouette_alignment import aligned_corrections, aligned_views, camera_frames, fitting_shift
+from psdr_cli.optimisation.silhouette_alignment import (SEARCH_STEP, aligned_corrections, aligned_views, fitting_shift,
+                                                         silhouette_shifts, view_frames)
 from psdr_cli.optimisation.start_state import read_targets
 from psdr_cli.run_folder.state import State
 from psdr_cli.scene.build import sensor_dict
 from psdr_cli.scene.pinhole import pinhole_camera
 from psdr_cli.support import backend
-from psdr_cli.target_sources.visual_hull import project, visual_hull
+from psdr_cli.target_sources.visual_hull import carving_grid, project, visual_hull
 from test_camera_refinement import DATA, dataset_experiment, perturbed_test_split
 from test_photographs import torus_views, turned_views
 
@@ -44,7 +45,11 @@ def reprojection(truth, views) -> float:
 def test_masks_that_agree_move_no_camera():
     """Exact cameras: every view's mask already fits inside the hull of the others, so no view
     turns (a shift of zero is the smallest that fits)."""
-    values = aligned_corrections(torus_views(count=16))
+    views = torus_views(count=16)
+    shifts, _, _ = silhouette_shifts(views, *carving_grid(views))
+    # every view registered, each at the search grid's zero (its points are sums of 0.1 px steps: 1e-16 off)
+    assert np.isfinite(shifts).all() and np.abs(shifts).max() < 0.5 * SEARCH_STEP
+    values = aligned_corrections(views)
     assert not np.any(values["camera_rotation"]) and not np.any(values["camera_translation"])
 
 
@@ -82,7 +87,7 @@ def test_turned_cameras_are_registered_until_their_masks_agree():
         V, _ = visual_hull(aligned)
     height = np.ptp(visual_hull(truth)[0][:, 2])
     assert abs(np.ptp(V[:, 2]) - height) < 0.05 * height < np.ptp(fat[:, 2]) - height
-    origins, axes, centre, distances = camera_frames(wrong)
+    origins, axes, centre, distances = view_frames(wrong)
     G = gauge_basis(axes, origins, centre, distances, True, True)
     x = np.concatenate([values["camera_rotation"].ravel(), values["camera_translation"].ravel()])
     assert np.linalg.norm(G.T @ x) < 1e-9 * np.linalg.norm(G.T) * np.linalg.norm(x)

@@ -89,6 +89,18 @@ def rotation_matrices(r):
                        b * z * x - a * y, b * z * y + a * x, c + b * z * z)
 
 
+def camera_frames(to_world: np.ndarray) -> tuple:
+    """(origins o_v, axes Q_v, look-at point c, distances d_v) of cameras whose (n, 4, 4)
+    ``to_world`` transforms are in Mitsuba's axes: Q_v the rotation with unit columns, c the
+    point closest to every optical axis (their mean centre when the axes are parallel),
+    d_v = |o_v − c| (at least 1e-6)."""
+    origins = to_world[:, :3, 3]
+    axes = to_world[:, :3, :3] / np.linalg.norm(to_world[:, :3, :3], axis=1, keepdims=True)
+    centre = look_at_point(origins, axes[:, :, 2])
+    centre = origins.mean(0) if centre is None else centre
+    return origins, axes, centre, np.maximum(np.linalg.norm(origins - centre, axis=1), 1e-6)
+
+
 def gauge_basis(axes: np.ndarray, origins: np.ndarray, centre: np.ndarray, distances: np.ndarray, rotation: bool,
                 translation: bool) -> np.ndarray:
     """G (n_unknowns × k): the first-order moves of the corrections (rotation block, then
@@ -136,11 +148,7 @@ class CameraCorrections:
         self.cfg = cfg
         self.keys = [f"{sensor_id(v)}.to_world" for v in range(views)]
         self.initial = np.stack([np.array(params[k].matrix, np.float64).reshape(4, 4) for k in self.keys])
-        self.origins = self.initial[:, :3, 3]
-        self.axes = self.initial[:, :3, :3] / np.linalg.norm(self.initial[:, :3, :3], axis=1, keepdims=True)
-        centre = look_at_point(self.origins, self.axes[:, :, 2])
-        self.centre = self.origins.mean(0) if centre is None else centre
-        self.distances = np.maximum(np.linalg.norm(self.origins - self.centre, axis=1), 1e-6)
+        self.origins, self.axes, self.centre, self.distances = camera_frames(self.initial)
         self.parts = tuple(p for p in PARTS if getattr(cfg, p))
         # a view's gradient is zero when it is not in the batch: masked, its moments wait for it
         self.opt = mi.ad.Adam(lr=cfg.learning_rate, mask_updates=True)

@@ -44,9 +44,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from ..experiment.dataset_frame import look_at_point
-from ..target_sources.visual_hull import grid_resolution, mask_distances, pixel, project
-from .camera_refinement import OPENCV_FLIP, gauge_basis, without_gauge
+from ..target_sources.visual_hull import carving_grid, mask_distances, pixel, project
+from .camera_refinement import OPENCV_FLIP, camera_frames, gauge_basis, without_gauge
 
 #: Rounds of registration and carving at most.
 ROUNDS = 4
@@ -67,19 +66,10 @@ TRUNCATE_PX = 2.0
 #: Mean outline distance (pixels) within which two shifts fit a mask alike.
 TIE_PX = 0.02
 
-#: Mitsuba's camera axes (x left, y up, z forward) from OpenCV's (x right, y down, z forward).
-FLIP = OPENCV_FLIP[:3, :3]
-
-
-def camera_frames(views):
+def view_frames(views):
     """(origins o_v, Mitsuba camera axes Q_v, look-at point c, distances d_v) of ``views``
     (OpenCV ``cam_to_world`` in the normalised frame), as :class:`CameraCorrections` has them."""
-    M = np.stack([np.asarray(v.cam_to_world, np.float64) for v in views])
-    origins = M[:, :3, 3]
-    axes = M[:, :3, :3] / np.linalg.norm(M[:, :3, :3], axis=1, keepdims=True) @ FLIP
-    centre = look_at_point(origins, axes[:, :, 2])
-    centre = origins.mean(0) if centre is None else centre
-    return origins, axes, centre, np.maximum(np.linalg.norm(origins - centre, axis=1), 1e-6)
+    return camera_frames(np.stack([np.asarray(v.cam_to_world, np.float64) @ OPENCV_FLIP for v in views]))
 
 
 def corrected(cam_to_world: np.ndarray, axes: np.ndarray, distance: float, r: np.ndarray, tau: np.ndarray):
@@ -133,13 +123,6 @@ def smallest_fit(distance: np.ndarray, rows, cols, du, dv) -> np.ndarray:
     return np.array([du[k], dv[k]])
 
 
-def carving_grid(views, bound: float = 1.5) -> tuple:
-    """(points (m, 3), cell width): the visual hull's carving grid over [−bound, bound]³
-    (:func:`~psdr_cli.target_sources.visual_hull.grid_resolution` points a side)."""
-    axis = np.linspace(-bound, bound, grid_resolution(views, bound))
-    return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3), axis[1] - axis[0]
-
-
 def silhouette_shifts(views, grid: np.ndarray, step: float) -> tuple:
     """(shifts, band, δ₂): the (n, 2) image shifts (Δu, Δv) in pixels that fit each view's mask
     inside the silhouette of the exact hull of the other views (module docstring, steps 1–2), NaN
@@ -179,7 +162,7 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
     best, least = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}, np.inf
     if not rotation or n < 2:
         return best
-    origins, axes, centre, distances = camera_frames(views)
+    origins, axes, centre, distances = view_frames(views)
     G = gauge_basis(axes, origins, centre, distances, True, translation)
     fx, fy = np.array([v.fx for v in views]), np.array([v.fy for v in views])
     grid, step = carving_grid(views)
@@ -207,6 +190,6 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
 
 def aligned_views(views, values: dict) -> list:
     """``views`` with the cameras of the corrections ``values`` (:func:`aligned_corrections`)."""
-    _, axes, _, distances = camera_frames(views)
+    _, axes, _, distances = view_frames(views)
     return [replace(v, cam_to_world=corrected(v.cam_to_world, axes[i], distances[i], values["camera_rotation"][i],
                                               values["camera_translation"][i])) for i, v in enumerate(views)]

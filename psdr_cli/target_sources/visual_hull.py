@@ -139,16 +139,23 @@ def grid_resolution(views, bound: float) -> int:
     return int(np.clip(wanted, MIN_RESOLUTION, MAX_RESOLUTION))
 
 
+def carving_grid(views, bound: float = 1.5, resolution: int | None = None) -> tuple:
+    """(points (m, 3), cell width): the regular grid of ``resolution`` points a side over
+    [−bound, bound]³ (None: :func:`grid_resolution`)."""
+    resolution = grid_resolution(views, bound) if resolution is None else resolution
+    axis = np.linspace(-bound, bound, resolution)
+    return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3), axis[1] - axis[0]
+
+
 def visual_hull(views, bound: float = 1.5, resolution: int | None = None, margin: float | None = None):
     """(V, F) of the hull surface H_m of ``views`` over [−bound, bound]³ on a ``resolution``³
     grid (None: :func:`grid_resolution`); ``margin`` m in pixels, or None: the smallest that
     explains the masks (module docstring; a warning says when it is not 0)."""
     resolution = grid_resolution(views, bound) if resolution is None else resolution
-    axis = np.linspace(-bound, bound, resolution)
-    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    grid, step = carving_grid(views, bound, resolution)
     distance = mask_distance(grid, views)
     if margin is None:
-        margin, explained = hull_margin(grid, distance, axis[1] - axis[0], views)
+        margin, explained = hull_margin(grid, distance, step, views)
         if margin > 0:
             about = "about" if explained else "more than"
             warnings.warn(f"the masks disagree by {about} {margin:g} px (camera poses or masks slightly off): the "
@@ -159,7 +166,6 @@ def visual_hull(views, bound: float = 1.5, resolution: int | None = None, margin
         raise PsdrError("the masks' visual hull is empty: no point is inside every mask that sees it "
                         "(check that the masks are white on the object and that the cameras are right)")
     padded = np.pad(occ, 1)
-    step = axis[1] - axis[0]
     V, F, _, _ = marching_cubes(padded, 0.5, spacing=(step, step, step))
     V = V - bound - step  # the padding shifts the grid by one cell
     parts = trimesh.Trimesh(V, F, process=True).split(only_watertight=False)
