@@ -18,7 +18,7 @@ from psdr_cli.errors import PsdrWarning
 from psdr_cli.experiment.dataset_frame import dataset_scene
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.optimisation.camera_refinement import OPENCV_FLIP, CameraCorrections, gauge_basis
-from psdr_cli.optimisation.silhouette_alignment import (SEARCH_STEP, aligned_corrections, aligned_views, fitting_shift,
+from psdr_cli.optimisation.silhouette_alignment import (aligned_corrections, aligned_views, fitting_shift,
                                                          silhouette_shifts, view_frames)
 from psdr_cli.optimisation.start_state import read_targets
 from psdr_cli.run_folder.state import State
@@ -43,12 +43,13 @@ def reprojection(truth, views) -> float:
 
 
 def test_masks_that_agree_move_no_camera():
-    """Exact cameras: every view's mask already fits inside the hull of the others, so no view
-    turns (a shift of zero is the smallest that fits)."""
+    """Exact cameras: every view's mask sits centred inside the hull of the others at a shift of
+    a fraction of a pixel (the centre of the shifts that fit, which the pixel grids of the mask
+    and of the drawn silhouette leave off zero: at most 0.14 px, measured), and turning the views
+    by those shifts does not make the masks agree better, so the poses are kept as given."""
     views = torus_views(count=16)
     shifts, _, _ = silhouette_shifts(views, *carving_grid(views))
-    # every view registered, each at the search grid's zero (its points are sums of 0.1 px steps: 1e-16 off)
-    assert np.isfinite(shifts).all() and np.abs(shifts).max() < 0.5 * SEARCH_STEP
+    assert np.isfinite(shifts).all() and np.abs(shifts).max() < 0.25
     values = aligned_corrections(views)
     assert not np.any(values["camera_rotation"]) and not np.any(values["camera_translation"])
 

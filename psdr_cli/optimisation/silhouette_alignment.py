@@ -15,26 +15,28 @@ therefore turned until its mask fits inside the silhouette of the hull of the ot
    s = (Δu, Δv) that puts v's mask inside that silhouette: the least mean of min(D(x − s),
    :data:`TRUNCATE_PX`) over the pixels x of the mask's outline that lie within
    :data:`TRUNCATE_PX` of it as given (D: the distance to the silhouette; a thin part the others'
-   wrong poses carved away neither pulls nor weighs), the smallest |s| among the shifts within
-   :data:`TIE_PX` of the least (H₋ᵥ holds the object, so with exact poses s = 0 fits and nothing
-   moves); searched on a grid of :data:`COARSE_STEP` pixels within ±:data:`MAX_SHIFT_PX`, then of
-   :data:`SEARCH_STEP` around the best;
+   wrong poses carved away neither pulls nor weighs); the mask fits alike at every shift of a
+   region about a pixel wide (the drawn voxels cover whole pixels), so s is the centre (mean) of
+   the shifts within :data:`TIE_PX` of the least, where the mask sits centred; searched on a grid
+   of :data:`COARSE_STEP` pixels within ±:data:`MAX_SHIFT_PX`, then of :data:`SEARCH_STEP` around
+   the coarse centre;
 3. turn view v about its own centre so that its image moves by s: a tilt of Δv/f_y and a pan of
    −Δu/f_x in OpenCV's camera axes (x right, y down), i.e. the correction r_v += (−Δv/f_y, Δu/f_x, 0)
    of :mod:`psdr_cli.optimisation.camera_refinement` (Mitsuba's camera axes: x left, y up);
 4. project the corrections onto the complement of the gauge (the seven similarity motions of
    the whole capture, as the loop does after every step), so the capture keeps its mean pose.
 
-At most :data:`ROUNDS` rounds, fewer once every shift is below :data:`SETTLED_PX`; of the
-poses passed through (the given ones first) the result is those whose masks disagree least (the
-mean width of the band of each mask that the exact hull of all views leaves uncovered), so a
-registration that does not help leaves the poses as given. A view whose best shift is at the
+At most :data:`ROUNDS` rounds, fewer once every shift is below :data:`SETTLED_PX` or a round's
+turn does not make the masks disagree less (the mean width of the band of each mask that the
+exact hull of all views leaves uncovered); the result is the poses, the given ones first, whose
+masks disagree least, so a registration that does not help leaves the poses as given (exact
+poses: the centres are a fraction of a pixel off zero, by the pixel grids, and turning by them
+does not lower the disagreement). A view whose best shift is at the
 search's edge, or whose others' hull does not reach its image, is not moved in that round. The
 corrections are the loop's starting corrections (its Adam entries start there), so the hull, the
 loop and ``cameras.json`` see the same poses. A shift across the image is the part of a pose
 error a silhouette shows best; the turn about the optical axis, the distance and the split
-between a turn and a sideways move are left to the loop, and so are disagreements below about a
-voxel of the carving grid (about a pixel), which the drawn silhouettes do not resolve.
+between a turn and a sideways move are left to the loop.
 """
 from __future__ import annotations
 
@@ -84,10 +86,8 @@ def corrected(cam_to_world: np.ndarray, axes: np.ndarray, distance: float, r: np
 
 def silhouette(points: np.ndarray, step: float, view) -> np.ndarray:
     """(H, W) bool: the pixels of ``view`` that voxels centred at ``points`` (``step`` wide) cover,
-    each voxel drawn as its eight corners and its centre."""
-    corners = 0.5 * step * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)] + [[0, 0, 0]])
-    samples = (points[:, None, :] + corners).reshape(-1, 3)
-    u, v, z = project(samples, view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
+    each voxel drawn as its centre and its eight corners (:func:`voxel_samples`)."""
+    u, v, z = project(voxel_samples(points, step), view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
     shape = view.mask.shape
     ok = (z > 1e-9) & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
     drawn = np.zeros(shape, bool)
@@ -95,32 +95,48 @@ def silhouette(points: np.ndarray, step: float, view) -> np.ndarray:
     return drawn
 
 
+def voxel_samples(points: np.ndarray, step: float) -> np.ndarray:
+    """The centres ``points`` of voxels on a lattice of spacing ``step`` and the eight corners of
+    those with a face neighbour missing; an inner voxel's corners are its neighbours' corners."""
+    cells = np.rint((points - points.min(0)) / step).astype(np.int64) + 1
+    occupied = np.zeros(cells.max(0) + 2, bool)
+    occupied[tuple(cells.T)] = True
+    inner = np.ones(len(points), bool)
+    for axis in range(3):
+        for d in (-1, 1):
+            neighbour = cells.copy()
+            neighbour[:, axis] += d
+            inner &= occupied[tuple(neighbour.T)]
+    corners = 0.5 * step * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)])
+    return np.concatenate([points, (points[~inner, None, :] + corners).reshape(-1, 3)])
+
+
 def fitting_shift(mask: np.ndarray, outline: np.ndarray, drawn: np.ndarray) -> np.ndarray:
-    """(Δu, Δv): the smallest image shift of the silhouette ``drawn`` that puts ``mask``'s
-    ``outline`` inside it, or leaves it least outside (module docstring, step 2); NaN when the
-    best is at the search's edge."""
+    """(Δu, Δv): the image shift of the silhouette ``drawn`` that puts ``mask``'s ``outline``
+    centred inside it, or leaves it least outside (module docstring, step 2); NaN when the shifts
+    that fit reach the search's edge."""
     distance = np.minimum(ndimage.distance_transform_edt(~drawn), TRUNCATE_PX)
     rows, cols = np.nonzero(outline & (distance < TRUNCATE_PX))  # parts the others' hull lost do not pull
     if len(rows) == 0:
         return np.full(2, np.nan)
     coarse = np.arange(-MAX_SHIFT_PX, MAX_SHIFT_PX + 1e-9, COARSE_STEP)
-    best = smallest_fit(distance, rows, cols, *np.meshgrid(coarse, coarse))
-    if np.abs(best).max() >= MAX_SHIFT_PX:
+    near = best_fits(distance, rows, cols, *np.meshgrid(coarse, coarse))
+    if np.abs(near).max() >= MAX_SHIFT_PX:
         return np.full(2, np.nan)
+    centre = near.mean(0)
     fine = np.arange(-COARSE_STEP, COARSE_STEP + 1e-9, SEARCH_STEP)
     du, dv = np.meshgrid(fine, fine)
-    return smallest_fit(distance, rows, cols, du + best[0], dv + best[1])
+    return best_fits(distance, rows, cols, du + centre[0], dv + centre[1]).mean(0)
 
 
-def smallest_fit(distance: np.ndarray, rows, cols, du, dv) -> np.ndarray:
-    """Among the shifts (``du``, ``dv``), the smallest whose mean ``distance`` over the outline
-    pixels (``rows``, ``cols``) moved back by it is within :data:`TIE_PX` of the least."""
+def best_fits(distance: np.ndarray, rows, cols, du, dv) -> np.ndarray:
+    """(k, 2): the shifts among (``du``, ``dv``) whose mean ``distance`` over the outline pixels
+    (``rows``, ``cols``) moved back by them is within :data:`TIE_PX` of the least."""
     du, dv = du.ravel(), dv.ravel()
     at = [(rows[None, :] - dv[:, None]).ravel(), (cols[None, :] - du[:, None]).ravel()]
     cost = ndimage.map_coordinates(distance, at, order=1, mode="nearest").reshape(len(du), len(rows)).mean(1)
     near = cost <= cost.min() + TIE_PX
-    k = np.argmin(np.where(near, du ** 2 + dv ** 2, np.inf))
-    return np.array([du[k], dv[k]])
+    return np.stack([du[near], dv[near]], 1)
 
 
 def silhouette_shifts(views, grid: np.ndarray, step: float) -> tuple:
@@ -171,8 +187,9 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
         shifts, band, second = silhouette_shifts(aligned_views(views, now), grid, step)
         if k == 0:
             grid = grid[second <= rounds * MAX_SHIFT_PX + 1]
-        if band < least:
-            best, least = now, band
+        if k > 0 and band >= least:  # the last turn did not make the masks agree better
+            break
+        best, least = now, band
         turned = r.copy()
         turned[:, 0] -= np.nan_to_num(shifts[:, 1]) / fy
         turned[:, 1] += np.nan_to_num(shifts[:, 0]) / fx
