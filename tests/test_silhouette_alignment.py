@@ -73,14 +73,15 @@ def test_a_thin_part_the_other_views_lost_does_not_pull_the_shift():
 def test_turned_cameras_are_registered_until_their_masks_agree():
     """Every camera turned by 1.5 px about a random axis: the masks disagree (the hull needs a
     margin and comes out 35 % too tall, measured). Registered, the views' error against the true
-    cameras falls from 1.37 to 0.63 px (measured; half asked), the hull is carved with no margin
+    cameras falls from 1.37 to 0.39 px (measured; below 0.35 of it asked: the shift nearest zero
+    among those that fit, instead of their centre, left 0.63 px), the hull is carved with no margin
     (no warning) and is within 5 % of the true hull's height, and the corrections carry no motion
     of the whole capture (the gauge the loop projects out)."""
     truth = torus_views(count=16)
     wrong = turned_views(truth, 1.5)
     values = aligned_corrections(wrong)
     aligned = aligned_views(wrong, values)
-    assert reprojection(truth, aligned) < 0.5 * reprojection(truth, wrong)
+    assert reprojection(truth, aligned) < 0.35 * reprojection(truth, wrong)
     with pytest.warns(PsdrWarning, match="masks disagree"):
         fat, _ = visual_hull(wrong)
     with warnings.catch_warnings():
