@@ -74,7 +74,7 @@ def test_inner_voxels_drawn_by_their_centres_cover_the_same_pixels():
     """A voxel whose six face neighbours are all in the set has its corners drawn by them, so the
     silhouette drawn from the centres of every voxel and the corners of the outer ones only is,
     pixel for pixel, the one of every voxel drawn whole (centre and eight corners). Checked on a
-    ragged set (a ball with a seventh of its voxels missing) of voxels about five pixels wide, where
+    ragged set (a ball with a seventh of its voxels missing) of voxels 3.7 pixels wide, where
     every sample lands in a pixel of its own; the whole ball needs fewer samples (two thirds)."""
     views = torus_views(count=4)
     grid, step = carving_grid(views, resolution=16)
