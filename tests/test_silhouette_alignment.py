@@ -115,6 +115,18 @@ def test_turned_cameras_are_registered_until_their_masks_agree():
     assert np.linalg.norm(G.T @ x) < 1e-9 * np.linalg.norm(G.T) * np.linalg.norm(x)
 
 
+def test_cameras_turned_by_a_few_pixels_are_registered_against_hulls_carved_wide():
+    """Every camera turned by 3 px: each view's thin parts are carved out of the other views'
+    exact hull, and turning by the fit against it does not make the masks agree better (those
+    rounds keep the poses as given: measured). The rounds started again against the others'
+    hulls carved 2 px, then 1 px wide of their masks bring the views' error from 2.75 to 0.62 px
+    (measured; below a third asked)."""
+    truth = torus_views(count=16)
+    wrong = turned_views(truth, 3.0)
+    aligned = aligned_views(wrong, aligned_corrections(wrong))
+    assert reprojection(truth, aligned) < reprojection(truth, wrong) / 3
+
+
 def test_the_registered_cameras_are_the_loops_corrected_cameras():
     """Corrections (r, τ) give the same cameras in the registration (numpy, OpenCV axes) as in
     the loop's :class:`CameraCorrections` on Mitsuba sensors (to float32 rounding of coordinates

@@ -31,8 +31,13 @@ turn does not make the masks disagree less (the mean width of the band of each m
 exact hull of all views leaves uncovered); the result is the poses, the given ones first, whose
 masks disagree least, so a registration that does not help leaves the poses as given (exact
 poses: the centres are a fraction of a pixel off zero, by the pixel grids, and turning by them
-does not lower the disagreement). A view whose best shift is at the
-search's edge, or whose others' hull does not reach its image, is not moved in that round. The
+does not lower the disagreement). Poses off by a few pixels carve each view's thin parts out of
+the others' exact hulls, and those rounds keep the given poses too; the rounds are then run again
+from the given poses with H₋ᵥ carved :data:`COARSE_MARGINS` wide of the masks in the first ones
+(a silhouette fat by a margin on every side still has the mask centred inside it where the poses
+agree), exactly after that, with as many more rounds as margins, and the poses whose masks
+disagree least of both are kept. A view whose fitting shifts reach the search's edge, or whose
+others' hull does not reach its image, is not moved in that round. The
 corrections are the loop's starting corrections (its Adam entries start there), so the hull, the
 loop and ``cameras.json`` see the same poses. A shift across the image is the part of a pose
 error a silhouette shows best; the turn about the optical axis, the distance and the split
@@ -67,6 +72,11 @@ TRUNCATE_PX = 2.0
 
 #: Mean outline distance (pixels) within which two shifts fit a mask alike.
 TIE_PX = 0.02
+
+#: Margins (pixels) of the other views' hulls in the first rounds of the second registration,
+#: run when the exact hulls give nothing to register against (poses off by a few pixels carve
+#: each view's thin parts out of the others' exact hull).
+COARSE_MARGINS = (2.0, 1.0)
 
 def view_frames(views):
     """(origins o_v, Mitsuba camera axes Q_v, look-at point c, distances d_v) of ``views``
@@ -139,12 +149,13 @@ def best_fits(distance: np.ndarray, rows, cols, du, dv) -> np.ndarray:
     return np.stack([du[near], dv[near]], 1)
 
 
-def silhouette_shifts(views, grid: np.ndarray, step: float) -> tuple:
+def silhouette_shifts(views, grid: np.ndarray, step: float, margin: float = 0.0) -> tuple:
     """(shifts, band, δ₂): the (n, 2) image shifts (Δu, Δv) in pixels that fit each view's mask
-    inside the silhouette of the exact hull of the other views (module docstring, steps 1–2), NaN
-    where there is none; the disagreement of the masks, the mean over the views of the width
-    (pixels) of the band of the mask that the exact hull of all views leaves uncovered
-    (|mask ∖ drawn| / |outline|); and each grid point's second largest mask distance."""
+    inside the silhouette of the hull of the other views carved ``margin`` pixels wide of their
+    masks (0: exact; module docstring, steps 1–2), NaN where there is none; the disagreement of
+    the masks, the mean over the views of the width (pixels) of the band of the mask that the
+    exact hull of all views leaves uncovered (|mask ∖ drawn| / |outline|); and each grid point's
+    second largest mask distance."""
     first, owner, second = mask_distances(grid, views)
     hull = grid[(owner >= 0) & (first <= 0)]
     shifts, bands = np.full((len(views), 2), np.nan), []
@@ -155,7 +166,7 @@ def silhouette_shifts(views, grid: np.ndarray, step: float) -> tuple:
         outline = mask & ~ndimage.binary_erosion(mask)
         bands.append((mask & ~silhouette(hull, step, view)).sum() / outline.sum())
         others = np.where(owner == i, second, np.where(owner >= 0, first, np.inf))
-        inside = (others <= 0) & (others > -np.inf)
+        inside = (others <= margin) & (others > -np.inf)
         drawn = silhouette(grid[inside], step, view) if inside.any() else None
         if drawn is not None and drawn.any():
             shifts[i] = fitting_shift(mask, outline, drawn)
@@ -167,26 +178,47 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
     """The loop's starting corrections ``{"camera_rotation": (n, 3), "camera_translation": (n, 3)}``
     (radians; camera distances) that make ``views``' masks agree (module docstring): of the
     poses the rounds pass through (the given ones first), those whose masks disagree least
-    (:func:`silhouette_shifts`); zeros when ``rotation`` is not refined (a shift is turned into a
-    rotation). A view stops turning before its correction would pass half of ``max_rotation``
-    (radians; the loop's own bound stays clear). After the first round only the grid points
-    that at most one view sees farther than the rounds can move an image
-    (:data:`ROUNDS` · :data:`MAX_SHIFT_PX` + 1 px) are carved again: the others stay outside
-    every hull of the rounds."""
+    (:func:`registration_rounds` against the exact hulls; when they keep the given poses, again
+    with the first rounds against hulls carved :data:`COARSE_MARGINS` wide, the better of the
+    two); zeros when ``rotation`` is not refined (a shift is turned into a rotation). A view
+    stops turning before its correction would pass half of ``max_rotation`` (radians; the loop's
+    own bound stays clear). After the first carving only the grid points that at most one view
+    sees farther than every round together can move an image are carved again: the others stay
+    outside every hull of the rounds."""
+    n = len(views)
+    given = {"camera_rotation": np.zeros((n, 3)), "camera_translation": np.zeros((n, 3))}
+    if not rotation or n < 2:
+        return given
+    grid, step = carving_grid(views)
+    shifts, least, second = silhouette_shifts(views, grid, step)
+    reach = (rounds + len(COARSE_MARGINS)) * MAX_SHIFT_PX + max(COARSE_MARGINS) + 1
+    grid = grid[second <= reach]
+    best, least = registration_rounds(views, grid, step, shifts, least, (), rounds, translation, max_rotation)
+    if any(np.any(v) for v in best.values()):
+        return best
+    coarse, fewer = registration_rounds(views, grid, step, None, least, COARSE_MARGINS,
+                                        rounds + len(COARSE_MARGINS), translation, max_rotation)
+    return coarse if fewer < least else best
+
+
+def registration_rounds(views, grid: np.ndarray, step: float, shifts, band: float, margins: tuple, rounds: int,
+                        translation: bool, max_rotation: float) -> tuple:
+    """(corrections, band): of the poses ``rounds`` rounds pass through from the given ones
+    (whose ``band`` is known, and their ``shifts`` against the exact hulls, or None), those whose
+    masks disagree least; round k registers against the other views' hulls carved ``margins[k]``
+    pixels wide (0 past the end); the rounds stop once every shift is below :data:`SETTLED_PX`
+    or a turn does not lower the disagreement."""
     n = len(views)
     r, tau = np.zeros((n, 3)), np.zeros((n, 3))
-    best, least = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}, np.inf
-    if not rotation or n < 2:
-        return best
+    best, least = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}, band
     origins, axes, centre, distances = view_frames(views)
     G = gauge_basis(axes, origins, centre, distances, True, translation)
     fx, fy = np.array([v.fx for v in views]), np.array([v.fy for v in views])
-    grid, step = carving_grid(views)
     for k in range(rounds + 1):
         now = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}
-        shifts, band, second = silhouette_shifts(aligned_views(views, now), grid, step)
-        if k == 0:
-            grid = grid[second <= rounds * MAX_SHIFT_PX + 1]
+        margin = margins[k] if k < len(margins) else 0.0
+        if k > 0 or shifts is None or margin > 0:
+            shifts, band, _ = silhouette_shifts(aligned_views(views, now), grid, step, margin)
         if k > 0 and band >= least:  # the last turn did not make the masks agree better
             break
         best, least = now, band
@@ -202,7 +234,7 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
         r = x[:3 * n].reshape(n, 3)
         if translation:
             tau = x[3 * n:].reshape(n, 3)
-    return best
+    return best, least
 
 
 def aligned_views(views, values: dict) -> list:
