@@ -18,14 +18,14 @@ from psdr_cli.errors import PsdrWarning
 from psdr_cli.experiment.dataset_frame import dataset_scene
 from psdr_cli.experiment.load import load_experiment
 from psdr_cli.optimisation.camera_refinement import OPENCV_FLIP, CameraCorrections, gauge_basis
-from psdr_cli.optimisation.silhouette_alignment import (aligned_corrections, aligned_views, fitting_shift, silhouette,
-                                                         silhouette_shifts, view_frames, voxel_samples)
+from psdr_cli.optimisation.silhouette_alignment import (aligned_corrections, aligned_views, fitting_shift,
+                                                         silhouette_shifts, view_frames)
 from psdr_cli.optimisation.start_state import read_targets
 from psdr_cli.run_folder.state import State
 from psdr_cli.scene.build import sensor_dict
 from psdr_cli.scene.pinhole import pinhole_camera
 from psdr_cli.support import backend
-from psdr_cli.target_sources.visual_hull import carving_grid, pixel, project, visual_hull
+from psdr_cli.target_sources.visual_hull import carving_grid, project, visual_hull
 from test_camera_refinement import DATA, dataset_experiment, perturbed_test_split
 from test_photographs import torus_views, turned_views
 
@@ -68,26 +68,6 @@ def test_a_thin_part_the_other_views_lost_does_not_pull_the_shift():
     outline = mask & ~ndimage.binary_erosion(mask)
     du, dv = fitting_shift(mask, outline, disk(46.8, 40.6, 15.3))
     assert 0.8 <= du <= 1.4 and -0.7 <= dv <= 0.1, (du, dv)
-
-
-def test_inner_voxels_drawn_by_their_centres_cover_the_same_pixels():
-    """A voxel whose six face neighbours are all in the set has its corners drawn by them, so the
-    silhouette drawn from the centres of every voxel and the corners of the outer ones only is,
-    pixel for pixel, the one of every voxel drawn whole (centre and eight corners). Checked on a
-    ragged set (a ball with a seventh of its voxels missing) of voxels 3.7 pixels wide, where
-    every sample lands in a pixel of its own; the whole ball needs fewer samples (two thirds)."""
-    views = torus_views(count=4)
-    grid, step = carving_grid(views, resolution=16)
-    ball = grid[np.linalg.norm(grid - [0.05, -0.02, 0.0], axis=1) < 0.7]
-    ragged = ball[np.random.default_rng(3).random(len(ball)) < 0.85]
-    corners = 0.5 * step * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)] + [[0, 0, 0]])
-    for view in views:
-        u, v, _ = project((ragged[:, None, :] + corners).reshape(-1, 3), view.cam_to_world, view.fx, view.fy,
-                          view.cx, view.cy)
-        whole = np.zeros(view.mask.shape, bool)
-        whole[pixel(u, v, view.mask.shape)] = True  # the ball is in front of every camera and inside its image
-        np.testing.assert_array_equal(silhouette(ragged, step, view), whole)
-    assert len(voxel_samples(ball, step)) < 0.7 * len(corners) * len(ball)  # 1022 of 1566 here
 
 
 def test_turned_cameras_are_registered_until_their_masks_agree():

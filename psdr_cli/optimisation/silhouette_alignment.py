@@ -7,10 +7,10 @@ every side, and the loop starts from it and from the wrong poses. Before carving
 therefore turned until its mask fits inside the silhouette of the hull of the other views
 (silhouette coherence):
 
-1. carve exactly (no margin) at the current poses, keeping for each grid point x its largest
+1. carve at the current poses, keeping for each grid point x its largest
    mask distance δ₁(x) over the views that see it, the view v₁(x) it comes from and the second
    largest δ₂(x); the exact hull of the views other than v is then
-   H₋ᵥ = { x : (δ₂(x) if v₁(x) = v else δ₁(x)) ≤ 0 };
+   H₋ᵥ = { x : (δ₂(x) if v₁(x) = v else δ₁(x)) ≤ 0 } (≤ m in the rounds carved m pixels wide, below);
 2. draw H₋ᵥ in view v (each voxel as its centre and its eight corners) and find the image shift
    s = (Δu, Δv) that puts v's mask inside that silhouette: the least mean of min(D(x − s),
    :data:`TRUNCATE_PX`) over the pixels x of the mask's outline that lie within
@@ -27,21 +27,23 @@ therefore turned until its mask fits inside the silhouette of the hull of the ot
    the whole capture, as the loop does after every step), so the capture keeps its mean pose.
 
 At most :data:`ROUNDS` rounds, fewer once every shift is below :data:`SETTLED_PX` or a round's
-turn does not make the masks disagree less (the mean width of the band of each mask that the
-exact hull of all views leaves uncovered); the result is the poses, the given ones first, whose
-masks disagree least, so a registration that does not help leaves the poses as given (exact
-poses: the centres are a fraction of a pixel off zero, by the pixel grids, and turning by them
-does not lower the disagreement). Poses off by a few pixels carve each view's thin parts out of
-the others' exact hulls, and those rounds keep the given poses too; the rounds are then run again
-from the given poses with H₋ᵥ carved :data:`COARSE_MARGINS` wide of the masks in the first ones
-(a silhouette fat by a margin on every side still has the mask centred inside it where the poses
+turn does not make the masks disagree less (the mean width of the band of each mask that the exact
+hull of all views leaves uncovered); the result is the poses, the given ones first, whose masks
+disagree least, so a registration that does not help leaves the poses as given (exact poses: the
+centres are a fraction of a pixel off zero, by the pixel grids, and turning by them does not lower
+the disagreement). Poses off by a few pixels carve each view's thin parts out of the others' exact
+hulls, and those rounds keep the given poses too; whenever they do, the rounds are run again from
+the given poses with H₋ᵥ carved :data:`COARSE_MARGINS` wide of the masks in the first ones (a
+silhouette fat by a margin on every side still has the mask centred inside it where the poses
 agree), exactly after that, with as many more rounds as margins, and the poses whose masks
-disagree least of both are kept. A view whose fitting shifts reach the search's edge, or whose
-others' hull does not reach its image, is not moved in that round. The
-corrections are the loop's starting corrections (its Adam entries start there), so the hull, the
-loop and ``cameras.json`` see the same poses. A shift across the image is the part of a pose
-error a silhouette shows best; the turn about the optical axis, the distance and the split
-between a turn and a sideways move are left to the loop.
+disagree least of both are kept (given poses on a tie). A view whose fitting shifts reach the
+search's edge (±:data:`MAX_SHIFT_PX`, a margin wider in a round carved with one), or whose others'
+hull does not reach its image, is not moved in that round. The shifts are searched within one
+coarse step of the coarse centre, which may leave them up to about 0.1 px short of the centre of a
+region wider than that search (a pixel). The corrections are the loop's starting corrections (its
+Adam entries start there), so the hull, the loop and ``cameras.json`` see the same poses. A shift
+across the image is the part of a pose error a silhouette shows best; the turn about the optical
+axis, the distance and the split between a turn and a sideways move are left to the loop.
 """
 from __future__ import annotations
 
@@ -60,10 +62,11 @@ ROUNDS = 4
 #: Shift (pixels) below which every view is taken as registered.
 SETTLED_PX = 0.05
 
-#: The largest shift searched (pixels): a view whose best shift is at this edge is not moved.
+#: The largest shift searched (pixels; a margin wider against hulls carved with one): a view whose
+#: fitting shifts reach this edge is not moved.
 MAX_SHIFT_PX = 4.0
 
-#: Steps (pixels) of the coarse search and of the fine one around its best.
+#: Steps (pixels) of the coarse search and of the fine one, within one coarse step of its centre.
 COARSE_STEP, SEARCH_STEP = 0.5, 0.1
 
 #: Distance (pixels) at which an outline pixel's cost stops growing: a part of the mask that the
@@ -74,9 +77,10 @@ TRUNCATE_PX = 2.0
 TIE_PX = 0.02
 
 #: Margins (pixels) of the other views' hulls in the first rounds of the second registration,
-#: run when the exact hulls give nothing to register against (poses off by a few pixels carve
-#: each view's thin parts out of the others' exact hull).
+#: run when the rounds against the exact hulls keep the given poses (poses off by a few pixels
+#: carve each view's thin parts out of the others' exact hull).
 COARSE_MARGINS = (2.0, 1.0)
+
 
 def view_frames(views):
     """(origins o_v, Mitsuba camera axes Q_v, look-at point c, distances d_v) of ``views``
@@ -96,8 +100,10 @@ def corrected(cam_to_world: np.ndarray, axes: np.ndarray, distance: float, r: np
 
 def silhouette(points: np.ndarray, step: float, view) -> np.ndarray:
     """(H, W) bool: the pixels of ``view`` that voxels centred at ``points`` (``step`` wide) cover,
-    each voxel drawn as its centre and its eight corners (:func:`voxel_samples`)."""
-    u, v, z = project(voxel_samples(points, step), view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
+    each voxel drawn as its eight corners and its centre."""
+    corners = 0.5 * step * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)] + [[0, 0, 0]])
+    samples = (points[:, None, :] + corners).reshape(-1, 3)
+    u, v, z = project(samples, view.cam_to_world, view.fx, view.fy, view.cx, view.cy)
     shape = view.mask.shape
     ok = (z > 1e-9) & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
     drawn = np.zeros(shape, bool)
@@ -105,33 +111,17 @@ def silhouette(points: np.ndarray, step: float, view) -> np.ndarray:
     return drawn
 
 
-def voxel_samples(points: np.ndarray, step: float) -> np.ndarray:
-    """The centres ``points`` of voxels on a lattice of spacing ``step`` and the eight corners of
-    those with a face neighbour missing; an inner voxel's corners are its neighbours' corners."""
-    cells = np.rint((points - points.min(0)) / step).astype(np.int64) + 1
-    occupied = np.zeros(cells.max(0) + 2, bool)
-    occupied[tuple(cells.T)] = True
-    inner = np.ones(len(points), bool)
-    for axis in range(3):
-        for d in (-1, 1):
-            neighbour = cells.copy()
-            neighbour[:, axis] += d
-            inner &= occupied[tuple(neighbour.T)]
-    corners = 0.5 * step * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)])
-    return np.concatenate([points, (points[~inner, None, :] + corners).reshape(-1, 3)])
-
-
-def fitting_shift(mask: np.ndarray, outline: np.ndarray, drawn: np.ndarray) -> np.ndarray:
+def fitting_shift(mask: np.ndarray, outline: np.ndarray, drawn: np.ndarray, bound: float = MAX_SHIFT_PX) -> np.ndarray:
     """(Δu, Δv): the image shift of the silhouette ``drawn`` that puts ``mask``'s ``outline``
-    centred inside it, or leaves it least outside (module docstring, step 2); NaN when the shifts
-    that fit reach the search's edge."""
+    centred inside it, or leaves it least outside (module docstring, step 2), searched within
+    ±``bound`` pixels; NaN when the shifts that fit reach the search's edge."""
     distance = np.minimum(ndimage.distance_transform_edt(~drawn), TRUNCATE_PX)
     rows, cols = np.nonzero(outline & (distance < TRUNCATE_PX))  # parts the others' hull lost do not pull
     if len(rows) == 0:
         return np.full(2, np.nan)
-    coarse = np.arange(-MAX_SHIFT_PX, MAX_SHIFT_PX + 1e-9, COARSE_STEP)
+    coarse = np.arange(-bound, bound + 1e-9, COARSE_STEP)
     near = best_fits(distance, rows, cols, *np.meshgrid(coarse, coarse))
-    if np.abs(near).max() >= MAX_SHIFT_PX:
+    if np.abs(near).max() >= bound:
         return np.full(2, np.nan)
     centre = near.mean(0)
     fine = np.arange(-COARSE_STEP, COARSE_STEP + 1e-9, SEARCH_STEP)
@@ -169,7 +159,7 @@ def silhouette_shifts(views, grid: np.ndarray, step: float, margin: float = 0.0)
         inside = (others <= margin) & (others > -np.inf)
         drawn = silhouette(grid[inside], step, view) if inside.any() else None
         if drawn is not None and drawn.any():
-            shifts[i] = fitting_shift(mask, outline, drawn)
+            shifts[i] = fitting_shift(mask, outline, drawn, MAX_SHIFT_PX + margin)
     return shifts, float(np.mean(bands)) if bands else 0.0, np.where(owner >= 0, second, np.inf)
 
 
@@ -183,15 +173,18 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
     two); zeros when ``rotation`` is not refined (a shift is turned into a rotation). A view
     stops turning before its correction would pass half of ``max_rotation`` (radians; the loop's
     own bound stays clear). After the first carving only the grid points that at most one view
-    sees farther than every round together can move an image are carved again: the others stay
-    outside every hull of the rounds."""
+    sees farther than ``reach`` pixels from its mask are carved again: the most the rounds' turns
+    can move an image (each within its search bounds along both axes), a pixel's diagonal (the
+    distances are read at pixels) and the widest margin, with a fifth more for the magnification
+    off the image's centre and the gauge projection; the others stay outside every hull."""
     n = len(views)
     given = {"camera_rotation": np.zeros((n, 3)), "camera_translation": np.zeros((n, 3))}
     if not rotation or n < 2:
         return given
     grid, step = carving_grid(views)
     shifts, least, second = silhouette_shifts(views, grid, step)
-    reach = (rounds + len(COARSE_MARGINS)) * MAX_SHIFT_PX + max(COARSE_MARGINS) + 1
+    moved = np.sqrt(2) * ((rounds + len(COARSE_MARGINS)) * MAX_SHIFT_PX + sum(COARSE_MARGINS))
+    reach = 1.2 * (moved + np.sqrt(2) + max(COARSE_MARGINS))
     grid = grid[second <= reach]
     best, least = registration_rounds(views, grid, step, shifts, least, (), rounds, translation, max_rotation)
     if any(np.any(v) for v in best.values()):
@@ -203,21 +196,21 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
 
 def registration_rounds(views, grid: np.ndarray, step: float, shifts, band: float, margins: tuple, rounds: int,
                         translation: bool, max_rotation: float) -> tuple:
-    """(corrections, band): of the poses ``rounds`` rounds pass through from the given ones
-    (whose ``band`` is known, and their ``shifts`` against the exact hulls, or None), those whose
-    masks disagree least; round k registers against the other views' hulls carved ``margins[k]``
-    pixels wide (0 past the end); the rounds stop once every shift is below :data:`SETTLED_PX`
-    or a turn does not lower the disagreement."""
+    """(corrections, band): of the poses ``rounds`` rounds pass through from the given ones,
+    those whose masks disagree least (:func:`silhouette_shifts`); round k registers against the
+    other views' hulls carved ``margins[k]`` pixels wide (0 past the end); the rounds stop once
+    every shift is below :data:`SETTLED_PX` or a turn does not lower the disagreement. ``shifts``
+    and ``band``: the given poses' against the exact hulls when known (``margins`` empty), else
+    None and any."""
     n = len(views)
     r, tau = np.zeros((n, 3)), np.zeros((n, 3))
-    best, least = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}, band
     origins, axes, centre, distances = view_frames(views)
     G = gauge_basis(axes, origins, centre, distances, True, translation)
     fx, fy = np.array([v.fx for v in views]), np.array([v.fy for v in views])
     for k in range(rounds + 1):
         now = {"camera_rotation": r.copy(), "camera_translation": tau.copy()}
         margin = margins[k] if k < len(margins) else 0.0
-        if k > 0 or shifts is None or margin > 0:
+        if k > 0 or shifts is None:
             shifts, band, _ = silhouette_shifts(aligned_views(views, now), grid, step, margin)
         if k > 0 and band >= least:  # the last turn did not make the masks agree better
             break
