@@ -186,15 +186,16 @@ def aligned_corrections(views, rotation: bool = True, translation: bool = True, 
     moved = np.sqrt(2) * ((rounds + len(COARSE_MARGINS)) * MAX_SHIFT_PX + sum(COARSE_MARGINS))
     reach = 1.2 * (moved + np.sqrt(2) + max(COARSE_MARGINS))
     grid = grid[second <= reach]
-    best, least = registration_rounds(views, grid, step, shifts, least, (), rounds, translation, max_rotation)
+    best, least = registration_rounds(views, grid, step, shifts, least, (), rounds, translation=translation,
+                                      max_rotation=max_rotation)
     if any(np.any(v) for v in best.values()):
         return best
-    coarse, fewer = registration_rounds(views, grid, step, None, least, COARSE_MARGINS,
-                                        rounds + len(COARSE_MARGINS), translation, max_rotation)
+    coarse, fewer = registration_rounds(views, grid, step, None, least, COARSE_MARGINS, rounds + len(COARSE_MARGINS),
+                                        translation=translation, max_rotation=max_rotation)
     return coarse if fewer < least else best
 
 
-def registration_rounds(views, grid: np.ndarray, step: float, shifts, band: float, margins: tuple, rounds: int,
+def registration_rounds(views, grid: np.ndarray, step: float, shifts, band: float, margins: tuple, rounds: int, *,
                         translation: bool, max_rotation: float) -> tuple:
     """(corrections, band): of the poses ``rounds`` rounds pass through from the given ones,
     those whose masks disagree least (:func:`silhouette_shifts`); round k registers against the
