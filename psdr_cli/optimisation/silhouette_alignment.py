@@ -7,10 +7,10 @@ every side, and the loop starts from it and from the wrong poses. Before carving
 therefore turned until its mask fits inside the silhouette of the hull of the other views
 (silhouette coherence):
 
-1. carve at the current poses, keeping for each grid point x its largest
-   mask distance δ₁(x) over the views that see it, the view v₁(x) it comes from and the second
-   largest δ₂(x); the exact hull of the views other than v is then
-   H₋ᵥ = { x : (δ₂(x) if v₁(x) = v else δ₁(x)) ≤ 0 } (≤ m in the rounds carved m pixels wide, below);
+1. carve at the current poses, keeping for each grid point x its largest mask distance δ₁(x) over
+   the views that see it, the view v₁(x) it comes from and the second largest δ₂(x); the exact
+   hull of the views other than v is then H₋ᵥ = { x : (δ₂(x) if v₁(x) = v else δ₁(x)) ≤ 0 }
+   (≤ m in the rounds carved m pixels wide, below);
 2. draw H₋ᵥ in view v (each voxel as its centre and its eight corners) and find the image shift
    s = (Δu, Δv) that puts v's mask inside that silhouette: the least mean of min(D(x − s),
    :data:`TRUNCATE_PX`) over the pixels x of the mask's outline that lie within
